@@ -1,0 +1,7 @@
+"""Neural fields: forward(x[..., 3], latent=None) -> value[...] in the unit frame."""
+
+from neuralsurf.models.encodings import FourierFeatures, HashGrid
+from neuralsurf.models.field import NormalizedField
+from neuralsurf.models.sdf_mlp import SDFMLP, Sine
+
+__all__ = ["FourierFeatures", "HashGrid", "NormalizedField", "SDFMLP", "Sine"]

@@ -1,0 +1,98 @@
+"""Input encodings of 3D points: x[..., 3] -> [x, features][..., out_dim].
+
+Every encoding keeps the raw coordinates as its first three outputs, so that a geometric
+initialisation of the network after it (zero weights on the features) starts from a sphere.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+from neuralsurf.errors import ConfigError
+
+
+class FourierFeatures(nn.Module):
+    """NeRF-style positional encoding: [x, sin(2^k pi x), cos(2^k pi x)] for k < frequencies."""
+
+    def __init__(self, frequencies: int = 6):
+        super().__init__()
+        if frequencies < 0:
+            raise ConfigError(f"FourierFeatures needs frequencies >= 0, got {frequencies}")
+        self.register_buffer("bands", math.pi * 2.0 ** torch.arange(frequencies), persistent=False)
+        self.out_dim = 3 + 6 * frequencies
+
+    def forward(self, x: Tensor) -> Tensor:
+        """x[..., 3] -> [..., 3 + 6 * frequencies]."""
+        angles = (x[..., None] * self.bands).flatten(-2)
+        return torch.cat([x, torch.sin(angles), torch.cos(angles)], dim=-1)
+
+
+# large primes of Teschner et al. (2003), as used by Instant-NGP's spatial hash
+_PRIMES = (1, 2_654_435_761, 805_459_861)
+
+
+class HashGrid(nn.Module):
+    """Multi-resolution grid of learned features (Instant-NGP, Mueller et al. 2022), pure PyTorch.
+
+    Level l has resolution base * growth^l over the cube [-bound, bound]^3; a level whose
+    (res + 1)^3 corners fit in the table is stored densely, finer levels are hashed. Features are
+    trilinearly interpolated, so the encoding is differentiable twice in x (eikonal terms).
+    """
+
+    def __init__(
+        self,
+        levels: int = 8,
+        features_per_level: int = 2,
+        log2_table_size: int = 19,
+        base_resolution: int = 16,
+        max_resolution: int = 512,
+        bound: float = 0.6,
+        init_scale: float = 1e-4,
+    ):
+        super().__init__()
+        if levels < 1 or base_resolution < 2 or max_resolution < base_resolution:
+            raise ConfigError(
+                f"HashGrid needs levels >= 1 and 2 <= base_resolution <= max_resolution, got "
+                f"levels={levels}, base_resolution={base_resolution}, max_resolution={max_resolution}"
+            )
+        growth = (max_resolution / base_resolution) ** (1 / max(levels - 1, 1))
+        resolutions = [int(round(base_resolution * growth**level)) for level in range(levels)]
+        table = 2**log2_table_size
+        sizes = [min((r + 1) ** 3, table) for r in resolutions]
+        self.resolutions = resolutions
+        self.hashed = [(r + 1) ** 3 > table for r in resolutions]
+        self.bound = bound
+        self.offsets = [0, *torch.tensor(sizes).cumsum(0).tolist()]
+        self.table = nn.Parameter(init_scale * (2 * torch.rand(self.offsets[-1], features_per_level) - 1))
+        self.out_dim = 3 + levels * features_per_level
+        corners = torch.tensor([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)])
+        self.register_buffer("corners", corners, persistent=False)
+
+    def _index(self, corner: Tensor, level: int) -> Tensor:
+        """Int[Tensor, "... 8 3"] integer grid corners -> table rows [... 8] of one level."""
+        res = self.resolutions[level]
+        if self.hashed[level]:
+            size = self.offsets[level + 1] - self.offsets[level]
+            h = corner[..., 0] * _PRIMES[0] ^ corner[..., 1] * _PRIMES[1] ^ corner[..., 2] * _PRIMES[2]
+            row = h % size
+        else:
+            row = (corner[..., 0] * (res + 1) + corner[..., 1]) * (res + 1) + corner[..., 2]
+        return row + self.offsets[level]
+
+    def forward(self, x: Tensor) -> Tensor:
+        """x[..., 3] in [-bound, bound] (clamped outside) -> [..., out_dim]."""
+        u = ((x.clamp(-self.bound, self.bound) + self.bound) / (2 * self.bound)).unsqueeze(-2)  # [..., 1, 3]
+        features = [x]
+        for level, res in enumerate(self.resolutions):
+            position = u * res
+            cell = position.detach().floor().clamp(max=res - 1)
+            frac = position - cell  # [..., 1, 3], differentiable in x
+            corner = cell.long() + self.corners  # [..., 8, 3]
+            weight = torch.where(self.corners.bool(), frac, 1 - frac).prod(-1)  # [..., 8]
+            values = self.table[self._index(corner, level)]  # [..., 8, F]
+            features.append((weight.unsqueeze(-1) * values).sum(-2))
+        return torch.cat(features, dim=-1)
+

@@ -1,0 +1,9 @@
+"""Built-in data: the Stanford bunny, analytic shapes with exact SDFs, scene recipes."""
+
+from neuralsurf.geometry import cloud_from_mesh as sample_surface
+from neuralsurf.scenes.analytic import Box, Sphere, Torus, analytic_shape
+from neuralsurf.scenes.bunny import bunny, bunny_path
+from neuralsurf.scenes.recipes import Scene, analytic_scene, file_scene, mesh_scene
+
+__all__ = ["Box", "Scene", "Sphere", "Torus", "analytic_scene", "analytic_shape", "bunny", "bunny_path",
+           "file_scene", "mesh_scene", "sample_surface"]

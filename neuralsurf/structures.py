@@ -1,0 +1,256 @@
+"""Small frozen dataclasses of tensors shared by every module.
+
+Everything here lives in the user's world frame; `Normalization` is the one way in and out of the
+unit cube that the models and metrics work in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from neuralsurf.errors import InputError
+
+if TYPE_CHECKING:
+    import open3d
+    import trimesh
+
+
+def as_tensor(values, dtype: torch.dtype, name: str, columns: int | None = 3) -> Tensor:
+    """Convert array-like `values` to a tensor, checking `(n, columns)` shape and finiteness."""
+    try:
+        tensor = torch.as_tensor(np.asarray(values) if not isinstance(values, Tensor) else values)
+    except (TypeError, ValueError) as error:
+        raise InputError(f"{name} must be an array of numbers, got {type(values).__name__}: {error}")
+    tensor = tensor.to(dtype)
+    if columns is not None and (tensor.ndim != 2 or tensor.shape[1] != columns):
+        raise InputError(
+            f"{name} must have shape (n, {columns}), got {tuple(tensor.shape)}; "
+            f"reshape it to one row per element"
+        )
+    if tensor.is_floating_point() and not torch.isfinite(tensor).all():
+        bad = int((~torch.isfinite(tensor)).any(dim=-1).sum()) if tensor.ndim == 2 else -1
+        raise InputError(
+            f"{name} contains NaN or inf ({bad} rows); remove or repair them before building the object"
+        )
+    return tensor
+
+
+def _float_dtype(values) -> torch.dtype:
+    """float64 when the input already is, else float32."""
+    dtype = getattr(values, "dtype", None)
+    return torch.float64 if dtype in (np.float64, torch.float64) else torch.float32
+
+
+@dataclass(frozen=True)
+class PointCloud:
+    """A set of points in the world frame, with optional unit normals and colours."""
+
+    points: Tensor
+    """Float[Tensor, "n 3"]: positions in the world frame."""
+    normals: Tensor | None = None
+    """Float[Tensor, "n 3"] | None: unit outward normals, one per point."""
+    colors: Tensor | None = None
+    """Float[Tensor, "n 3"] | None: RGB in [0, 1], one per point."""
+
+    def __post_init__(self) -> None:
+        points = as_tensor(self.points, _float_dtype(self.points), "PointCloud.points")
+        if len(points) == 0:
+            raise InputError("PointCloud.points is empty; a point cloud needs at least one point")
+        object.__setattr__(self, "points", points)
+        for name in ("normals", "colors"):
+            value = getattr(self, name)
+            if value is None:
+                continue
+            value = as_tensor(value, points.dtype, f"PointCloud.{name}").to(points.device)
+            if len(value) != len(points):
+                raise InputError(
+                    f"PointCloud.{name} has {len(value)} rows but there are {len(points)} points; "
+                    f"give one {name[:-1]} per point or None"
+                )
+            object.__setattr__(self, name, value)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    @property
+    def has_normals(self) -> bool:
+        return self.normals is not None
+
+    def to(self, device: torch.device | str) -> PointCloud:
+        """The same cloud on `device`."""
+        move = lambda t: None if t is None else t.to(device)  # noqa: E731
+        return PointCloud(move(self.points), move(self.normals), move(self.colors))
+
+    def with_normals(self, normals: Tensor | None) -> PointCloud:
+        """The same points with `normals` (n, 3) replacing the current ones."""
+        return replace(self, normals=normals)
+
+    def select(self, index: Tensor) -> PointCloud:
+        """The subset of points picked by `index` (a boolean mask or integer indices)."""
+        pick = lambda t: None if t is None else t[index]  # noqa: E731
+        return PointCloud(self.points[index], pick(self.normals), pick(self.colors))
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """A triangle mesh in the world frame: the one mesh type of every method."""
+
+    vertices: Tensor
+    """Float[Tensor, "v 3"]: vertex positions (float32 or float64, kept as given)."""
+    faces: Tensor
+    """Int[Tensor, "f 3"]: counter-clockwise vertex indices seen from outside (int64)."""
+    vertex_colors: Tensor | None = None
+    """Float[Tensor, "v 3"] | None: RGB in [0, 1]."""
+
+    def __post_init__(self) -> None:
+        vertices = as_tensor(self.vertices, _float_dtype(self.vertices), "Mesh.vertices")
+        faces = as_tensor(self.faces, torch.int64, "Mesh.faces")
+        if len(faces) and (faces.min() < 0 or faces.max() >= len(vertices)):
+            raise InputError(
+                f"Mesh.faces index vertices outside [0, {len(vertices)}): "
+                f"min {int(faces.min())}, max {int(faces.max())}; check the face array"
+            )
+        object.__setattr__(self, "vertices", vertices)
+        object.__setattr__(self, "faces", faces.to(vertices.device))
+        if self.vertex_colors is not None:
+            colors = as_tensor(self.vertex_colors, vertices.dtype, "Mesh.vertex_colors")
+            if len(colors) != len(vertices):
+                raise InputError(
+                    f"Mesh.vertex_colors has {len(colors)} rows for {len(vertices)} vertices"
+                )
+            object.__setattr__(self, "vertex_colors", colors.to(vertices.device))
+
+    @property
+    def is_empty(self) -> bool:
+        return len(self.faces) == 0
+
+    @property
+    def is_watertight(self) -> bool:
+        """Closed and consistently oriented: after merging coincident vertices (STL and per-face
+        vertex arrays duplicate them), every edge is shared by exactly two faces with opposite
+        directions."""
+        if self.is_empty:
+            return False
+        merged = self.to_trimesh()
+        merged.merge_vertices()
+        return bool(merged.is_watertight and merged.is_winding_consistent)
+
+    @property
+    def bounds(self) -> Tensor:
+        """Float[Tensor, "2 3"]: min and max corner."""
+        return torch.stack([self.vertices.min(0).values, self.vertices.max(0).values])
+
+    def face_normals(self) -> Tensor:
+        """Float[Tensor, "f 3"]: unit normals of the faces."""
+        a, b, c = self.vertices[self.faces].unbind(1)
+        return torch.nn.functional.normalize(torch.linalg.cross(b - a, c - a), dim=-1)
+
+    def face_areas(self) -> Tensor:
+        """Float[Tensor, "f"]: triangle areas."""
+        a, b, c = self.vertices[self.faces].unbind(1)
+        return 0.5 * torch.linalg.cross(b - a, c - a).norm(dim=-1)
+
+    def to(self, device: torch.device | str) -> Mesh:
+        colors = None if self.vertex_colors is None else self.vertex_colors.to(device)
+        return Mesh(self.vertices.to(device), self.faces.to(device), colors)
+
+    def transformed(self, transform: Tensor) -> Mesh:
+        """The mesh moved by a 4x4 rigid or similarity `transform`."""
+        t = torch.as_tensor(transform, dtype=self.vertices.dtype, device=self.vertices.device)
+        return replace(self, vertices=self.vertices @ t[:3, :3].T + t[:3, 3])
+
+    # conversions: exact in both directions (float64 vertices stay float64)
+    def to_trimesh(self) -> trimesh.Trimesh:
+        import trimesh
+
+        colors = None if self.vertex_colors is None else self.vertex_colors.cpu().numpy()
+        return trimesh.Trimesh(
+            self.vertices.detach().cpu().numpy(),
+            self.faces.cpu().numpy(),
+            vertex_colors=colors,
+            process=False,
+        )
+
+    @classmethod
+    def from_trimesh(cls, mesh: trimesh.Trimesh) -> Mesh:
+        colors = None
+        visual = getattr(mesh, "visual", None)
+        if getattr(visual, "kind", None) == "vertex":
+            colors = np.asarray(visual.vertex_colors)[:, :3] / 255.0
+        return cls(np.asarray(mesh.vertices), np.asarray(mesh.faces), colors)
+
+    def to_open3d(self) -> open3d.geometry.TriangleMesh:
+        import open3d as o3d
+
+        mesh = o3d.geometry.TriangleMesh(
+            o3d.utility.Vector3dVector(self.vertices.detach().cpu().double().numpy()),
+            o3d.utility.Vector3iVector(self.faces.cpu().int().numpy()),
+        )
+        if self.vertex_colors is not None:
+            mesh.vertex_colors = o3d.utility.Vector3dVector(self.vertex_colors.cpu().double().numpy())
+        return mesh
+
+    @classmethod
+    def from_open3d(cls, mesh: open3d.geometry.TriangleMesh, dtype=torch.float64) -> Mesh:
+        colors = np.asarray(mesh.vertex_colors) if mesh.has_vertex_colors() else None
+        vertices = torch.as_tensor(np.asarray(mesh.vertices)).to(dtype)
+        return cls(vertices, np.asarray(mesh.triangles).astype(np.int64), colors)
+
+
+@dataclass(frozen=True)
+class Normalization:
+    """A similarity between the world frame and the unit frame: `unit = (world - center) / scale`.
+
+    Built from a bounding box, it centres the box and maps its longest side to length 1, so the
+    shape lies in [-0.5, 0.5]^3. Signed distances scale by `scale` on the way back to the world.
+    """
+
+    center: Tensor = field(default_factory=lambda: torch.zeros(3, dtype=torch.float64))
+    """Float[Tensor, "3"]: world position of the unit frame's origin."""
+    scale: float = 1.0
+    """World length of one unit."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "center", torch.as_tensor(self.center, dtype=torch.float64).reshape(3))
+        if not (np.isfinite(self.scale) and self.scale > 0):
+            raise InputError(
+                f"Normalization.scale must be positive and finite, got {self.scale}; "
+                f"the input probably has all points at one location"
+            )
+        object.__setattr__(self, "scale", float(self.scale))
+
+    @classmethod
+    def from_points(cls, points: Tensor) -> Normalization:
+        """Centre the bounding box of `points` (n, 3), longest side 1."""
+        points = torch.as_tensor(points, dtype=torch.float64)
+        lo, hi = points.min(0).values, points.max(0).values
+        return cls(center=(lo + hi) / 2, scale=float((hi - lo).max()))
+
+    def to_unit(self, x: Tensor) -> Tensor:
+        """World points x[..., 3] -> unit-frame points, same dtype and device."""
+        return (x - self.center.to(x)) / self.scale
+
+    def to_world(self, u: Tensor) -> Tensor:
+        """Unit-frame points u[..., 3] -> world points, same dtype and device."""
+        return u * self.scale + self.center.to(u)
+
+    def cloud_to_unit(self, cloud: PointCloud) -> PointCloud:
+        return replace(cloud, points=self.to_unit(cloud.points))
+
+    def mesh_to_unit(self, mesh: Mesh) -> Mesh:
+        return replace(mesh, vertices=self.to_unit(mesh.vertices))
+
+    def mesh_to_world(self, mesh: Mesh) -> Mesh:
+        return replace(mesh, vertices=self.to_world(mesh.vertices))
+
+    def state_dict(self) -> dict[str, Tensor]:
+        return {"center": self.center.clone(), "scale": torch.tensor(self.scale, dtype=torch.float64)}
+
+    @classmethod
+    def from_state_dict(cls, state: dict[str, Tensor]) -> Normalization:
+        return cls(center=state["center"], scale=float(state["scale"]))

@@ -1,0 +1,71 @@
+import pytest
+import torch
+
+from neuralsurf.errors import ConfigError
+from neuralsurf.losses import (
+    LossWeights,
+    clamped_l1,
+    eikonal_loss,
+    evaluate_sdf_batch,
+    normal_loss,
+    sdf_losses,
+)
+from neuralsurf.sampling import draw_batch, make_sdf_samples
+from neuralsurf.scenes import Sphere
+
+
+class ExactSphere(torch.nn.Module):
+    def __init__(self, radius: float = 0.3):
+        super().__init__()
+        self.sphere = Sphere(radius=radius)
+
+    def forward(self, x, latent=None):
+        return self.sphere.sdf(x)
+
+
+def sphere_batch(with_normals: bool = True):
+    cloud = Sphere(radius=0.3).sample_surface(5000, seed=1)
+    if not with_normals:
+        cloud = cloud.with_normals(None)
+    samples = make_sdf_samples(cloud, n_near=20_000, n_free=5000, seed=0)
+    return draw_batch(samples, 2048, 0.25, torch.Generator().manual_seed(0))
+
+
+def test_exact_sphere_sdf_scores_about_zero():
+    batch = sphere_batch()
+    terms = sdf_losses(evaluate_sdf_batch(ExactSphere(), batch), batch, LossWeights())
+    assert set(terms) == {"surface", "sdf", "normal", "eikonal", "total"}
+    assert terms["surface"] < 1e-6
+    assert terms["normal"] < 1e-6
+    assert terms["eikonal"] < 1e-6
+    # the targets are nearest-neighbour estimates: small but not exactly zero
+    assert terms["sdf"] < 2e-3
+
+
+def test_wrong_sphere_scores_its_error():
+    batch = sphere_batch()
+    terms = sdf_losses(evaluate_sdf_batch(ExactSphere(radius=0.35), batch), batch, LossWeights())
+    assert terms["surface"].item() == pytest.approx(0.05, abs=1e-5)
+
+
+def test_terms_without_normals_and_weights_switch_terms_off():
+    batch = sphere_batch(with_normals=False)
+    weights = LossWeights(normal=0.5, eikonal=0.0, off_surface=1.0)
+    terms = sdf_losses(evaluate_sdf_batch(ExactSphere(), batch), batch, weights)
+    assert set(terms) == {"surface", "off_surface", "total"}
+    assert terms["total"].item() == pytest.approx(3.0 * terms["surface"].item() + terms["off_surface"].item())
+
+
+def test_loss_primitives_on_hand_made_values():
+    assert clamped_l1(torch.tensor([0.5, 0.0]), torch.tensor([0.2, 0.05]), clamp=0.1) == pytest.approx(0.025)
+    assert eikonal_loss(torch.tensor([[3.0, 4.0, 0.0]])) == pytest.approx(16.0)
+    assert normal_loss(torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[0.0, 0.0, -1.0]])) == pytest.approx(2.0)
+
+
+def test_bad_weights_are_reported():
+    with pytest.raises(ConfigError, match=">= 0"):
+        LossWeights(surface=-1.0)
+    batch = sphere_batch()
+    with pytest.raises(ConfigError, match="at least one"):
+        sdf_losses(evaluate_sdf_batch(ExactSphere(), batch), batch,
+                   LossWeights(surface=0, sdf=0, normal=0, eikonal=0, off_surface=0))

@@ -1,0 +1,64 @@
+import pytest
+import torch
+
+from neuralsurf.errors import InputError
+from neuralsurf.sampling import approximate_sdf, draw_batch, make_sdf_samples
+from neuralsurf.scenes import Box, Sphere, Torus
+
+
+@pytest.mark.parametrize("shape", [Sphere(radius=0.3), Torus(major=0.3, minor=0.1), Box()])
+def test_surface_samples_lie_on_the_surface_with_outward_normals(shape):
+    cloud = shape.sample_surface(20_000, seed=0)
+    assert shape.sdf(cloud.points).abs().max() < 1e-12
+    # the exact SDF increases along the normal
+    assert (shape.sdf(cloud.points + 1e-4 * cloud.normals) > 0).all()
+    assert torch.allclose(cloud.normals.norm(dim=-1), torch.ones(len(cloud), dtype=torch.float64))
+
+
+def test_surface_samples_are_area_uniform_on_the_torus():
+    torus = Torus(major=0.3, minor=0.1)
+    points = torus.sample_surface(200_000, seed=0).points
+    outer = (points[:, :2].norm(dim=-1) > 0.3).float().mean()
+    # share of area on the outer half: (pi R + 2 r) / (2 pi R)
+    expected = (torch.pi * 0.3 + 2 * 0.1) / (2 * torch.pi * 0.3)
+    assert outer == pytest.approx(expected, abs=5e-3)
+
+
+@pytest.mark.parametrize("shape", [Sphere(radius=0.3), Torus(major=0.3, minor=0.1)])
+def test_approximate_sdf_matches_exact_sdf(shape):
+    cloud = shape.sample_surface(50_000, seed=0)
+    samples = make_sdf_samples(cloud.to("cpu"), n_near=20_000, n_free=20_000, seed=1)
+    near_error = (samples.near_sdf - shape.sdf(samples.near_points.double()).float()).abs()
+    free_error = (samples.free_sdf - shape.sdf(samples.free_points.double()).float()).abs()
+    assert near_error.median() < 2e-4
+    assert near_error.quantile(0.99) < 3e-3
+    assert free_error.median() < 2e-3
+    assert (torch.sign(samples.free_sdf) == torch.sign(shape.sdf(samples.free_points.double()))).float().mean() > 0.99
+
+
+def test_point_to_plane_is_used_near_the_surface():
+    points = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    normals = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    query = torch.tensor([[0.1, 0.0, 0.05], [0.0, 0.0, -3.0]])
+    sdf = approximate_sdf(query, points, normals, spacing=1.0)
+    assert torch.allclose(sdf, torch.tensor([0.05, -3.0]))
+
+
+def test_samples_without_normals_have_no_sdf_and_batches_have_the_right_sizes():
+    cloud = Sphere().sample_surface(1000).with_normals(None)
+    samples = make_sdf_samples(cloud, n_near=5000, n_free=1000, box=0.6, seed=0)
+    assert samples.near_sdf is None and samples.free_sdf is None
+    assert samples.free_points.abs().max() <= 0.6
+    batch = draw_batch(samples, 256, 0.5, torch.Generator().manual_seed(0))
+    assert (len(batch.surface_points), len(batch.near_points), len(batch.free_points)) == (256, 256, 128)
+
+
+def test_same_seed_same_samples():
+    cloud = Sphere().sample_surface(1000)
+    a, b = make_sdf_samples(cloud, n_near=100, n_free=100, seed=3), make_sdf_samples(cloud, n_near=100, n_free=100, seed=3)
+    assert torch.equal(a.near_points, b.near_points) and torch.equal(a.free_sdf, b.free_sdf)
+
+
+def test_bad_sampling_parameters_are_reported():
+    with pytest.raises(InputError, match="near_sigmas"):
+        make_sdf_samples(Sphere().sample_surface(100), near_sigmas=(0.0,))

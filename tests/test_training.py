@@ -1,0 +1,106 @@
+import pytest
+import torch
+
+from neuralsurf.errors import DeviceError, InputError, NeuralsurfError
+from neuralsurf.models import SDFMLP, HashGrid
+from neuralsurf.scenes import Sphere
+from neuralsurf.structures import PointCloud
+from neuralsurf import training
+from neuralsurf.sampling import draw_batch
+from neuralsurf.training import cosine_schedule, fit, load_checkpoint, resolve_device
+
+TINY = dict(batch_size=256, sampling=dict(n_near=4000, n_free=1000), image_every=0, log_every=5,
+            progress=False, device="cpu")
+
+
+def tiny_model(seed: int = 0) -> SDFMLP:
+    torch.manual_seed(seed)
+    return SDFMLP(width=32, depth=3, skip_layers=(), weight_norm=False,
+                  encoding=HashGrid(levels=3, log2_table_size=12, max_resolution=32))
+
+
+SPHERE = Sphere(center=(1.0, 2.0, 3.0), radius=2.0)
+
+
+def sphere_cloud(n: int = 2000) -> PointCloud:
+    return SPHERE.sample_surface(n, seed=0)
+
+
+def test_fit_learns_a_sphere_in_the_world_frame():
+    result = fit(tiny_model(), sphere_cloud(), steps=150, **TINY)
+    # in world units, within 0.2 of the surface (the sphere's diameter is 4)
+    surface = SPHERE.sample_surface(2000, seed=5)
+    offset = (torch.rand(2000, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) - 0.5) * 0.4
+    query = surface.points + offset * surface.normals
+    error = (result.field(query.float()).detach().double() - SPHERE.sdf(query)).abs()
+    assert error.median() < 0.01 and error.quantile(0.9) < 0.04
+    # the centre lies deeper than the clamp (0.1 unit = 0.4 world)
+    assert result.field(torch.tensor([[1.0, 2.0, 3.0]])) < -0.35
+    assert result.history["total"][-1] < result.history["total"][0]
+    assert result.steps == 150 and len(result.history["step"]) == 30
+
+
+def test_resume_equals_an_uninterrupted_run(tmp_path, monkeypatch):
+    straight = fit(tiny_model(), sphere_cloud(), steps=20, run_dir=tmp_path / "a", **TINY)
+
+    calls = []
+
+    def interrupted(*args):  # Ctrl-C while drawing the 14th batch
+        calls.append(1)
+        if len(calls) == 14:
+            raise KeyboardInterrupt
+        return draw_batch(*args)
+
+    monkeypatch.setattr(training, "draw_batch", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        fit(tiny_model(), sphere_cloud(), steps=20, run_dir=tmp_path / "b", checkpoint_every=10, **TINY)
+    monkeypatch.undo()
+    assert load_checkpoint(tmp_path / "b" / "checkpoints" / "last.pt")["step"] == 10
+    # a new process (other initial weights) finds the checkpoint and trains steps 10..19
+    resumed = fit(tiny_model(seed=1), sphere_cloud(), steps=20, run_dir=tmp_path / "b", **TINY)
+    assert resumed.steps == 20
+    for a, b in zip(straight.model.state_dict().values(), resumed.model.state_dict().values()):
+        assert torch.equal(a, b)
+    assert straight.history["total"] == resumed.history["total"]
+
+
+def test_checkpoints_are_plain_tensors_and_written_atomically(tmp_path):
+    fit(tiny_model(), sphere_cloud(), steps=5, run_dir=tmp_path, **TINY)
+    folder = tmp_path / "checkpoints"
+    assert sorted(p.name for p in folder.iterdir()) == ["last.pt"]
+    state = torch.load(folder / "last.pt", weights_only=True)
+    assert state["step"] == 5 and "model" in state and "normalization" in state
+
+
+def test_a_foreign_checkpoint_is_reported(tmp_path):
+    fit(tiny_model(), sphere_cloud(), steps=5, run_dir=tmp_path, **TINY)
+    other = SDFMLP(width=16, depth=2, skip_layers=(), weight_norm=False)
+    with pytest.raises(NeuralsurfError, match="does not match"):
+        fit(other, sphere_cloud(), steps=10, run_dir=tmp_path, **TINY)
+
+
+def test_fit_without_normals_estimates_them():
+    cloud = sphere_cloud().with_normals(None)
+    result = fit(tiny_model(), cloud, steps=60, **TINY)
+    f = result.field(torch.tensor([[1.0, 2.0, 3.0], [1.0, 2.0, 5.2]])).detach()
+    assert f[0] < 0 < f[1]
+
+
+def test_bad_input_and_devices_are_reported():
+    with pytest.raises(InputError, match="PointCloud"):
+        fit(tiny_model(), torch.zeros(10, 3), steps=1, **TINY)
+    with pytest.raises(InputError, match="no normals"):
+        fit(tiny_model(), sphere_cloud().with_normals(None), steps=1, normals="given", **{**TINY})
+    with pytest.raises(DeviceError, match="unknown device"):
+        resolve_device("tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(DeviceError, match="no CUDA GPU"):
+            resolve_device("cuda")
+    assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def test_cosine_schedule():
+    assert cosine_schedule(0, 100, 0, 0.01) == pytest.approx(1.0)
+    assert cosine_schedule(50, 100, 0, 0.01) == pytest.approx(0.505)
+    assert cosine_schedule(100, 100, 0, 0.01) == pytest.approx(0.01)
+    assert cosine_schedule(4, 100, 10, 0.0) == pytest.approx(0.5)
