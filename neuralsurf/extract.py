@@ -41,8 +41,10 @@ log = logging.getLogger(__name__)
 Field = Callable[[Tensor], Tensor]
 
 _BLOCK = 16
-"""Marching cubes runs on blocks of _BLOCK^3 cells (and the sparse store pages are that size)."""
-_CELLS_PER_BATCH = 65_536
+"""Marching cubes runs on blocks of _BLOCK^3 cells."""
+_PAGE = 8
+"""The sparse store keeps values in pages of _PAGE^3 grid points, allocated where needed."""
+_CELLS_PER_BATCH = 16_384
 """Coarse-to-fine bookkeeping works on this many cells at a time, bounding its memory."""
 _CORNERS = np.array(list(itertools.product((0, 1), repeat=3)), dtype=np.int64)
 """Int[ndarray, "8 3"]: corner offsets of a cell."""
@@ -190,40 +192,61 @@ class _Sampler:
 
 
 class _SparseValues:
-    """Float32 values on a subset of grid points, in _BLOCK^3 pages allocated on first write.
+    """Float32 values on a subset of grid points: a dense coarse lattice (`set_base`) plus
+    _PAGE^3 pages allocated on first write, so memory follows the refined shell, not the grid.
 
     Unknown points read as NaN (the sampler rejects NaN field values, so NaN only means unknown).
     """
 
     def __init__(self, shape: tuple[int, int, int]):
         self.shape = shape
-        self.table = np.full([-(-s // _BLOCK) for s in shape], -1, dtype=np.int64)
-        self.pages = np.empty((0, _BLOCK, _BLOCK, _BLOCK), dtype=np.float32)
+        self.table = np.full([-(-s // _PAGE) for s in shape], -1, dtype=np.int64)
+        self.pages = np.empty((0, _PAGE, _PAGE, _PAGE), dtype=np.float32)
         self.used = 0
+        self.base = np.empty((0, 0, 0), dtype=np.float32)
+        self.base_maps = [np.full(s, -1, dtype=np.int64) for s in shape]
+
+    def set_base(self, axes: list[np.ndarray], values: np.ndarray) -> None:
+        """Store a lattice densely instead of in pages (the coarse grid: it touches every page).
+
+        axes: per axis the grid coordinates of the lattice (Int[ndarray, "a"], "b", "c");
+        values: Float[ndarray, "a b c"].
+        """
+        self.base = values.astype(np.float32)
+        for lattice, mapping in zip(axes, self.base_maps):
+            mapping[lattice] = np.arange(len(lattice))
+
+    def _base_get(self, index: np.ndarray) -> np.ndarray:
+        """Int[ndarray, "n 3"] -> Float[ndarray, "n"]: lattice values, NaN off the lattice."""
+        where = [mapping[index[:, a]] for a, mapping in enumerate(self.base_maps)]
+        on = (where[0] >= 0) & (where[1] >= 0) & (where[2] >= 0)
+        out = np.full(len(index), np.nan, dtype=np.float32)
+        out[on] = self.base[where[0][on], where[1][on], where[2][on]]
+        return out
 
     def locate(self, index: np.ndarray, create: bool) -> tuple[np.ndarray, ...]:
         """Int[ndarray, "n 3"] grid points -> (page, i, j, k) addresses, each Int[ndarray, "n"];
         page is -1 for unallocated pages unless `create` allocates them."""
-        blocks = tuple((index // _BLOCK).T)
+        blocks = tuple((index // _PAGE).T)
         page = self.table[blocks]
         if create and (page < 0).any():
             missing = np.unique(np.ravel_multi_index(blocks, self.table.shape)[page < 0])
             if self.used + len(missing) > len(self.pages):
-                grown = np.full((max(2 * len(self.pages), self.used + len(missing)),) + self.pages.shape[1:],
-                                np.nan, dtype=np.float32)
+                capacity = max(len(self.pages) * 3 // 2, self.used + len(missing))
+                grown = np.full((capacity,) + self.pages.shape[1:], np.nan, dtype=np.float32)
                 grown[: self.used] = self.pages[: self.used]
                 self.pages = grown
             self.table.reshape(-1)[missing] = np.arange(self.used, self.used + len(missing))
             self.used += len(missing)
             page = self.table[blocks]
-        offset = index % _BLOCK
+        offset = index % _PAGE
         return page, offset[:, 0], offset[:, 1], offset[:, 2]
 
     def get(self, index: np.ndarray) -> np.ndarray:
         """Int[ndarray, "n 3"] -> Float[ndarray, "n"]: stored values, NaN where unknown."""
         page, i, j, k = self.locate(index, create=False)
-        out = np.full(len(index), np.nan, dtype=np.float32)
-        have = page >= 0
+        out = self._base_get(index)
+        have = (page >= 0) & np.isnan(out)
         out[have] = self.pages[page[have], i[have], j[have], k[have]]
         return out
 
@@ -233,31 +256,40 @@ class _SparseValues:
         Repeats are removed without sorting: every unknown entry writes its row number into the
         point's slot and the rows that read their own number back are the ones evaluated.
         """
-        address = self.locate(index, create=True)
-        values = self.pages[address]
-        unknown = np.flatnonzero(np.isnan(values))
+        values = self._base_get(index)
+        rest = np.flatnonzero(np.isnan(values))
+        if not len(rest):
+            return values
+        address = self.locate(index[rest], create=True)
+        paged = self.pages[address]
+        unknown = np.flatnonzero(np.isnan(paged))
         if len(unknown):
             picked = tuple(a[unknown] for a in address)
             ids = np.arange(len(unknown), dtype=np.int32)
             self.pages.view(np.int32)[picked] = ids  # small non-negative ints: never NaN bit patterns
             first = unknown[self.pages.view(np.int32)[picked] == ids]
-            self.pages[tuple(a[first] for a in address)] = evaluate(index[first])
-            values[unknown] = self.pages[picked]
+            self.pages[tuple(a[first] for a in address)] = evaluate(index[rest[first]])
+            paged[unknown] = self.pages[picked]
+        values[rest] = paged
         return values
 
     def box(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Float[ndarray, "X Y Z"]: the values of grid points lo..hi (inclusive), NaN where unknown."""
         out = np.full(tuple(int(s) for s in hi - lo + 1), np.nan, dtype=np.float32)
-        first, last = lo // _BLOCK, hi // _BLOCK
+        first, last = lo // _PAGE, hi // _PAGE
         for block in itertools.product(*[range(a, b + 1) for a, b in zip(first, last)]):
             page = self.table[block]
             if page < 0:
                 continue
-            start = np.maximum(np.array(block) * _BLOCK, lo)
-            stop = np.minimum(np.array(block) * _BLOCK + _BLOCK - 1, hi) + 1
-            src = tuple(slice(a, b) for a, b in zip(start - np.array(block) * _BLOCK, stop - np.array(block) * _BLOCK))
+            start = np.maximum(np.array(block) * _PAGE, lo)
+            stop = np.minimum(np.array(block) * _PAGE + _PAGE - 1, hi) + 1
+            src = tuple(slice(a, b) for a, b in zip(start - np.array(block) * _PAGE, stop - np.array(block) * _PAGE))
             dst = tuple(slice(a, b) for a, b in zip(start - lo, stop - lo))
             out[dst] = self.pages[page][src]
+        where = [mapping[a : b + 1] for mapping, a, b in zip(self.base_maps, lo, hi)]
+        on = [np.flatnonzero(w >= 0) for w in where]
+        if all(len(o) for o in on):
+            out[np.ix_(*on)] = self.base[np.ix_(*[w[o] for w, o in zip(where, on)])]
         return out
 
 
@@ -295,12 +327,13 @@ def _coarse_to_fine(sampler: _Sampler, grid: Grid, level: float, margin: float, 
     cells, the only places the fine grid can have a sign change.
     """
     n = np.array(grid.cells)
+    block_counts = tuple(-(-n // _BLOCK))
     store = _SparseValues(grid.shape)
     size = 2**depth
     counts = -(-n // size)
     axes = [np.minimum(np.arange(c + 1) * size, m) for c, m in zip(counts, n)]
-    coarse = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    values = store.fill(coarse, sampler).reshape(tuple(counts + 1))
+    values = sampler(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)).reshape(tuple(counts + 1))
+    store.set_base(axes, values)
     cells = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), -1).reshape(-1, 3)
     corner_values = np.stack([values[tuple((cells + o).T)] for o in _CORNERS], 1)
     parents = cells[_needs_refinement(corner_values, level, margin * math.sqrt(3) * size * grid.spacing)]
@@ -314,7 +347,7 @@ def _coarse_to_fine(sampler: _Sampler, grid: Grid, level: float, margin: float, 
             lattice = np.minimum(batch[:, None] * size + _LATTICE * half, n)
             values = store.fill(lattice.reshape(-1, 3), sampler).reshape(-1, 27)
             if half == 1:  # a refined cell of two fine cells lies in one block (_BLOCK is even)
-                blocks.append(np.ravel_multi_index(tuple((batch * size // _BLOCK).T), store.table.shape))
+                blocks.append(np.ravel_multi_index(tuple((batch * size // _BLOCK).T), block_counts))
                 continue
             children = (batch[:, None] * 2 + _CORNERS).reshape(-1, 3)
             corners = values[:, _CHILD_CORNERS].reshape(-1, 8)
@@ -323,7 +356,7 @@ def _coarse_to_fine(sampler: _Sampler, grid: Grid, level: float, margin: float, 
         parents = np.concatenate(refined) if refined else np.empty((0, 3), np.int64)
         size = half
     found = np.unique(np.concatenate(blocks)) if blocks else np.empty(0, np.int64)
-    return store, np.stack(np.unravel_index(found, store.table.shape), -1).reshape(-1, 3)
+    return store, np.stack(np.unravel_index(found, block_counts), -1).reshape(-1, 3)
 
 
 # --------------------------------------------------------------------------- blocked marching cubes

@@ -126,12 +126,14 @@ def parse_ply_header(data: bytes) -> tuple[str, list[tuple[str, int, list[tuple[
     return fmt, elements, end.end()
 
 
-def read_ply_vertices(data: bytes) -> dict[str, np.ndarray]:
-    """The vertex element of a PLY file as {property name: (n,) array of the file's type}."""
+def read_ply_vertices(data: bytes) -> tuple[dict[str, np.ndarray], list[str]]:
+    """The vertex element of a PLY file as {property name: (n,) array of the file's type}, and the
+    names of the other non-empty elements (faces, edges, ...), which are not read."""
     fmt, elements, offset = parse_ply_header(data)
     names = [name for name, _, _ in elements]
     if "vertex" not in names:
         raise FileFormatError(f"PLY file has no 'vertex' element (elements: {names})")
+    others = [name for name, count, _ in elements if name != "vertex" and count]
     before = elements[: names.index("vertex")]
     _, count, props = elements[names.index("vertex")]
     if any(t == "list" for _, _, ps in before + [("vertex", 0, props)] for _, t in ps):
@@ -147,7 +149,7 @@ def read_ply_vertices(data: bytes) -> dict[str, np.ndarray]:
             table = table.reshape(count, len(props))
         except ValueError as error:
             raise FileFormatError(f"ASCII PLY vertex data does not parse ({error}); the file is corrupt")
-        return {name: table[:, i].astype(t) for i, (name, t) in enumerate(props)}
+        return {name: table[:, i].astype(t) for i, (name, t) in enumerate(props)}, others
     endian = "<" if fmt == "binary_little_endian" else ">"
     dtype = np.dtype([(name, endian + t) for name, t in props])
     offset += sum(n * np.dtype([(p, endian + t) for p, t in ps]).itemsize for _, n, ps in before)
@@ -158,7 +160,7 @@ def read_ply_vertices(data: bytes) -> dict[str, np.ndarray]:
             f"binary PLY holds fewer than the {count} vertices its header declares ({error}); "
             f"the file is truncated"
         )
-    return {name: table[name].astype(table[name].dtype.newbyteorder("=")) for name, _ in props}
+    return {name: table[name].astype(table[name].dtype.newbyteorder("=")) for name, _ in props}, others
 
 
 def write_ply(
@@ -232,9 +234,13 @@ def build_cloud(path: Path, points: np.ndarray, normals=None, colors=None) -> Po
 
 def _read_ply(path: Path) -> PointCloud:
     try:
-        columns = read_ply_vertices(path.read_bytes())
+        columns, others = read_ply_vertices(path.read_bytes())
     except FileFormatError as error:
         raise named(path, error) from error
+    if others:
+        warnings.warn(
+            f"{str(path)!r}: PLY elements {others} are not kept; use read_mesh for faces", stacklevel=3
+        )
     return cloud_from_ply_columns(columns, path)
 
 

@@ -62,37 +62,37 @@ class HashGrid(nn.Module):
         resolutions = [int(round(base_resolution * growth**level)) for level in range(levels)]
         table = 2**log2_table_size
         sizes = [min((r + 1) ** 3, table) for r in resolutions]
-        self.resolutions = resolutions
-        self.hashed = [(r + 1) ** 3 > table for r in resolutions]
         self.bound = bound
-        self.offsets = [0, *torch.tensor(sizes).cumsum(0).tolist()]
-        self.table = nn.Parameter(init_scale * (2 * torch.rand(self.offsets[-1], features_per_level) - 1))
         self.out_dim = 3 + levels * features_per_level
+        offsets = torch.tensor([0, *sizes]).cumsum(0)
+        self.table = nn.Parameter(init_scale * (2 * torch.rand(int(offsets[-1]), features_per_level) - 1))
+        # per level: resolution, table rows, first row, hashed or dense (shaped to broadcast over [n, L, 8])
+        self.register_buffer("resolution", torch.tensor(resolutions)[:, None], persistent=False)
+        self.register_buffer("size", torch.tensor(sizes)[:, None], persistent=False)
+        self.register_buffer("offset", offsets[:-1, None], persistent=False)
+        self.register_buffer("hashed", torch.tensor([(r + 1) ** 3 > table for r in resolutions])[:, None],
+                             persistent=False)
         corners = torch.tensor([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)])
         self.register_buffer("corners", corners, persistent=False)
 
-    def _index(self, corner: Tensor, level: int) -> Tensor:
-        """Int[Tensor, "... 8 3"] integer grid corners -> table rows [... 8] of one level."""
-        res = self.resolutions[level]
-        if self.hashed[level]:
-            size = self.offsets[level + 1] - self.offsets[level]
-            h = corner[..., 0] * _PRIMES[0] ^ corner[..., 1] * _PRIMES[1] ^ corner[..., 2] * _PRIMES[2]
-            row = h % size
-        else:
-            row = (corner[..., 0] * (res + 1) + corner[..., 1]) * (res + 1) + corner[..., 2]
-        return row + self.offsets[level]
+    def _rows(self, corner: Tensor) -> Tensor:
+        """Int[Tensor, "n L 8 3"] integer grid corners -> Int[Tensor, "n L 8"] table rows."""
+        i, j, k = corner.unbind(-1)
+        dense = (i * (self.resolution + 1) + j) * (self.resolution + 1) + k
+        hashed = (i * _PRIMES[0] ^ j * _PRIMES[1] ^ k * _PRIMES[2]) % self.size
+        return torch.where(self.hashed, hashed, dense) + self.offset
 
     def forward(self, x: Tensor) -> Tensor:
         """x[..., 3] in [-bound, bound] (clamped outside) -> [..., out_dim]."""
-        u = ((x.clamp(-self.bound, self.bound) + self.bound) / (2 * self.bound)).unsqueeze(-2)  # [..., 1, 3]
-        features = [x]
-        for level, res in enumerate(self.resolutions):
-            position = u * res
-            cell = position.detach().floor().clamp(max=res - 1)
-            frac = position - cell  # [..., 1, 3], differentiable in x
-            corner = cell.long() + self.corners  # [..., 8, 3]
-            weight = torch.where(self.corners.bool(), frac, 1 - frac).prod(-1)  # [..., 8]
-            values = self.table[self._index(corner, level)]  # [..., 8, F]
-            features.append((weight.unsqueeze(-1) * values).sum(-2))
-        return torch.cat(features, dim=-1)
+        flat = x.reshape(-1, 3)
+        u = (flat.clamp(-self.bound, self.bound) + self.bound) / (2 * self.bound)
+        position = u[:, None, :] * self.resolution  # [n, L, 3]
+        cell = position.detach().floor().minimum(self.resolution - 1)
+        frac = position - cell  # differentiable in x
+        corner = cell.long()[:, :, None, :] + self.corners  # [n, L, 8, 3]
+        w = torch.stack([1 - frac, frac], dim=-1)  # [n, L, 3, 2]: weights of the low and high corner
+        weight = (w[:, :, 0, :, None, None] * w[:, :, 1, None, :, None] * w[:, :, 2, None, None, :]).flatten(2)
+        values = self.table[self._rows(corner)]  # one gather for all levels: [n, L, 8, F]
+        features = (weight[..., None] * values).sum(-2).flatten(1)  # [n, L * F]
+        return torch.cat([flat, features], dim=-1).reshape(*x.shape[:-1], self.out_dim)
 
