@@ -84,18 +84,43 @@ def run_one(config: dict) -> dict:
 
 
 def run_subprocess(config: dict) -> dict:
-    out = subprocess.run([sys.executable, __file__, "--one", json.dumps(config)], capture_output=True, text=True)
+    command = [sys.executable, __file__, "--one", json.dumps(config)]
+    out = subprocess.run(command, capture_output=True, text=True, check=False)
     if out.returncode != 0:
         raise RuntimeError(f"{config} failed:\n{out.stderr[-2000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def estimate_dense(half: dict, resolution: int) -> dict:
+    """Dense cost at `resolution` from the measured dense run at resolution / 2, scaled by grid points."""
+    scale = (resolution + 1) ** 3 / (resolution // 2 + 1) ** 3
+    return {"seconds": half["seconds"] * scale, "evaluations": (resolution + 1) ** 3, "estimated": True}
+
+
+def format_row(device: str, field: str, resolution: int, mode: str, row: dict, dense: dict) -> str:
+    """One table line; the coarse-to-fine line carries the speed-up and the same-mesh check."""
+    guess = row.get("estimated", False)
+    speed = same = ""
+    if mode == "c2f":
+        speed = f"{dense['seconds'] / row['seconds']:.1f}x" + ("*" if dense.get("estimated") else "")
+        same = "-" if dense.get("estimated") else ("yes" if row["digest"] == dense["digest"] else "NO")
+    seconds = f"{row['seconds']:.1f}" + ("*" if guess else "")
+    peak, extract, faces = ("-", "-", "-") if guess else (
+        f"{row['peak_mb']:.0f}", f"{row['extract_mb']:.0f}", str(row["faces"]))
+    rate = row["evaluations"] / row["seconds"]
+    return (f"{device:6} {field:8} {resolution:>4} {mode:5} {seconds:>9} {row['evaluations']:>12,} "
+            f"{rate:>9.3g} {peak:>8} {extract:>10} {faces:>9} {speed:>8} {same:>5}")
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--resolutions", type=int, nargs="+", default=[256, 512])
     parser.add_argument("--fields", nargs="+", default=["analytic", "mlp"], choices=["analytic", "mlp"])
     parser.add_argument("--skip-dense-512", action="store_true",
-                        help="do not run the MLP's dense 512 (~15 min on 2 CPU cores); estimate it instead")
+                        help="do not run the MLP's dense 512 (~15 min on 2 CPU cores): estimate it from "
+                             "its dense 256 (needs 256 among --resolutions)")
     parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
@@ -106,47 +131,26 @@ def main() -> None:
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; devices: {', '.join(devices)}")
     header = (f"{'device':6} {'field':8} {'res':>4} {'mode':5} {'seconds':>9} {'evaluations':>12} "
               f"{'evals/s':>9} {'peak MB':>8} {'extract MB':>10} {'faces':>9} {'speed-up':>8} {'same':>5}")
-    print(header)
-    print("-" * len(header))
+    print(header + "\n" + "-" * len(header))
+    estimated = False
     for device in devices:
         for field in args.fields:
-            for resolution in args.resolutions:
-                rows = {}
-                for mode in ("dense", "c2f"):
-                    config = {"field": field, "resolution": resolution, "mode": mode, "device": device}
-                    skip = (mode == "dense" and resolution >= 512 and field == "mlp" and device == "cpu"
-                            and args.skip_dense_512)
-                    if skip and (field, resolution // 2) in estimates.get(device, {}):
-                        rows[mode] = estimate(estimates[device][(field, resolution // 2)], resolution)
-                    else:
-                        rows[mode] = run_subprocess(config)
-                        if mode == "dense":
-                            estimates.setdefault(device, {})[(field, resolution)] = rows[mode]
-                for mode in ("dense", "c2f"):
-                    r = rows[mode]
-                    speed = f"{rows['dense']['seconds'] / r['seconds']:.1f}x" if mode == "c2f" else ""
-                    same = ("yes" if rows["c2f"]["digest"] == rows["dense"]["digest"] else "NO") if mode == "c2f" else ""
-                    if rows["dense"].get("estimated") and mode == "c2f":
-                        speed, same = speed + "*", "-"
-                    secs = f"{r['seconds']:.1f}" + ("*" if r.get("estimated") else "")
-                    mb = "-" if r.get("estimated") else f"{r['peak_mb']:.0f}"
-                    dmb = "-" if r.get("estimated") else f"{r['extract_mb']:.0f}"
-                    faces = "-" if r.get("estimated") else str(r["faces"])
-                    print(f"{device:6} {field:8} {resolution:>4} {mode:5} {secs:>9} {r['evaluations']:>12,} "
-                          f"{r['evaluations'] / r['seconds']:>9.3g} {mb:>8} {dmb:>10} {faces:>9} {speed:>8} {same:>5}",
-                          flush=True)
-    if any(r for r in estimates.values()) and args.skip_dense_512:
-        print("* estimate: dense time scaled from the dense run at half the resolution by the number of grid "
-              "points ((2n+1)^3 / (n+1)^3), not measured")
-
-
-estimates: dict[str, dict[tuple[str, int], dict]] = {}
-
-
-def estimate(half: dict, resolution: int) -> dict:
-    """Dense cost at `resolution` from the dense run at resolution / 2, scaled by grid points."""
-    scale = (resolution + 1) ** 3 / (resolution // 2 + 1) ** 3
-    return {"seconds": half["seconds"] * scale, "evaluations": (resolution + 1) ** 3, "estimated": True}
+            dense_runs: dict[int, dict] = {}
+            for resolution in sorted(args.resolutions):
+                config = {"field": field, "resolution": resolution, "device": device}
+                skip = args.skip_dense_512 and field == "mlp" and resolution >= 512
+                if skip and resolution // 2 in dense_runs:
+                    dense = estimate_dense(dense_runs[resolution // 2], resolution)
+                    estimated = True
+                else:
+                    dense = dense_runs[resolution] = run_subprocess({**config, "mode": "dense"})
+                print(format_row(device, field, resolution, "dense", dense, dense), flush=True)
+                fine = run_subprocess({**config, "mode": "c2f"})
+                print(format_row(device, field, resolution, "c2f", fine, dense), flush=True)
+    print("peak MB: the subprocess's peak RSS (imports included); extract MB: its growth during extract_mesh")
+    if estimated:
+        print("* estimate, not measured: the dense time at half the resolution scaled by the number of grid "
+              "points, (n+1)^3 / (n/2+1)^3")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """neuralsurf: neural implicit surfaces and classical baselines for 3D surface reconstruction."""
 
-from neuralsurf import geometry, scenes
+from neuralsurf import geometry, io, losses, metrics, models, scenes
 from neuralsurf.errors import (
     ConfigError,
     DeviceError,
@@ -10,6 +10,8 @@ from neuralsurf.errors import (
     MissingDependencyError,
     NeuralsurfError,
 )
-from neuralsurf.structures import Mesh, Normalization, PointCloud
+from neuralsurf.extract import extract_mesh
+from neuralsurf.structures import DepthFrames, Mesh, Normalization, PointCloud
+from neuralsurf.training import FitResult, fit
 
 __version__ = "0.1.0"

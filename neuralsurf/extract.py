@@ -88,7 +88,9 @@ def make_grid(bounds, resolution: int) -> Grid:
     """
     box = _as_bounds(bounds)
     if not (isinstance(resolution, (int, np.integer)) and resolution >= 2):
-        raise ConfigError(f"resolution must be an integer >= 2 (cells along the longest side), got {resolution!r}")
+        raise ConfigError(
+            f"resolution must be an integer >= 2 (cells along the longest side), got {resolution!r}"
+        )
     extent = box[1] - box[0]
     spacing = float(extent.max()) / int(resolution)
     cells = np.maximum(1, np.ceil(extent / spacing - 1e-6)).astype(np.int64)
@@ -111,7 +113,9 @@ def _as_bounds(bounds) -> np.ndarray:
     if not np.isfinite(box).all():
         raise InputError(f"bounds must be finite, got {box.tolist()}")
     if not (box[1] > box[0]).all():
-        raise InputError(f"bounds must have max > min on every axis, got min {box[0].tolist()} max {box[1].tolist()}")
+        raise InputError(
+            f"bounds must have max > min on every axis, got min {box[0].tolist()} max {box[1].tolist()}"
+        )
     return box
 
 
@@ -143,7 +147,9 @@ class _Sampler:
 
     def __init__(self, field: Field, grid: Grid, chunk_size: int, device: torch.device):
         if not (isinstance(chunk_size, (int, np.integer)) and chunk_size >= 1):
-            raise ConfigError(f"chunk_size must be a positive integer (points per field call), got {chunk_size!r}")
+            raise ConfigError(
+                f"chunk_size must be a positive integer (points per field call), got {chunk_size!r}"
+            )
         self.field, self.grid, self.chunk_size, self.device = field, grid, int(chunk_size), device
         self.evaluations = 0
         self.low, self.high = math.inf, -math.inf
@@ -231,11 +237,11 @@ class _SparseValues:
         page = self.table[blocks]
         if create and (page < 0).any():
             missing = np.unique(np.ravel_multi_index(blocks, self.table.shape)[page < 0])
-            if self.used + len(missing) > len(self.pages):
-                capacity = max(len(self.pages) * 3 // 2, self.used + len(missing))
-                grown = np.full((capacity,) + self.pages.shape[1:], np.nan, dtype=np.float32)
-                grown[: self.used] = self.pages[: self.used]
-                self.pages = grown
+            if self.used + len(missing) > len(self.pages):  # grow in place (realloc), not by copy
+                old = len(self.pages)
+                self.pages.resize((max(old * 5 // 4, self.used + len(missing)),) + self.pages.shape[1:],
+                                  refcheck=False)
+                self.pages[old:] = np.nan
             self.table.reshape(-1)[missing] = np.arange(self.used, self.used + len(missing))
             self.used += len(missing)
             page = self.table[blocks]
@@ -275,17 +281,15 @@ class _SparseValues:
 
     def box(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Float[ndarray, "X Y Z"]: the values of grid points lo..hi (inclusive), NaN where unknown."""
-        out = np.full(tuple(int(s) for s in hi - lo + 1), np.nan, dtype=np.float32)
-        first, last = lo // _PAGE, hi // _PAGE
-        for block in itertools.product(*[range(a, b + 1) for a, b in zip(first, last)]):
-            page = self.table[block]
-            if page < 0:
-                continue
-            start = np.maximum(np.array(block) * _PAGE, lo)
-            stop = np.minimum(np.array(block) * _PAGE + _PAGE - 1, hi) + 1
-            src = tuple(slice(a, b) for a, b in zip(start - np.array(block) * _PAGE, stop - np.array(block) * _PAGE))
-            dst = tuple(slice(a, b) for a, b in zip(start - lo, stop - lo))
-            out[dst] = self.pages[page][src]
+        first, last = lo // _PAGE, hi // _PAGE + 1
+        slots = self.table[first[0] : last[0], first[1] : last[1], first[2] : last[2]]
+        tiles = self.pages[np.maximum(slots, 0)]  # (a, b, c, P, P, P)
+        tiles[slots < 0] = np.nan
+        a, b, c = slots.shape
+        out = tiles.transpose(0, 3, 1, 4, 2, 5).reshape(a * _PAGE, b * _PAGE, c * _PAGE)
+        start = lo - first * _PAGE
+        stop = start + hi - lo + 1
+        out = np.ascontiguousarray(out[start[0] : stop[0], start[1] : stop[1], start[2] : stop[2]])
         where = [mapping[a : b + 1] for mapping, a, b in zip(self.base_maps, lo, hi)]
         on = [np.flatnonzero(w >= 0) for w in where]
         if all(len(o) for o in on):
@@ -332,7 +336,8 @@ def _coarse_to_fine(sampler: _Sampler, grid: Grid, level: float, margin: float, 
     size = 2**depth
     counts = -(-n // size)
     axes = [np.minimum(np.arange(c + 1) * size, m) for c, m in zip(counts, n)]
-    values = sampler(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)).reshape(tuple(counts + 1))
+    coarse = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    values = sampler(coarse).reshape(tuple(counts + 1))
     store.set_base(axes, values)
     cells = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), -1).reshape(-1, 3)
     corner_values = np.stack([values[tuple((cells + o).T)] for o in _CORNERS], 1)
@@ -416,7 +421,8 @@ class _UnitMesh:
     """Int[ndarray, "p 3"]: vertices that rounded onto a grid point (their edge is ambiguous)."""
 
 
-def _mesh_unit(values: np.ndarray, lo: np.ndarray, members: np.ndarray, grid_shape, level: float) -> _UnitMesh:
+def _mesh_unit(values: np.ndarray, lo: np.ndarray, members: np.ndarray, grid_shape, level: float
+               ) -> _UnitMesh:
     """Marching cubes on the member blocks of one unit.
 
     values: Float[ndarray, "X+1 Y+1 Z+1"] grid values of the unit's bounding box starting at grid
@@ -431,12 +437,13 @@ def _mesh_unit(values: np.ndarray, lo: np.ndarray, members: np.ndarray, grid_sha
         start = block * _BLOCK - lo
         owned[start[0] : start[0] + _BLOCK, start[1] : start[1] + _BLOCK, start[2] : start[2] + _BLOCK] = True
     cells &= owned
-    empty = _UnitMesh(np.empty((0, 3)), np.empty((0, 3), np.int64), np.empty(0, np.int64), np.empty((0, 3), np.int64))
     if not cells.any():
-        return empty
+        no_index = np.empty((0, 3), np.int64)
+        return _UnitMesh(np.empty((0, 3)), no_index, np.empty(0, np.int64), no_index)
     mask = np.zeros(values.shape, bool)
     offset = _mask_offset()
-    mask[offset : offset + cells.shape[0], offset : offset + cells.shape[1], offset : offset + cells.shape[2]] = cells
+    x, y, z = cells.shape
+    mask[offset : offset + x, offset : offset + y, offset : offset + z] = cells
     volume = np.where(np.isnan(values), np.float32(level), values).astype(np.float32)
     verts, faces, _, _ = marching_cubes(volume, level, mask=mask)  # "descent": outward for f < 0 inside
 
@@ -479,7 +486,6 @@ def _weld_units(box: Callable[[np.ndarray, np.ndarray], np.ndarray], blocks: np.
     Returns Float[ndarray, "v 3"] vertices in grid units, Int[ndarray, "f 3"] faces, and whether the
     surface reaches the outer boundary of the grid (an open mesh).
     """
-    shape = np.array(grid.shape)
     cells = np.array(grid.cells)
     block_counts = -(-cells // _BLOCK)
     owner = np.full(block_counts, -1, dtype=np.int64)  # block -> unit
@@ -505,23 +511,7 @@ def _weld_units(box: Callable[[np.ndarray, np.ndarray], np.ndarray], blocks: np.
         merge = _ambiguous_units(meshes, owner, block_counts)
         if not merge:
             break
-        parent = list(range(len(units)))
-
-        def find(u: int) -> int:
-            while parent[u] != u:
-                parent[u] = parent[parent[u]]
-                u = parent[u]
-            return u
-
-        for group in merge:
-            roots = sorted({find(u) for u in group})
-            for r in roots[1:]:
-                parent[r] = roots[0]
-        groups: dict[int, list[int]] = {}
-        for u in range(len(units)):
-            if len(units[u]):
-                groups.setdefault(find(u), []).append(u)
-        for members in groups.values():
+        for members in _connected(merge, [u for u in range(len(units)) if len(units[u])]):
             if len(members) > 1:
                 joined = np.concatenate([units[u] for u in members])
                 for u in members:
@@ -557,7 +547,28 @@ def _weld_units(box: Callable[[np.ndarray, np.ndarray], np.ndarray], blocks: np.
     return points, faces, open_mesh
 
 
-def _collapse(points: np.ndarray, faces: np.ndarray, representative: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _connected(groups: list[set[int]], items: list[int]) -> list[list[int]]:
+    """Union-find: `items` partitioned so that each of `groups` lies within one part."""
+    parent = {u: u for u in items}
+
+    def find(u: int) -> int:
+        while parent[u] != u:
+            parent[u] = parent[parent[u]]
+            u = parent[u]
+        return u
+
+    for group in groups:
+        roots = sorted({find(u) for u in group})
+        for root in roots[1:]:
+            parent[root] = roots[0]
+    parts: dict[int, list[int]] = {}
+    for u in items:
+        parts.setdefault(find(u), []).append(u)
+    return list(parts.values())
+
+
+def _collapse(points: np.ndarray, faces: np.ndarray, representative: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
     """Replace every vertex by Int[ndarray, "v"] `representative` (itself or an earlier vertex),
     drop the unused ones and the faces that lost a corner."""
     keep = representative == np.arange(len(points))
@@ -580,7 +591,8 @@ def _merge_grid_point_vertices(points: np.ndarray, faces: np.ndarray, shape) -> 
     return _collapse(points, faces, representative)
 
 
-def _ambiguous_units(meshes: list[_UnitMesh | None], owner: np.ndarray, block_counts: np.ndarray) -> list[set[int]]:
+def _ambiguous_units(meshes: list[_UnitMesh | None], owner: np.ndarray, block_counts: np.ndarray
+                     ) -> list[set[int]]:
     """Groups of units whose shared vertices cannot be matched by edge and must be meshed together."""
     merge: list[set[int]] = []
     for mesh in meshes:  # vertices rounded onto a grid point that several units touch
@@ -658,14 +670,18 @@ def extract_mesh(
     if not callable(field):
         raise InputError(f"field must be callable x[..., 3] -> f[...], got {type(field).__name__}")
     if not (isinstance(margin, (int, float)) and margin > 0 and math.isfinite(margin)):
-        raise ConfigError(f"margin must be a positive number (multiples of the cell diagonal), got {margin!r}")
+        raise ConfigError(
+            f"margin must be a positive number (multiples of the cell diagonal), got {margin!r}"
+        )
     if not (isinstance(coarse_resolution, (int, np.integer)) and coarse_resolution >= 1):
         raise ConfigError(f"coarse_resolution must be a positive integer, got {coarse_resolution!r}")
     level = float(level)
+    if not math.isfinite(level):
+        raise ConfigError(f"level must be a finite number, got {level}")
     box = _resolve_bounds(field, bounds)
     grid = make_grid(box, resolution)
     sampler = _Sampler(field, grid, chunk_size, _field_device(field, device))
-    depth = max(0, int(math.floor(math.log2(resolution / coarse_resolution)))) if coarse_to_fine else 0
+    depth = max(0, math.floor(math.log2(resolution / coarse_resolution))) if coarse_to_fine else 0
 
     if depth > 0:
         store, blocks = _coarse_to_fine(sampler, grid, level, float(margin), depth)
@@ -726,7 +742,7 @@ def field_slice(
     u, v = [a for a in range(3) if a != normal]
     extent = box[1] - box[0]
     pixel = max(extent[u], extent[v]) / resolution
-    width, height = (max(1, int(round(extent[a] / pixel))) for a in (u, v))
+    width, height = (max(1, round(extent[a] / pixel)) for a in (u, v))
     us = box[0, u] + (np.arange(width) + 0.5) * extent[u] / width
     vs = box[0, v] + (np.arange(height)[::-1] + 0.5) * extent[v] / height
     points = np.empty((height, width, 3), dtype=np.float64)
@@ -750,7 +766,9 @@ def slice_image(values, max_abs: float | None = None, bands: int = 10) -> np.nda
     the largest |value|), darker iso-contour bands every max_abs / bands, and the zero level in
     black (pixels on the negative side of a sign change with a 4-neighbour). NaN pixels are grey.
     """
-    f = values.detach().cpu().double().numpy() if isinstance(values, Tensor) else np.asarray(values, np.float64)
+    if isinstance(values, Tensor):
+        values = values.detach().cpu().double().numpy()
+    f = np.asarray(values, np.float64)
     if f.ndim != 2:
         raise InputError(f"slice_image expects an (H, W) array of field values, got shape {f.shape}")
     finite = np.isfinite(f)

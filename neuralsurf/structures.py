@@ -6,6 +6,7 @@ unit cube that the models and metrics work in.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
@@ -89,6 +90,22 @@ class PointCloud:
     def with_normals(self, normals: Tensor | None) -> PointCloud:
         """The same points with `normals` (n, 3) replacing the current ones."""
         return replace(self, normals=normals)
+
+    def to_open3d(self) -> open3d.geometry.PointCloud:
+        import open3d as o3d
+
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points.detach().cpu().double().numpy()))
+        if self.normals is not None:
+            cloud.normals = o3d.utility.Vector3dVector(self.normals.detach().cpu().double().numpy())
+        if self.colors is not None:
+            cloud.colors = o3d.utility.Vector3dVector(self.colors.detach().cpu().double().numpy())
+        return cloud
+
+    @classmethod
+    def from_open3d(cls, cloud: open3d.geometry.PointCloud, dtype=torch.float64) -> PointCloud:
+        optional = lambda has, values: torch.as_tensor(np.asarray(values)).to(dtype) if has else None  # noqa: E731
+        return cls(torch.as_tensor(np.asarray(cloud.points)).to(dtype),
+                   optional(cloud.has_normals(), cloud.normals), optional(cloud.has_colors(), cloud.colors))
 
     def select(self, index: Tensor) -> PointCloud:
         """The subset of points picked by `index` (a boolean mask or integer indices)."""
@@ -254,3 +271,96 @@ class Normalization:
     @classmethod
     def from_state_dict(cls, state: dict[str, Tensor]) -> Normalization:
         return cls(center=state["center"], scale=float(state["scale"]))
+
+
+def _check_rigid(cam_to_world: Tensor, name: str, tolerance: float = 1e-3) -> None:
+    """Raise InputError unless every 4x4 matrix is a rigid motion (R^T R = I, det R = 1, last row 0 0 0 1)."""
+    rotation = cam_to_world[:, :3, :3].double()
+    identity = torch.eye(3, dtype=torch.float64)
+    orthogonal_error = (rotation.transpose(1, 2) @ rotation - identity).abs().amax(dim=(1, 2))
+    bottom = torch.tensor([0, 0, 0, 1], dtype=cam_to_world.dtype)
+    bad = (orthogonal_error > tolerance) | (torch.linalg.det(rotation) < 0) | (
+        (cam_to_world[:, 3] - bottom).abs().amax(dim=1) > tolerance
+    )
+    if bad.any():
+        first = int(bad.nonzero()[0])
+        raise InputError(
+            f"{name}[{first}] is not a rigid camera-to-world transform (|R^T R - I| = "
+            f"{float(orthogonal_error[first]):.2e}, det R = {float(torch.linalg.det(rotation[first])):.3f}); "
+            f"poses must be 4x4 [R t; 0 0 0 1] with R a rotation ({int(bad.sum())} bad poses)"
+        )
+
+
+@dataclass(frozen=True)
+class DepthFrames:
+    """A batch of depth images with OpenCV pinhole cameras (x right, y down, z forward)."""
+
+    depth: Tensor
+    """Float[Tensor, "n h w"]: z-depth in metres (float32), 0 where there is no reading."""
+    K: Tensor
+    """Float[Tensor, "n 3 3"]: intrinsics per frame (a single 3x3 is broadcast to all frames)."""
+    cam_to_world: Tensor
+    """Float[Tensor, "n 4 4"]: camera-to-world rigid poses."""
+    colors: Tensor | None = None
+    """Float[Tensor, "n h w 3"] | None: RGB in [0, 1] registered to the depth."""
+
+    def __post_init__(self) -> None:
+        depth = torch.as_tensor(self.depth, dtype=torch.float32)
+        if depth.ndim == 2:
+            depth = depth[None]
+        if depth.ndim != 3 or depth.numel() == 0:
+            raise InputError(f"DepthFrames.depth must have shape (n, h, w), got {tuple(depth.shape)}")
+        if not torch.isfinite(depth).all() or (depth < 0).any():
+            raise InputError("DepthFrames.depth has NaN, inf or negative values; use 0 for missing readings")
+        n = len(depth)
+        K = torch.as_tensor(self.K, dtype=torch.float32)
+        K = K.expand(n, 3, 3).clone() if K.shape == (3, 3) else K
+        if K.shape != (n, 3, 3):
+            raise InputError(f"DepthFrames.K must be 3x3 or (n={n}, 3, 3), got {tuple(K.shape)}")
+        if (K[:, 0, 0] <= 0).any() or (K[:, 1, 1] <= 0).any():
+            raise InputError("DepthFrames.K has a non-positive focal length (fx, fy); check the intrinsics")
+        pose = torch.as_tensor(self.cam_to_world, dtype=torch.float32)
+        pose = pose[None] if pose.shape == (4, 4) else pose
+        if pose.shape != (n, 4, 4):
+            raise InputError(
+                f"DepthFrames.cam_to_world must be (n={n}, 4, 4) to match {n} depth images, got {tuple(pose.shape)}"
+            )
+        _check_rigid(pose, "DepthFrames.cam_to_world")
+        valid = depth[depth > 0]
+        if len(valid) and float(valid.median()) > 50.0:
+            warnings.warn(
+                f"DepthFrames.depth has a median of {float(valid.median()):.0f}: depth must be in metres, "
+                f"this looks like millimetres (divide by 1000) or raw sensor units (divide by the depth scale)",
+                stacklevel=3,
+            )
+        object.__setattr__(self, "depth", depth)
+        object.__setattr__(self, "K", K.to(depth.device))
+        object.__setattr__(self, "cam_to_world", pose.to(depth.device))
+        if self.colors is not None:
+            colors = torch.as_tensor(self.colors, dtype=torch.float32)
+            if colors.shape != (*depth.shape, 3):
+                raise InputError(
+                    f"DepthFrames.colors must be (n, h, w, 3) = {(*depth.shape, 3)}, got {tuple(colors.shape)}"
+                )
+            object.__setattr__(self, "colors", colors.to(depth.device))
+
+    def __len__(self) -> int:
+        return len(self.depth)
+
+    @property
+    def height(self) -> int:
+        return self.depth.shape[1]
+
+    @property
+    def width(self) -> int:
+        return self.depth.shape[2]
+
+    def to(self, device: torch.device | str) -> DepthFrames:
+        colors = None if self.colors is None else self.colors.to(device)
+        return DepthFrames(self.depth.to(device), self.K.to(device), self.cam_to_world.to(device), colors)
+
+    def __getitem__(self, index) -> DepthFrames:
+        """Frames picked by an int, a slice or an index tensor (always a DepthFrames)."""
+        index = [index] if isinstance(index, int) else index
+        colors = None if self.colors is None else self.colors[index]
+        return DepthFrames(self.depth[index], self.K[index], self.cam_to_world[index], colors)

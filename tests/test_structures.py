@@ -1,0 +1,67 @@
+import numpy as np
+import pytest
+import torch
+
+from neuralsurf.errors import InputError
+from neuralsurf.scenes import Box, Sphere
+from neuralsurf.structures import Mesh, Normalization, PointCloud
+
+
+def test_point_cloud_validates_its_input():
+    with pytest.raises(InputError, match="empty"):
+        PointCloud(torch.zeros(0, 3))
+    with pytest.raises(InputError, match="NaN or inf"):
+        PointCloud(torch.tensor([[0.0, 0.0, float("nan")], [1.0, 2.0, 3.0]]))
+    with pytest.raises(InputError, match="NaN or inf"):
+        PointCloud(torch.tensor([[0.0, 0.0, float("inf")]]))
+    with pytest.raises(InputError, match=r"normals has 2 rows but there are 3 points"):
+        PointCloud(torch.zeros(3, 3), normals=torch.zeros(2, 3))
+    with pytest.raises(InputError, match=r"shape \(n, 3\)"):
+        PointCloud(torch.zeros(4, 2))
+
+
+def test_point_cloud_keeps_dtype_and_accepts_numpy():
+    cloud = PointCloud(np.random.default_rng(0).random((10, 3)))
+    assert cloud.points.dtype == torch.float64 and len(cloud) == 10
+    assert PointCloud(torch.zeros(2, 3)).points.dtype == torch.float32
+
+
+def test_select_and_with_normals():
+    cloud = Sphere().sample_surface(100)
+    half = cloud.select(torch.arange(50))
+    assert len(half) == 50 and torch.equal(half.normals, cloud.normals[:50])
+    assert cloud.with_normals(None).normals is None
+
+
+def test_mesh_round_trips_through_trimesh_and_open3d_exactly():
+    mesh = Sphere(center=(0.1, 0.2, 0.3)).mesh(subdivisions=3)
+    colors = torch.rand(len(mesh.vertices), 3, dtype=torch.float64)
+    colored = Mesh(mesh.vertices, mesh.faces, colors)
+    again = Mesh.from_open3d(colored.to_open3d())
+    assert torch.equal(again.vertices, mesh.vertices) and torch.equal(again.faces, mesh.faces)
+    assert torch.allclose(again.vertex_colors, colors)
+    via_trimesh = Mesh.from_trimesh(mesh.to_trimesh())
+    assert torch.equal(via_trimesh.vertices, mesh.vertices) and torch.equal(via_trimesh.faces, mesh.faces)
+
+
+def test_mesh_validates_faces_and_reports_watertightness():
+    with pytest.raises(InputError, match="outside"):
+        Mesh(torch.zeros(3, 3), torch.tensor([[0, 1, 3]]))
+    box = Box().mesh()
+    assert box.is_watertight
+    assert not Mesh(box.vertices, box.faces[1:]).is_watertight
+    assert not Mesh(box.vertices, box.faces[:0]).is_watertight
+    assert box.face_areas().sum().item() == pytest.approx(Box().area)
+
+
+def test_normalization_round_trip_and_unit_box():
+    points = torch.tensor([[1.0, 2.0, 3.0], [5.0, 3.0, 4.0], [2.0, 2.5, 3.5]], dtype=torch.float64)
+    norm = Normalization.from_points(points)
+    unit = norm.to_unit(points)
+    assert norm.scale == 4.0
+    assert torch.allclose(unit.max(0).values - unit.min(0).values, torch.tensor([1.0, 0.25, 0.25], dtype=torch.float64))
+    assert torch.allclose(norm.to_world(unit), points)
+    restored = Normalization.from_state_dict(norm.state_dict())
+    assert torch.equal(restored.center, norm.center) and restored.scale == norm.scale
+    with pytest.raises(InputError, match="scale"):
+        Normalization.from_points(torch.ones(5, 3))
