@@ -5,11 +5,13 @@ Inputs and outputs are tensors in the caller's frame; nothing here normalises or
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import torch
 from torch import Tensor
 
-from neuralsurf.errors import InputError
+from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.structures import Mesh, PointCloud
 
 
@@ -36,62 +38,210 @@ def knn(query: Tensor, points: Tensor, k: int = 1) -> tuple[Tensor, Tensor]:
     )
 
 
-def estimate_normals(points: Tensor, k: int = 30) -> Tensor:
-    """Unoriented unit normals by PCA of the k nearest neighbours.
+def _neighbour_pairs(coords: np.ndarray, k: int | None, radius: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """(row, column) index pairs of each point's neighbourhood, the point itself included.
+
+    k only: the k nearest; radius only: every point within `radius`; both: at most the k nearest
+    within `radius` (Open3D's hybrid search). coords: (n, 3) float64.
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(coords)
+    tree = cKDTree(coords)
+    if radius is None:
+        _, index = tree.query(coords, k=k, workers=-1)
+        return np.repeat(np.arange(n), k), index.reshape(-1)
+    if k is None:
+        lists = tree.query_ball_point(coords, r=radius, workers=-1, return_sorted=False)
+        counts = np.fromiter(map(len, lists), dtype=np.int64, count=n)
+        return np.repeat(np.arange(n), counts), np.concatenate(lists).astype(np.int64)
+    distance, index = tree.query(coords, k=k, distance_upper_bound=radius, workers=-1)
+    valid = np.isfinite(distance)
+    return np.broadcast_to(np.arange(n)[:, None], index.shape)[valid], index[valid]
+
+
+def _pca_normals(coords: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-variance direction of each neighbourhood given as (row, column) pairs.
+
+    Returns normals (n, 3) and the neighbourhood sizes (n,). Covariances are accumulated from
+    offsets to the query point, so far-from-origin clouds keep their precision.
+    """
+    n = len(coords)
+    offsets = coords[cols] - coords[rows]  # (pairs, 3)
+    count = np.bincount(rows, minlength=n).astype(np.float64)
+    safe = np.maximum(count, 1.0)[:, None]
+    mean = np.stack([np.bincount(rows, offsets[:, i], minlength=n) for i in range(3)], 1) / safe
+    second = np.stack(
+        [np.bincount(rows, offsets[:, i] * offsets[:, j], minlength=n) for i in range(3) for j in range(3)], 1
+    ).reshape(n, 3, 3) / safe[:, :, None]
+    covariance = second - mean[:, :, None] * mean[:, None, :]
+    _, eigenvectors = np.linalg.eigh(covariance)
+    return eigenvectors[..., 0], count
+
+
+def estimate_normals(
+    points: Tensor | PointCloud,
+    k: int | None = 30,
+    radius: float | None = None,
+    orient: str | None = None,
+    camera: Tensor | None = None,
+    direction: Tensor | None = None,
+) -> Tensor | PointCloud:
+    """Unit normals by PCA of each point's neighbourhood, optionally oriented.
+
+    The neighbourhood is the k nearest points (`radius=None`), every point within `radius`
+    (`k=None`), or at most the k nearest within `radius` (both; Open3D's hybrid search). Points
+    whose neighbourhood has fewer than 3 points get the plane of their 3 nearest (with a warning).
 
     Args:
-        points: Float[Tensor, "n 3"] with n >= 3.
+        points: Float[Tensor, "n 3"] with n >= 3, or a PointCloud.
+        k: neighbours per point (>= 3), or None with a radius.
+        radius: search radius in the points' units, or None.
+        orient: None (sign arbitrary), "mst", "camera" or "direction"; see `orient_normals`.
+        camera: Float[Tensor, "3"] or Float[Tensor, "n 3"]: sensor position(s), for orient="camera".
+        direction: Float[Tensor, "3"]: the direction normals should face, for orient="direction".
     Returns:
-        Float[Tensor, "n 3"]: the direction of least variance of each neighbourhood (sign arbitrary).
+        Float[Tensor, "n 3"] (points' dtype and device) for a tensor input; for a PointCloud, the
+        same cloud with these normals.
+
+    Example:
+        cloud = ns.geometry.estimate_normals(cloud, k=30, orient="mst")
     """
+    if isinstance(points, PointCloud):
+        normals = estimate_normals(points.points, k, radius, orient, camera, direction)
+        return points.with_normals(normals)
+    points = torch.as_tensor(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InputError(f"normal estimation needs points of shape (n, 3), got {tuple(points.shape)}")
     if len(points) < 3:
         raise InputError(f"normal estimation needs at least 3 points, got {len(points)}")
-    _, index = knn(points, points, min(k, len(points)))
-    neighbours = points[index].double()  # (n, k, 3)
-    centred = neighbours - neighbours.mean(1, keepdim=True)
-    covariance = centred.transpose(1, 2) @ centred  # (n, 3, 3)
-    _, eigenvectors = torch.linalg.eigh(covariance)
-    return eigenvectors[..., 0].to(points.dtype)
+    if k is None and radius is None:
+        raise ConfigError("estimate_normals needs k, radius or both to define a neighbourhood; got neither")
+    if k is not None and k < 3:
+        raise ConfigError(f"estimate_normals needs k >= 3 neighbours to fit a plane, got k={k}")
+    if radius is not None and not radius > 0:
+        raise ConfigError(f"estimate_normals radius must be > 0 (in the points' units), got {radius}")
+    _check_orientation(orient, camera, direction)
+    coords = points.detach().cpu().double().numpy()
+    rows, cols = _neighbour_pairs(coords, None if k is None else min(k, len(coords)), radius)
+    normals, count = _pca_normals(coords, rows, cols)
+    sparse = count < 3
+    if sparse.any():
+        warnings.warn(
+            f"{int(sparse.sum())} of {len(coords)} points have fewer than 3 neighbours within "
+            f"radius={radius}; their normals come from their 3 nearest neighbours instead "
+            f"(raise the radius to avoid this)",
+            stacklevel=2,
+        )
+        few_rows, few_cols = _neighbour_pairs(coords, 3, None)
+        normals[sparse] = _pca_normals(coords, few_rows, few_cols)[0][sparse]
+    result = torch.from_numpy(normals).to(device=points.device, dtype=points.dtype)
+    if orient is None:
+        return result
+    return orient_normals(points, result, 30 if k is None else k, orient, camera, direction)
 
 
-def orient_normals(points: Tensor, normals: Tensor, k: int = 30) -> Tensor:
-    """Flip normals consistently along a minimum spanning tree (Hoppe et al. 1992), outward.
+def _check_orientation(method: str | None, camera, direction) -> None:
+    """ConfigError unless the orientation method and its reference (camera / direction) match."""
+    if method not in (None, "mst", "camera", "direction"):
+        raise ConfigError(
+            f"unknown normal orientation {method!r}; choose None, 'mst', 'camera' or 'direction'"
+        )
+    if (method == "camera") != (camera is not None):
+        raise ConfigError(
+            "orient='camera' needs camera=<sensor position(s)>, and camera is only used with "
+            f"orient='camera'; got orient={method!r}, camera={'given' if camera is not None else None}"
+        )
+    if (method == "direction") != (direction is not None):
+        raise ConfigError(
+            "orient='direction' needs direction=<3-vector>, and direction is only used with "
+            f"orient='direction'; got orient={method!r}, "
+            f"direction={'given' if direction is not None else None}"
+        )
 
-    The tree is grown over the k-NN graph with weights 1 - |n_i . n_j|; the root is the point
-    with the largest x, whose normal is made to point along +x so that the result faces outward
-    for a closed surface.
+
+def orient_normals(
+    points: Tensor,
+    normals: Tensor,
+    k: int = 30,
+    method: str = "mst",
+    camera: Tensor | None = None,
+    direction: Tensor | None = None,
+) -> Tensor:
+    """Flip normals to consistent signs.
+
+    - "mst" (Hoppe et al. 1992): signs propagate along a minimum spanning tree of the k-NN graph
+      with weights 1 - |n_i . n_j|. In each connected component the root is the point with the
+      largest x, whose normal is made to point along +x, so a closed surface's normals face outward.
+    - "camera": each normal faces its sensor, n . (camera - p) >= 0 (one position or one per point).
+    - "direction": each normal has n . direction >= 0.
 
     Args:
         points: Float[Tensor, "n 3"]; normals: Float[Tensor, "n 3"] unit, any signs.
+        camera: Float[Tensor, "3"] or Float[Tensor, "n 3"], for "camera".
+        direction: Float[Tensor, "3"], for "direction".
     Returns:
         Float[Tensor, "n 3"]: the same normals with consistent signs.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
-
-    n = len(points)
-    k = min(k, n - 1)
-    _, index = knn(points, points, k + 1)
-    rows = torch.arange(n).repeat_interleave(k).numpy()
-    cols = index[:, 1:].reshape(-1).cpu().numpy()
+    _check_orientation(method, camera, direction)
+    if method is None:
+        return normals
     nrm = normals.detach().cpu().double().numpy()
-    weights = 1.0 - np.abs((nrm[rows] * nrm[cols]).sum(-1)) + 1e-9
-    graph = coo_matrix((weights, (rows, cols)), shape=(n, n))
-    tree = minimum_spanning_tree(graph.maximum(graph.T)).tocsr()
-    tree = tree.maximum(tree.T)
-    oriented = nrm.copy()
-    visited = np.zeros(n, dtype=bool)
     coords = points.detach().cpu().double().numpy()
-    while not visited.all():  # one traversal per connected component
-        root = int(np.flatnonzero(~visited)[np.argmax(coords[~visited, 0])])
-        if oriented[root, 0] < 0:
-            oriented[root] *= -1
-        order, parents = breadth_first_order(tree, root, directed=False)
-        for node in order[1:]:
-            if np.dot(oriented[node], oriented[parents[node]]) < 0:
-                oriented[node] *= -1
-        visited[order] = True
-    return torch.from_numpy(oriented).to(normals)
+    if method == "mst":
+        flip = _mst_flips(coords, nrm, k)
+    else:
+        reference = camera if method == "camera" else direction
+        try:
+            reference = np.asarray(torch.as_tensor(reference).cpu(), dtype=np.float64)
+            reference = np.broadcast_to(reference, coords.shape)
+        except ValueError:
+            raise InputError(
+                f"{method} must have shape (3,) or ({len(coords)}, 3), got {tuple(np.shape(reference))}"
+            ) from None
+        towards = reference - coords if method == "camera" else reference
+        flip = (nrm * towards).sum(-1) < 0
+    nrm[flip] *= -1
+    return torch.from_numpy(nrm).to(normals)
+
+
+def _mst_flips(coords: np.ndarray, normals: np.ndarray, k: int) -> np.ndarray:
+    """Bool (n,): which normals to flip for consistent signs along the MST (see `orient_normals`).
+
+    A virtual node n joins every component's root so that one breadth-first search yields each
+    point's parent; signs then compose up the tree by pointer jumping (log2(depth) vector steps).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+
+    n = len(coords)
+    k = max(1, min(k, n - 1))
+    rows, cols = _neighbour_pairs(coords, k + 1, None)
+    keep = rows != cols
+    rows, cols = rows[keep], cols[keep]
+    unit = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    # kept > 0: a sparse graph drops zero weights (and float32 normals can give |cos| > 1)
+    weights = np.maximum(1.0 - np.abs((unit[rows] * unit[cols]).sum(-1)), 0.0) + 1e-9
+    graph = coo_matrix((weights, (rows, cols)), shape=(n, n)).tocsr()
+    tree = minimum_spanning_tree(graph.maximum(graph.T))
+    tree = tree.maximum(tree.T)
+    n_components, labels = connected_components(tree, directed=False)
+    order = np.lexsort((coords[:, 0], labels))  # by component, then x: the last of each is its root
+    roots = order[np.flatnonzero(np.append(labels[order][1:] != labels[order][:-1], True))]
+    tree, virtual = tree.tocoo(), np.full(n_components, n)
+    edges = (np.concatenate([tree.row, roots, virtual]), np.concatenate([tree.col, virtual, roots]))
+    tree = coo_matrix((np.ones(len(edges[0])), edges), shape=(n + 1, n + 1)).tocsr()
+    _, parent = breadth_first_order(tree, n, directed=False, return_predecessors=True)
+    parent[n] = n
+    # relative sign of each edge to its parent; the roots' edge to the virtual node aligns them with +x
+    sign = np.where((normals * normals[np.minimum(parent[:n], n - 1)]).sum(-1) < 0, -1.0, 1.0)
+    sign[roots] = np.where(normals[roots, 0] < 0, -1.0, 1.0)
+    sign = np.append(sign, 1.0)
+    ancestor = parent.copy()
+    while (ancestor != n).any():
+        sign = sign * sign[ancestor]
+        ancestor = ancestor[ancestor]
+    return sign[:n] < 0
 
 
 def sample_mesh_surface(mesh: Mesh, n: int, generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
@@ -176,3 +326,170 @@ def cloud_from_mesh(mesh: Mesh, n: int, noise: float = 0.0, seed: int = 0) -> Po
     if noise > 0:
         points = points + noise * torch.randn(points.shape, dtype=points.dtype, generator=generator)
     return PointCloud(points, normals)
+
+
+# ---------------------------------------------------------------------------------------------
+# depth images: back-projection, projection, depth -> point cloud
+#
+# Pixel convention (OpenCV): pixel (u, v) is column u, row v, and its centre lies at the integer
+# coordinates (u, v); a camera-frame point (x, y, z) lands at u = fx x / z + cx, v = fy y / z + cy.
+
+from neuralsurf.structures import DepthFrames  # used by the depth-image functions below
+
+
+def pixel_grid(height: int, width: int, dtype: torch.dtype = torch.float32, device=None) -> Tensor:
+    """Float[Tensor, "h w 2"]: (u, v) = (column, row) of every pixel centre (integers)."""
+    rows = torch.arange(height, dtype=dtype, device=device)
+    columns = torch.arange(width, dtype=dtype, device=device)
+    v, u = torch.meshgrid(rows, columns, indexing="ij")
+    return torch.stack([u, v], dim=-1)
+
+
+def backproject_depth_to_camera(depth: Tensor, K: Tensor) -> Tensor:
+    """Camera-frame points of depth images (OpenCV: x right, y down, z forward).
+
+    Args:
+        depth: Float[Tensor, "n h w"] z-depth (0 = invalid).
+        K: Float[Tensor, "n 3 3"] intrinsics (a zero skew K[0, 1] is not assumed: it is used).
+    Returns:
+        Float[Tensor, "n h w 3"]: (x, y, z) with z = depth; invalid pixels give (0, 0, 0).
+    """
+    uv = pixel_grid(depth.shape[1], depth.shape[2], depth.dtype, depth.device)  # (h, w, 2)
+    K = K.to(depth)
+    fx, fy, cx, cy, skew = (K[:, i, j][:, None, None] for i, j in ((0, 0), (1, 1), (0, 2), (1, 2), (0, 1)))
+    y = (uv[..., 1] - cy) / fy  # (n, h, w), per unit depth
+    x = (uv[..., 0] - cx - skew * y) / fx
+    return torch.stack([x * depth, y * depth, depth], dim=-1)
+
+
+def backproject_depth(frames: DepthFrames) -> Tensor:
+    """World-frame points of every pixel of every frame.
+
+    Args:
+        frames: DepthFrames with depth (n, h, w), K (n, 3, 3), cam_to_world (n, 4, 4).
+    Returns:
+        Float[Tensor, "n h w 3"] in the frames' dtype and device: the point seen at the centre of
+        pixel (u, v) (integer coordinates, OpenCV convention) at its z-depth. Pixels with depth 0
+        map to their camera's centre; select valid points with `frames.depth > 0`.
+    """
+    camera = backproject_depth_to_camera(frames.depth, frames.K)
+    pose = frames.cam_to_world.to(camera)
+    return torch.einsum("nij,nhwj->nhwi", pose[:, :3, :3], camera) + pose[:, None, None, :3, 3]
+
+
+def project_points(points: Tensor, K: Tensor, cam_to_world: Tensor) -> tuple[Tensor, Tensor]:
+    """Project world points into cameras (the inverse of `backproject_depth`).
+
+    Args:
+        points: Float[Tensor, "n m 3"] world points, m per camera (or "m 3" for one camera).
+        K: Float[Tensor, "n 3 3"] (or "3 3"); cam_to_world: Float[Tensor, "n 4 4"] (or "4 4").
+    Returns:
+        uv Float[Tensor, "n m 2"]: pixel coordinates, centres at integers (round to index a pixel);
+        z Float[Tensor, "n m"]: depth along the optical axis (<= 0 behind the camera, where uv is
+        meaningless).
+    """
+    single = points.ndim == 2
+    points, K, pose = (points[None], K[None], cam_to_world[None]) if single else (points, K, cam_to_world)
+    pose, K = pose.to(points), K.to(points)
+    rotation, translation = pose[:, :3, :3], pose[:, :3, 3]
+    camera = torch.einsum("nji,nmj->nmi", rotation, points - translation[:, None])  # R^T (p - t)
+    z = camera[..., 2]
+    pixels = torch.einsum("nij,nmj->nmi", K, camera)
+    uv = pixels[..., :2] / torch.where(z.abs() > 0, z, torch.ones_like(z))[..., None]
+    return (uv[0], z[0]) if single else (uv, z)
+
+
+def _depth_normals(camera: Tensor, max_depth_jump: float, stride: int = 1) -> tuple[Tensor, Tensor]:
+    """Normals of camera-frame depth points from their image neighbours, at every `stride`-th pixel.
+
+    Args:
+        camera: Float[Tensor, "n h w 3"] from `backproject_depth_to_camera`.
+        max_depth_jump: neighbours whose depth differs by more than this fraction of the pixel's
+            depth are across a discontinuity and not used.
+        stride: evaluate at rows and columns 0, stride, 2 stride, ... (neighbours stay at +-1 pixel).
+    Returns:
+        normals Float[Tensor, "n h' w' 3"] unit, facing the camera (n . p < 0), and
+        Bool[Tensor, "n h' w'"]: where a normal exists (a valid pixel with a usable neighbour both
+        horizontally and vertically), with h' = ceil(h / stride), w' = ceil(w / stride). Central
+        differences where both neighbours are usable, one-sided ones where only one is.
+    """
+    h, w = camera.shape[1:3]
+    padded = torch.nn.functional.pad(camera.permute(0, 3, 1, 2), (1, 1, 1, 1)).permute(0, 2, 3, 1)
+    centre = camera[:, ::stride, ::stride]
+    z = centre[..., 2]
+
+    def neighbour(dv: int, du: int) -> tuple[Tensor, Tensor]:
+        other = padded[:, 1 + dv : 1 + dv + h : stride, 1 + du : 1 + du + w : stride]
+        usable = (z > 0) & (other[..., 2] > 0) & ((other[..., 2] - z).abs() <= max_depth_jump * z)
+        return other, usable
+
+    def difference(forward: tuple[Tensor, Tensor], backward: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor]:
+        (after, ok_after), (before, ok_before) = forward, backward
+        one_sided = torch.where(ok_after[..., None], after - centre, centre - before)
+        return torch.where((ok_after & ok_before)[..., None], after - before, one_sided), ok_after | ok_before
+
+    du, has_u = difference(neighbour(0, 1), neighbour(0, -1))
+    dv, has_v = difference(neighbour(1, 0), neighbour(-1, 0))
+    normals = torch.linalg.cross(du, dv)
+    length = normals.norm(dim=-1)
+    has = has_u & has_v & (length > 0)
+    sign = torch.where((normals * centre).sum(-1) > 0, -1.0, 1.0)  # face the camera at the origin
+    normals = normals * (sign / torch.where(has, length, torch.ones_like(length)))[..., None]
+    return normals, has
+
+
+def depth_to_cloud(
+    frames: DepthFrames,
+    stride: int = 1,
+    with_normals: bool = True,
+    max_depth_jump: float = 0.05,
+    chunk: int = 8,
+) -> PointCloud:
+    """One world-frame PointCloud of the valid pixels of all frames (with colours when the frames
+    have them).
+
+    Normals come from each pixel's image neighbours at full resolution: the cross product of the
+    horizontal and vertical differences of the back-projected points (central where both
+    neighbours are usable, one-sided otherwise), turned towards the camera and rotated into the
+    world. A neighbour is usable when its depth is valid and within `max_depth_jump` (a fraction)
+    of the pixel's depth. With `with_normals=True`, valid pixels without a usable neighbour both
+    horizontally and vertically (isolated speckles) have no normal and are left out.
+
+    Args:
+        frames: DepthFrames (n, h, w).
+        stride: keep every `stride`-th row and column (pixel (0, 0) always kept).
+        with_normals: compute normals as above (else normals is None and every valid pixel is kept).
+        max_depth_jump: relative depth difference that marks a discontinuity (0.05 = 5 %).
+        chunk: frames processed at once (bounds memory; does not change the result).
+    Returns:
+        PointCloud with points (p, 3), normals (p, 3) or None, colours (p, 3) or None, in the
+        frames' float32; points are ordered by frame, then row, then column.
+    """
+    if not isinstance(stride, int) or stride < 1:
+        raise InputError(f"stride must be a positive integer (keep every stride-th pixel), got {stride!r}")
+    if not max_depth_jump > 0:
+        raise InputError(f"max_depth_jump must be a positive fraction of the depth, got {max_depth_jump}")
+    points, normals, colors = [], [], []
+    for start in range(0, len(frames), max(1, int(chunk))):
+        part = slice(start, start + max(1, int(chunk)))
+        camera = backproject_depth_to_camera(frames.depth[part], frames.K[part])
+        keep = frames.depth[part, ::stride, ::stride] > 0
+        if with_normals:
+            local, has = _depth_normals(camera, max_depth_jump, stride)
+            keep = keep & has
+        pose = frames.cam_to_world[part].to(camera)
+        rotation = pose[:, None, None, :3, :3]
+        world = (rotation @ camera[:, ::stride, ::stride, :, None])[..., 0] + pose[:, None, None, :3, 3]
+        points.append(world[keep])
+        if with_normals:
+            normals.append((rotation @ local[..., None])[..., 0][keep])
+        if frames.colors is not None:
+            colors.append(frames.colors[part, ::stride, ::stride][keep])
+    points = torch.cat(points)
+    if len(points) == 0:
+        raise InputError(
+            "the depth frames have no valid pixel" + (" with a normal" if with_normals else "")
+            + "; check that depth is in metres with 0 for missing readings"
+        )
+    normals = torch.cat(normals) if with_normals else None
+    return PointCloud(points, normals, torch.cat(colors) if colors else None)

@@ -1,0 +1,16 @@
+"""Classical baselines: same inputs (neuralsurf.structures), same Mesh out, same metrics."""
+
+from neuralsurf.baselines.icp import Registration, register_global, register_icp, register_multiway
+from neuralsurf.baselines.poisson import reconstruct_poisson
+from neuralsurf.baselines.tsdf import TSDFVolume, depth_bounds, fuse_open3d
+
+__all__ = [
+    "Registration",
+    "TSDFVolume",
+    "depth_bounds",
+    "fuse_open3d",
+    "reconstruct_poisson",
+    "register_global",
+    "register_icp",
+    "register_multiway",
+]

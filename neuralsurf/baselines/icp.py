@@ -1,0 +1,643 @@
+"""Rigid registration of point clouds: ICP, global registration and multiway registration.
+
+- `register_icp`: our own ICP in float64 numpy (point-to-point by weighted Kabsch, point-to-plane
+  by linearised least squares), robust kernels as IRLS weights, an optional voxel pyramid.
+  Correspondences are nearest neighbours within `max_distance` from a cached k-d tree of the
+  target; iteration and stopping follow Open3D's `registration_icp`, so both converge to the same
+  transform on the same input.
+- `register_global`: FPFH features + RANSAC, through Open3D; refine its result with `register_icp`.
+- `register_multiway`: pairwise ICP edges in a pose graph optimised by Open3D's
+  Levenberg-Marquardt.
+
+Every transform is a Float64[Tensor, "4 4"] that maps source points into the target's frame:
+`target ~ source @ R.T + t`.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from torch import Tensor
+
+from neuralsurf import geometry
+from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.structures import PointCloud
+
+__all__ = [
+    "Registration",
+    "kabsch",
+    "point_to_plane_step",
+    "register_global",
+    "register_icp",
+    "register_multiway",
+    "voxel_downsample",
+]
+
+METHODS = ("point_to_point", "point_to_plane")
+KERNELS = (None, "huber", "tukey")
+
+
+@dataclass(frozen=True)
+class Registration:
+    """The result of a rigid registration."""
+
+    transform: Tensor
+    """Float64[Tensor, "4 4"]: rigid motion mapping source points into the target's frame."""
+    fitness: float
+    """Share of source points whose nearest target point lies within max_distance (0..1)."""
+    inlier_rmse: float
+    """Root mean square distance of those correspondences (point to point, as in Open3D)."""
+    iterations: int
+    """ICP iterations performed (summed over pyramid levels); for `register_global`, the RANSAC
+    iteration budget (Open3D does not report how many ran before its confidence stop)."""
+
+
+# ----------------------------------------------------------------------------- input checks
+
+
+def _cloud_arrays(cloud: PointCloud | Tensor, name: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points (n, 3) and normals (n, 3) or None as float64 numpy arrays, checked non-empty."""
+    if isinstance(cloud, PointCloud):
+        points, normals = cloud.points, cloud.normals
+    else:
+        points, normals = torch.as_tensor(cloud), None
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise InputError(
+                f"{name} must be a PointCloud or an (n, 3) tensor, got shape {tuple(points.shape)}"
+            )
+    if len(points) == 0:
+        raise InputError(f"{name} has no points; registration needs a non-empty cloud on both sides")
+    if not torch.isfinite(points).all():
+        raise InputError(f"{name} contains NaN or inf coordinates; remove them before registering")
+    return (
+        points.detach().cpu().double().numpy(),
+        None if normals is None else normals.detach().cpu().double().numpy(),
+    )
+
+
+def _check_transform(init, name: str = "init", tolerance: float = 1e-5) -> np.ndarray:
+    """A 4x4 rigid transform as float64 numpy, its rotation projected onto SO(3) (tolerance-level
+    rounding only); InputError otherwise."""
+    if init is None:
+        return np.eye(4)
+    matrix = np.asarray(torch.as_tensor(init).detach().cpu(), dtype=np.float64)
+    if matrix.shape != (4, 4) or not np.isfinite(matrix).all():
+        raise InputError(
+            f"{name} must be a finite 4x4 rigid transform [R t; 0 0 0 1], got shape {matrix.shape}"
+            + ("" if matrix.shape != (4, 4) else " with NaN or inf")
+        )
+    rotation = matrix[:3, :3]
+    orthogonality = np.abs(rotation.T @ rotation - np.eye(3)).max()
+    determinant = np.linalg.det(rotation)
+    bottom = np.abs(matrix[3] - [0, 0, 0, 1]).max()
+    if orthogonality > tolerance or determinant < 0 or bottom > tolerance:
+        raise InputError(
+            f"{name} is not a rigid transform: |R^T R - I| = {orthogonality:.2e}, det R = {determinant:.3f}, "
+            f"last row {matrix[3].tolist()}; give [R t; 0 0 0 1] with R a rotation (no scale, shear or "
+            f"reflection)"
+        )
+    u, _, vt = np.linalg.svd(rotation)
+    matrix = matrix.copy()
+    matrix[:3, :3] = u @ vt
+    matrix[3] = [0, 0, 0, 1]
+    return matrix
+
+
+def _check_options(
+    method: str, kernel: str | None, kernel_scale: float | None, max_distance: float, max_iterations: int
+) -> None:
+    if method not in METHODS:
+        raise ConfigError(f"unknown ICP method {method!r}; choose 'point_to_point' or 'point_to_plane'")
+    if kernel not in KERNELS:
+        raise ConfigError(f"unknown robust kernel {kernel!r}; choose None, 'huber' or 'tukey'")
+    if kernel is not None and not (kernel_scale is not None and kernel_scale > 0):
+        raise ConfigError(
+            f"kernel={kernel!r} needs kernel_scale > 0 (got {kernel_scale}): the residual, in the clouds' "
+            f"units, where down-weighting starts; about the noise standard deviation (Huber) or the "
+            f"largest residual still trusted (Tukey)"
+        )
+    if not (np.isfinite(max_distance) and max_distance > 0):
+        raise ConfigError(
+            f"max_distance must be a positive distance in the clouds' units, got {max_distance}"
+        )
+    if max_iterations < 1:
+        raise ConfigError(f"max_iterations must be >= 1, got {max_iterations}")
+
+
+# ----------------------------------------------------------------------------- small pure pieces
+
+
+def voxel_downsample(
+    points: np.ndarray, normals: np.ndarray | None, voxel_size: float
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """One point per occupied voxel: the centroid of its points (float64 numpy).
+
+    Normals are averaged after flipping each onto the side of its voxel's first normal (so
+    unoriented PCA normals do not cancel) and renormalised.
+
+    Args:
+        points: Float[ndarray, "n 3"]; normals: Float[ndarray, "n 3"] or None; voxel_size > 0.
+    Returns:
+        points Float[ndarray, "m 3"] and normals Float[ndarray, "m 3"] or None, m <= n.
+    """
+    keys = np.floor((points - points.min(0)) / voxel_size).astype(np.int64)
+    span = keys.max(0) + 1
+    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    _, first, inverse = np.unique(flat, return_index=True, return_inverse=True)
+    count = np.bincount(inverse).astype(np.float64)
+    centroid = np.stack([np.bincount(inverse, points[:, i]) for i in range(3)], 1) / count[:, None]
+    if normals is None:
+        return centroid, None
+    side = np.where((normals * normals[first][inverse]).sum(1) < 0, -1.0, 1.0)[:, None]
+    summed = np.stack([np.bincount(inverse, (side * normals)[:, i]) for i in range(3)], 1)
+    return centroid, summed / np.maximum(np.linalg.norm(summed, axis=1, keepdims=True), 1e-300)
+
+
+def _transform(points: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """Float[ndarray, "n 3"] moved by a 4x4 rigid `matrix`."""
+    return points @ matrix[:3, :3].T + matrix[:3, 3]
+
+
+def _axis_angle_to_matrix(omega: np.ndarray) -> np.ndarray:
+    """Rotation (3, 3) of axis-angle vector omega (3,) (Rodrigues), exact for any angle."""
+    angle = np.linalg.norm(omega)
+    k = np.array([[0, -omega[2], omega[1]], [omega[2], 0, -omega[0]], [-omega[1], omega[0], 0]])
+    if angle < 1e-12:
+        return np.eye(3) + k
+    k /= angle
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
+
+
+def _kernel_weights(residuals: np.ndarray, kernel: str | None, scale: float | None) -> np.ndarray:
+    """IRLS weights rho'(r) / r (n,) of absolute residuals (n,) for the robust kernel."""
+    if kernel is None:
+        return np.ones_like(residuals)
+    if kernel == "huber":
+        return np.where(residuals <= scale, 1.0, scale / np.maximum(residuals, 1e-300))
+    return np.where(residuals <= scale, np.square(1 - np.square(residuals / scale)), 0.0)  # tukey
+
+
+def kabsch(source: np.ndarray, target: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Weighted least-squares rigid motion (4, 4) taking source (n, 3) onto target (n, 3).
+
+    Minimises sum_i w_i |R p_i + t - q_i|^2 (Kabsch / Umeyama without scale, reflection excluded).
+    """
+    w = weights / weights.sum()
+    mu_p, mu_q = w @ source, w @ target
+    covariance = (source - mu_p).T @ ((target - mu_q) * w[:, None])  # (3, 3)
+    u, _, vt = np.linalg.svd(covariance)
+    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    rotation = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    matrix = np.eye(4)
+    matrix[:3, :3], matrix[:3, 3] = rotation, mu_q - rotation @ mu_p
+    return matrix
+
+
+def point_to_plane_step(
+    source: np.ndarray, target: np.ndarray, normals: np.ndarray, weights: np.ndarray
+) -> np.ndarray:
+    """One Gauss-Newton step (4, 4) of point-to-plane ICP.
+
+    Linearises r_i = n_i . (R p_i + t - q_i) around R = I (small angles omega), solves the weighted
+    6x6 normal equations for (omega, t), then builds the exact rotation exp(omega).
+
+    Args:
+        source, target, normals: Float[ndarray, "n 3"] matched points and target normals.
+        weights: Float[ndarray, "n"].
+    """
+    residual = ((source - target) * normals).sum(1)
+    jacobian = np.concatenate([np.cross(source, normals), normals], axis=1)  # (n, 6)
+    weighted = jacobian * weights[:, None]
+    hessian = weighted.T @ jacobian
+    eigenvalues = np.linalg.eigvalsh(hessian)
+    if not eigenvalues[0] > 1e-12 * max(eigenvalues[-1], 1e-300):
+        raise InputError(
+            "point-to-plane ICP is degenerate: the matched target normals do not constrain all six "
+            "degrees of freedom (e.g. one plane, or too few correspondences); use "
+            "method='point_to_point' or a cloud with more varied geometry"
+        )
+    x = -np.linalg.solve(hessian, weighted.T @ residual)
+    matrix = np.eye(4)
+    matrix[:3, :3], matrix[:3, 3] = _axis_angle_to_matrix(x[:3]), x[3:]
+    return matrix
+
+
+# ----------------------------------------------------------------------------- ICP
+
+
+@dataclass
+class _Target:
+    """A target cloud ready for ICP: points, normals (or None) and its k-d tree."""
+
+    points: np.ndarray
+    normals: np.ndarray | None
+    tree: cKDTree
+
+    @classmethod
+    def build(cls, points: np.ndarray, normals: np.ndarray | None) -> _Target:
+        return cls(points, normals, cKDTree(points))
+
+
+def _match(
+    target: _Target, moved: np.ndarray, max_distance: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Nearest target point of each moved source point within max_distance.
+
+    Returns source indices (m,), target indices (m,) and distances (m,) of the m matched points.
+    """
+    distance, index = target.tree.query(moved, k=1, distance_upper_bound=max_distance, workers=-1)
+    matched = np.flatnonzero(np.isfinite(distance))
+    return matched, index[matched], distance[matched]
+
+
+def _too_far(max_distance: float, n_source: int) -> InputError:
+    return InputError(
+        f"ICP found no correspondences: none of the {n_source} source points has a target point within "
+        f"max_distance={max_distance:g} after applying init; the clouds are too far apart for this "
+        f"max_distance. Give a better init (e.g. from register_global), a larger max_distance, or a "
+        f"voxel pyramid (voxel_sizes)"
+    )
+
+
+def _icp(
+    source: np.ndarray,
+    target: _Target,
+    init: np.ndarray,
+    max_distance: float,
+    method: str,
+    kernel: str | None,
+    kernel_scale: float | None,
+    max_iterations: int,
+    relative_fitness: float,
+    relative_rmse: float,
+) -> tuple[np.ndarray, float, float, int]:
+    """ICP at one resolution (Open3D's loop). Returns (transform (4, 4), fitness, rmse, iterations)."""
+    transform = init
+    moved = _transform(source, transform)
+    src, tgt, dist = _match(target, moved, max_distance)
+    if len(src) == 0:
+        raise _too_far(max_distance, len(source))
+    fitness, rmse = len(src) / len(source), float(np.sqrt(np.mean(dist**2)))
+    iterations = 0
+    for iterations in range(1, max_iterations + 1):
+        p, q = moved[src], target.points[tgt]
+        if method == "point_to_point":
+            residual = dist
+        else:
+            residual = np.abs(((p - q) * target.normals[tgt]).sum(1))
+        weights = _kernel_weights(residual, kernel, kernel_scale)
+        if not weights.sum() > 0:
+            raise InputError(
+                f"every correspondence has a residual above kernel_scale={kernel_scale:g}, so the "
+                f"{kernel} kernel gives them all zero weight; increase kernel_scale"
+            )
+        if method == "point_to_point":
+            update = kabsch(p, q, weights)
+        else:
+            update = point_to_plane_step(p, q, target.normals[tgt], weights)
+        transform = update @ transform
+        moved = _transform(source, transform)
+        src, tgt, dist = _match(target, moved, max_distance)
+        if len(src) == 0:
+            raise _too_far(max_distance, len(source))
+        previous = fitness, rmse
+        fitness, rmse = len(src) / len(source), float(np.sqrt(np.mean(dist**2)))
+        if abs(previous[0] - fitness) < relative_fitness and abs(previous[1] - rmse) < relative_rmse:
+            break
+    return transform, fitness, rmse, iterations
+
+
+def _target_normals(
+    points: np.ndarray, normals: np.ndarray | None, estimate: bool, radius: float | None
+) -> np.ndarray:
+    """Target normals for point-to-plane: the given ones, or PCA estimates (30 nearest, within
+    `radius` when given); InputError when absent and estimation is off."""
+    if normals is not None:
+        return normals
+    if not estimate:
+        raise InputError(
+            "method='point_to_plane' needs target normals, but the target has none and "
+            "estimate_normals=False; pass target.with_normals(...), set estimate_normals=True, "
+            "or use method='point_to_point'"
+        )
+    if len(points) < 3:
+        raise InputError(
+            f"point-to-plane ICP needs at least 3 target points to estimate normals, got {len(points)}"
+        )
+    with warnings.catch_warnings():  # isolated points falling back to 3 neighbours are fine here
+        warnings.filterwarnings("ignore", message=".*fewer than 3 neighbours", category=UserWarning)
+        return geometry.estimate_normals(torch.from_numpy(points), k=30, radius=radius).numpy()
+
+
+def _evaluate(
+    source: np.ndarray, target: _Target, transform: np.ndarray, max_distance: float
+) -> tuple[float, float]:
+    """(fitness, inlier_rmse) of `transform` at max_distance."""
+    src, _, dist = _match(target, _transform(source, transform), max_distance)
+    return len(src) / len(source), float(np.sqrt(np.mean(dist**2))) if len(src) else 0.0
+
+
+def register_icp(
+    source: PointCloud | Tensor,
+    target: PointCloud | Tensor,
+    max_distance: float,
+    init: Tensor | np.ndarray | None = None,
+    method: str = "point_to_point",
+    kernel: str | None = None,
+    kernel_scale: float | None = None,
+    max_iterations: int = 50,
+    relative_fitness: float = 1e-6,
+    relative_rmse: float = 1e-6,
+    voxel_sizes: Sequence[float] | None = None,
+    estimate_normals: bool = True,
+) -> Registration:
+    """Align `source` to `target` by iterative closest points.
+
+    Each iteration matches every moved source point to its nearest target point within
+    `max_distance`, weights the matches by the robust kernel (IRLS), and solves for the rigid
+    update in closed form (point-to-point: weighted Kabsch) or by one linearised least-squares step
+    (point-to-plane: minimises the distance to the target's tangent planes; exact rotation from the
+    axis-angle solution). It stops after `max_iterations`, or when fitness changes by less than
+    `relative_fitness` and inlier RMSE by less than `relative_rmse` between iterations (absolute
+    changes, as in Open3D).
+
+    Args:
+        source: PointCloud or Float[Tensor, "n 3"], moved onto the target.
+        target: PointCloud or Float[Tensor, "m 3"]; point-to-plane uses its normals (signs do not
+            matter), estimated from 30 neighbours when absent and `estimate_normals`.
+        max_distance: largest correspondence distance, in the clouds' units (at the finest level).
+        init: 4x4 rigid initial guess of the source-to-target transform; identity by default.
+        method: "point_to_point" or "point_to_plane".
+        kernel: None (least squares), "huber" or "tukey"; `kernel_scale` is its threshold.
+        voxel_sizes: optional coarse-to-fine pyramid, e.g. (4v, 2v, v): level s runs on both clouds
+            downsampled to voxels of size s (centroids) with max_distance * s / voxel_sizes[-1],
+            and `max_iterations` per level. Normals are then re-estimated per level within 2 s
+            (or the given ones averaged per voxel).
+        estimate_normals: estimate missing target normals for point-to-plane, else raise.
+    Returns:
+        Registration; fitness and inlier_rmse are measured on the full clouds at `max_distance`.
+    Raises:
+        InputError: empty clouds, a non-rigid init, no correspondence within max_distance, missing
+            target normals with estimate_normals=False, or a degenerate point-to-plane system.
+        ConfigError: unknown method or kernel, a kernel without kernel_scale, bad distances.
+    """
+    _check_options(method, kernel, kernel_scale, max_distance, max_iterations)
+    source_points, _ = _cloud_arrays(source, "source")
+    target_points, target_normals = _cloud_arrays(target, "target")
+    transform = _check_transform(init)
+    full_target = _Target.build(target_points, target_normals)
+    levels = list(voxel_sizes) if voxel_sizes is not None else [None]
+    if voxel_sizes is not None and (not levels or not all(np.isfinite(s) and s > 0 for s in levels)):
+        raise ConfigError(
+            f"voxel_sizes must be positive sizes, coarse to fine, e.g. (4v, 2v, v); got {voxel_sizes}"
+        )
+    iterations = 0
+    for size in levels:
+        if size is None:
+            src, tgt, distance = source_points, full_target, max_distance
+        else:
+            src = voxel_downsample(source_points, None, size)[0]
+            tgt = _Target.build(*voxel_downsample(target_points, target_normals, size))
+            distance = max_distance * size / levels[-1]
+        if method == "point_to_plane":
+            tgt.normals = _target_normals(
+                tgt.points, tgt.normals, estimate_normals, None if size is None else 2 * size
+            )
+        transform, _, _, done = _icp(
+            src,
+            tgt,
+            transform,
+            distance,
+            method,
+            kernel,
+            kernel_scale,
+            max_iterations,
+            relative_fitness,
+            relative_rmse,
+        )
+        iterations += done
+    fitness, rmse = _evaluate(source_points, full_target, transform, max_distance)
+    return Registration(torch.from_numpy(transform), fitness, rmse, iterations)
+
+
+# ----------------------------------------------------------------------------- global
+
+
+def _fpfh(points: np.ndarray, voxel_size: float):
+    """Open3D cloud downsampled to `voxel_size`, with normals, and its FPFH features."""
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(voxel_size)
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel_size, max_nn=30))
+    features = o3d.pipelines.registration.compute_fpfh_feature(
+        cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel_size, max_nn=100)
+    )
+    return cloud, features
+
+
+def register_global(
+    source: PointCloud | Tensor,
+    target: PointCloud | Tensor,
+    voxel_size: float,
+    max_distance: float | None = None,
+    max_iterations: int = 100_000,
+    confidence: float = 0.999,
+    ransac_n: int = 3,
+    mutual_filter: bool = True,
+    seed: int = 0,
+) -> Registration:
+    """Initial alignment from scratch (any rotation): FPFH features matched by RANSAC (Open3D).
+
+    Both clouds are downsampled to `voxel_size`, get normals (radius 2 voxels) and FPFH features
+    (radius 5 voxels); RANSAC samples `ransac_n` feature matches per hypothesis, prunes them by
+    edge-length (0.9) and distance checks, and keeps the transform with the most inliers within
+    `max_distance` (default 1.5 voxels). Refine the result with
+    `register_icp(..., init=result.transform)`. Open3D's RNG is seeded with `seed`, but its RANSAC
+    runs hypotheses on several threads that race to the confidence stop, so repeated runs can
+    return different (equally consistent) hypotheses; the ICP refinement removes the difference.
+
+    Returns:
+        Registration with fitness and inlier_rmse measured on the full clouds at `max_distance`.
+    Raises:
+        InputError: empty clouds, or RANSAC found no transform (too few points or features).
+        ConfigError: non-positive voxel_size or max_distance, confidence outside (0, 1).
+    """
+    import open3d as o3d
+
+    if not (np.isfinite(voxel_size) and voxel_size > 0):
+        raise ConfigError(f"voxel_size must be a positive length in the clouds' units, got {voxel_size}")
+    max_distance = 1.5 * voxel_size if max_distance is None else max_distance
+    _check_options("point_to_point", None, None, max_distance, max_iterations)
+    if not 0 < confidence < 1:
+        raise ConfigError(f"confidence must lie in (0, 1), got {confidence}")
+    source_points, _ = _cloud_arrays(source, "source")
+    target_points, target_normals = _cloud_arrays(target, "target")
+    (source_down, source_features), (target_down, target_features) = (
+        _fpfh(source_points, voxel_size),
+        _fpfh(target_points, voxel_size),
+    )
+    if min(len(source_down.points), len(target_down.points)) < ransac_n:
+        raise InputError(
+            f"global registration needs at least ransac_n={ransac_n} points per cloud after "
+            f"downsampling to voxel_size={voxel_size:g} (got {len(source_down.points)} and "
+            f"{len(target_down.points)}); use a smaller voxel_size"
+        )
+    registration = o3d.pipelines.registration
+    o3d.utility.random.seed(seed)
+    result = registration.registration_ransac_based_on_feature_matching(
+        source_down,
+        target_down,
+        source_features,
+        target_features,
+        mutual_filter,
+        max_distance,
+        registration.TransformationEstimationPointToPoint(False),
+        ransac_n,
+        [
+            registration.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+            registration.CorrespondenceCheckerBasedOnDistance(max_distance),
+        ],
+        registration.RANSACConvergenceCriteria(max_iterations, confidence),
+    )
+    if len(result.correspondence_set) == 0:
+        raise InputError(
+            f"global registration found no consistent feature matches at voxel_size={voxel_size:g}; "
+            f"the clouds may not overlap, or the voxel size is too coarse or fine for their detail "
+            f"(try about 1/50 of the object's size)"
+        )
+    transform = np.asarray(result.transformation).copy()
+    fitness, rmse = _evaluate(
+        source_points, _Target.build(target_points, target_normals), transform, max_distance
+    )
+    return Registration(torch.from_numpy(transform), fitness, rmse, max_iterations)
+
+
+# ----------------------------------------------------------------------------- multiway
+
+
+def _check_connected(n: int, edges: list[tuple[int, int]], min_overlap: float, max_distance: float) -> None:
+    """InputError unless the n scans form one connected pose graph through `edges`."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rows, cols = np.array(edges, dtype=np.int64).reshape(-1, 2).T
+    count, labels = connected_components(
+        coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False
+    )
+    if count > 1:
+        groups = [np.flatnonzero(labels == label).tolist() for label in range(count)]
+        raise InputError(
+            f"the scans split into {count} groups with no overlap of min_overlap={min_overlap:g} "
+            f"(ICP fitness at max_distance={max_distance:g}) between them: {groups}; give init_poses "
+            f"closer to the truth, a larger max_distance, or a smaller min_overlap"
+        )
+
+
+def register_multiway(
+    scans: Sequence[PointCloud | Tensor],
+    voxel_size: float,
+    max_distance: float | None = None,
+    init_poses: Sequence[Tensor] | Tensor | None = None,
+    reference: int = 0,
+    method: str = "point_to_plane",
+    min_overlap: float = 0.3,
+    max_iterations: int = 50,
+    edge_prune_threshold: float = 0.25,
+) -> list[Tensor]:
+    """Poses bringing every scan into the reference scan's frame, by pose-graph optimisation.
+
+    Every pair of scans is registered by `register_icp` on voxel-downsampled copies (pyramid
+    4, 2, 1 x `voxel_size`, from the pair's relative init pose). Pairs whose overlap (ICP fitness)
+    reaches `min_overlap` become edges weighted by their information matrices: odometry edges for
+    successive scans, loop closures for the others. Open3D's Levenberg-Marquardt global
+    optimisation then finds the poses that agree with the edges best, pruning loop closures that
+    disagree (`edge_prune_threshold`).
+
+    Args:
+        scans: clouds, each in its own frame (n_i, 3); at least 2.
+        voxel_size: downsampling voxel, in the scans' units.
+        max_distance: correspondence distance at the finest level (default 1.5 * voxel_size).
+        init_poses: optional scan-to-common-frame 4x4 poses, one per scan (identity: the scans are
+            assumed roughly aligned already).
+        reference: index of the scan whose frame the poses are expressed in.
+    Returns:
+        one Float64[Tensor, "4 4"] per scan, mapping its points into the reference scan's frame
+        (the reference's own pose is the identity).
+    Raises:
+        InputError: fewer than 2 scans, bad poses, or scans that split into groups with no
+            overlap between them.
+    """
+    import open3d as o3d
+
+    if len(scans) < 2:
+        raise InputError(f"multiway registration needs at least 2 scans, got {len(scans)}")
+    if not 0 <= reference < len(scans):
+        raise ConfigError(f"reference must index a scan in [0, {len(scans)}), got {reference}")
+    if not (np.isfinite(voxel_size) and voxel_size > 0):
+        raise ConfigError(f"voxel_size must be a positive length in the scans' units, got {voxel_size}")
+    max_distance = 1.5 * voxel_size if max_distance is None else max_distance
+    _check_options(method, None, None, max_distance, max_iterations)
+    if init_poses is not None and len(init_poses) != len(scans):
+        raise InputError(f"init_poses has {len(init_poses)} poses for {len(scans)} scans; give one per scan")
+    poses = [
+        np.eye(4) if init_poses is None else _check_transform(p, f"init_poses[{i}]")
+        for i, p in enumerate(init_poses if init_poses is not None else scans)
+    ]
+    downsampled = []
+    for i, scan in enumerate(scans):
+        points, normals = voxel_downsample(*_cloud_arrays(scan, f"scans[{i}]"), voxel_size)
+        if method == "point_to_plane":
+            normals = _target_normals(points, normals, True, 2 * voxel_size)
+        downsampled.append(
+            PointCloud(torch.from_numpy(points), None if normals is None else torch.from_numpy(normals))
+        )
+    pipeline = o3d.pipelines.registration
+    graph = pipeline.PoseGraph()
+    for pose in poses:
+        graph.nodes.append(pipeline.PoseGraphNode(pose))
+    edges = []
+    for i in range(len(scans)):
+        for j in range(i + 1, len(scans)):
+            relative = np.linalg.inv(poses[j]) @ poses[i]
+            try:
+                edge = register_icp(
+                    downsampled[i],
+                    downsampled[j],
+                    max_distance,
+                    relative,
+                    method,
+                    max_iterations=max_iterations,
+                    voxel_sizes=(4 * voxel_size, 2 * voxel_size, voxel_size),
+                )
+            except InputError:  # no overlap at all from this init
+                continue
+            if edge.fitness < min_overlap:
+                continue
+            transform = edge.transform.numpy()
+            information = pipeline.get_information_matrix_from_point_clouds(
+                downsampled[i].to_open3d(), downsampled[j].to_open3d(), max_distance, transform
+            )
+            graph.edges.append(pipeline.PoseGraphEdge(i, j, transform, information, uncertain=j != i + 1))
+            edges.append((i, j))
+    _check_connected(len(scans), edges, min_overlap, max_distance)
+    option = pipeline.GlobalOptimizationOption(
+        max_correspondence_distance=max_distance,
+        edge_prune_threshold=edge_prune_threshold,
+        reference_node=reference,
+    )
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        pipeline.global_optimization(
+            graph,
+            pipeline.GlobalOptimizationLevenbergMarquardt(),
+            pipeline.GlobalOptimizationConvergenceCriteria(),
+            option,
+        )
+    to_reference = np.linalg.inv(np.asarray(graph.nodes[reference].pose))
+    poses = [to_reference @ np.asarray(node.pose) for node in graph.nodes]
+    poses[reference] = np.eye(4)  # exactly, not up to rounding
+    return [torch.from_numpy(pose) for pose in poses]

@@ -1,0 +1,297 @@
+"""TSDF fusion: analytic oracles (sphere, planes), Open3D side by side, dense == sparse, one
+marching-cubes call as the reference of the chunked extraction, the bunny bar, 7-Scenes, bad input."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import cKDTree
+
+from neuralsurf.baselines import TSDFVolume, depth_bounds, fuse_open3d
+from neuralsurf.baselines.tsdf import candidate_blocks, kinect_sigma, pixel_weights, world_to_camera
+from neuralsurf.errors import ConfigError, DeviceError, ExtractionError, InputError, NeuralsurfError
+from neuralsurf.geometry import backproject_depth, point_to_mesh_distance
+from neuralsurf.scenes import Sphere, scan_depth
+from neuralsurf.structures import DepthFrames, Mesh
+
+SPHERE = Sphere(center=(0.02, -0.01, 0.03), radius=0.3)
+BOX = torch.tensor([[-0.4] * 3, [0.4] * 3], dtype=torch.float64)
+VOXEL = 0.02
+K_SMALL = torch.tensor([[60.0, 0.0, 31.5], [0.0, 60.0, 23.5], [0.0, 0.0, 1.0]])
+
+
+@pytest.fixture(scope="module")
+def sphere_frames() -> DepthFrames:
+    """24 exact views of the sphere, 64 x 48: a pixel covers about 0.7 voxel (VOXEL) on it."""
+    return scan_depth(SPHERE.mesh(5), n_views=24, width=64, height=48)
+
+
+@pytest.fixture(scope="module")
+def sphere_mesh(sphere_frames) -> Mesh:
+    return TSDFVolume(BOX, VOXEL, device="cpu").integrate(sphere_frames).extract_mesh()
+
+
+def radial_error(mesh: Mesh) -> torch.Tensor:
+    """Distance of each vertex to the analytic sphere."""
+    return ((mesh.vertices.double() - torch.tensor(SPHERE.center)).norm(dim=-1) - SPHERE.radius).abs()
+
+
+def signed_volume(mesh: Mesh) -> float:
+    a, b, c = mesh.vertices.double()[mesh.faces].unbind(1)
+    return float((a * torch.linalg.cross(b, c)).sum() / 6)
+
+
+def flat_frames(depths: list[float], colors: bool = False) -> DepthFrames:
+    """Cameras at the origin looking down +z at fronto-parallel walls at the given depths."""
+    n = len(depths)
+    depth = torch.tensor(depths, dtype=torch.float32)[:, None, None].expand(n, 48, 64).clone()
+    rgb = torch.rand(n, 48, 64, 3, generator=torch.Generator().manual_seed(0)) if colors else None
+    return DepthFrames(depth, K_SMALL, torch.eye(4).expand(n, 4, 4), rgb)
+
+
+def axis_value(volume: TSDFVolume, z: float) -> tuple[float, float]:
+    """(tsdf, weight) of the grid point on the optical axis at depth z (volumes from `axis_box`)."""
+    tsdf, weight = volume.to_dense()
+    k = round((z - volume.origin[2]) / volume.voxel_size)
+    i, j = (round(-volume.origin[a] / volume.voxel_size) for a in (0, 1))
+    return float(tsdf[i, j, k]), float(weight[i, j, k])
+
+
+def axis_box(voxel: float = 0.01) -> list[list[float]]:
+    """A box around the optical axis whose grid has a point at x = y = 0 and at z = 1.0."""
+    return [[-0.1, -0.1, 0.8], [0.1, 0.1, 1.3]]
+
+
+# ------------------------------------------------------------------------------- geometry
+
+
+def test_sphere_matches_the_analytic_surface(sphere_mesh):
+    error = radial_error(sphere_mesh) / VOXEL  # projective distances bias convex shapes outward a little
+    assert float(error.mean()) < 0.15 and float(error.max()) < 0.75
+    assert sphere_mesh.is_watertight
+    assert signed_volume(sphere_mesh) == pytest.approx(SPHERE.volume, rel=0.02)  # > 0: faces point outward
+
+
+def test_agrees_with_open3d_within_a_voxel(sphere_frames, sphere_mesh):
+    reference = fuse_open3d(sphere_frames, BOX, VOXEL, 3 * VOXEL)
+    ours_to_theirs = point_to_mesh_distance(sphere_mesh.vertices.double(), reference)
+    theirs_to_ours = point_to_mesh_distance(reference.vertices.double(), sphere_mesh)
+    chamfer = 0.5 * (ours_to_theirs.mean() + theirs_to_ours.mean())
+    assert float(chamfer) < 0.1 * VOXEL  # well within one voxel
+    assert float(torch.maximum(ours_to_theirs.max(), theirs_to_ours.max())) < VOXEL
+
+
+def test_sparse_and_dense_give_the_same_mesh(sphere_frames, sphere_mesh):
+    sparse = TSDFVolume(BOX, VOXEL, device="cpu", sparse=True).integrate(sphere_frames)
+    dense_blocks = int(sparse.block_counts.prod())
+    assert 0 < sparse.n_blocks < 0.7 * dense_blocks
+    mesh = sparse.extract_mesh()
+    assert torch.equal(mesh.vertices, sphere_mesh.vertices) and torch.equal(mesh.faces, sphere_mesh.faces)
+
+
+def test_chunked_extraction_equals_one_marching_cubes_call(sphere_frames):
+    from skimage.measure import marching_cubes
+
+    volume = TSDFVolume(BOX, 0.01, block_size=4, device="cpu", sparse=True).integrate(sphere_frames[:12])
+    mesh = volume.extract_mesh()  # 80^3 voxels in chunks of 32^3, some cells never observed
+    tsdf, weight = volume.to_dense()
+    valid = (weight > 0).numpy()
+    values = np.where(valid, tsdf.numpy(), 1.0).astype(np.float32)
+    vertices, faces, _, _ = marching_cubes(values, 0.0)
+    corners = [valid[i : i + valid.shape[0] - 1, j : j + valid.shape[1] - 1, k : k + valid.shape[2] - 1]
+               for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+    cell_valid = np.logical_and.reduce(corners)
+    faces = faces[cell_valid[tuple(np.floor(vertices[faces].mean(1)).astype(int).T)]]
+    assert len(faces) == len(mesh.faces)
+    reference = vertices[np.unique(faces)] * volume.voxel_size + volume.origin
+    assert len(reference) == len(mesh.vertices)
+    gap, _ = cKDTree(reference).query(mesh.vertices.double().numpy())
+    assert gap.max() < 1e-6  # the same vertices (float32 rounding apart), welded across chunks
+    assert not mesh.is_watertight  # half the views leave holes: no faces were made up there
+
+
+def test_one_view_meshes_only_what_it_sees():
+    eye = torch.tensor([0.02, -0.01, 0.03 - 1.0])
+    frames = scan_depth(SPHERE.mesh(5), cam_to_world=torch.eye(4).index_put((torch.arange(3), torch.tensor(3)), eye)[None],
+                        K=K_SMALL, width=64, height=48)
+    mesh = TSDFVolume(BOX, VOXEL, device="cpu").integrate(frames).extract_mesh()
+    assert float(radial_error(mesh).max()) < 0.6 * VOXEL  # no faces between observed and unobserved voxels
+    assert float(mesh.vertices[:, 2].max()) < SPHERE.center[2]  # only the near half
+    assert not mesh.is_watertight
+
+
+def test_fusion_averages_out_noise(sphere_frames):
+    noisy = scan_depth(SPHERE.mesh(5), cam_to_world=sphere_frames.cam_to_world, K=sphere_frames.K, width=64,
+                       height=48, noise="gaussian", sigma=0.4 * VOXEL, seed=1)
+    mesh = TSDFVolume(BOX, VOXEL, device="cpu").integrate(noisy).extract_mesh()
+    per_pixel = (noisy.depth - sphere_frames.depth)[(noisy.depth > 0) & (sphere_frames.depth > 0)].abs().mean()
+    assert float(radial_error(mesh).mean()) < 0.5 * float(per_pixel)
+
+
+def test_the_stanford_bunny_bar():
+    """24 exact 320 x 240 views, voxel = 1/256 of the longest side: Chamfer-L1 <= 1e-3 (unit frame)."""
+    from neuralsurf.metrics import evaluate_mesh
+    from neuralsurf.scenes import bunny
+
+    truth = bunny()
+    frames = scan_depth(truth, n_views=24, width=320, height=240)
+    lo, hi = truth.bounds.double()
+    voxel = float((hi - lo).max()) / 256
+    volume = TSDFVolume(torch.stack([lo - 8 * voxel, hi + 8 * voxel]), voxel, device="cpu").integrate(frames)
+    metrics = evaluate_mesh(volume.extract_mesh(), truth, n_samples=50_000)
+    assert float(metrics["chamfer_l1_exact"]) <= 1.0e-3
+
+
+# ------------------------------------------------------------------------------ integration
+
+
+def test_batched_and_frame_by_frame_integration_agree(sphere_frames):
+    batched = TSDFVolume(BOX, VOXEL, device="cpu", sparse=True).integrate(sphere_frames[:6])
+    single = TSDFVolume(BOX, VOXEL, device="cpu", sparse=True)
+    for i in range(6):
+        single.integrate(sphere_frames[i])
+    assert single.frames_integrated == batched.frames_integrated == 6
+    for a, b in zip(batched.to_dense(), single.to_dense()):
+        assert torch.equal(a.nan_to_num(99.0), b.nan_to_num(99.0))
+
+
+def test_projective_distance_running_average_and_truncation():
+    volume = TSDFVolume(axis_box(), 0.01, truncation=0.04, device="cpu").integrate(flat_frames([1.02, 1.01]))
+    tsdf, weight = axis_value(volume, 1.0)
+    assert (tsdf, weight) == (pytest.approx(0.015, abs=1e-6), 2.0)  # mean of d - z = 0.02 and 0.01
+    assert axis_value(volume, 1.05)[0] == pytest.approx(-0.035, abs=1e-6)  # behind the walls
+    assert axis_value(volume, 0.95)[0] == pytest.approx(0.04, abs=1e-6)  # in front: clamped to +truncation
+    assert axis_value(volume, 0.92)[1] == 0.0  # beyond free_space (2 truncations): never updated
+    assert axis_value(volume, 1.07)[1] == 0.0  # behind the band: never updated
+
+
+def test_depth_weighting_and_max_weight():
+    frames = flat_frames([1.02, 1.05])
+    volume = TSDFVolume(axis_box(), 0.01, truncation=0.06, weighting="depth", device="cpu").integrate(frames)
+    w = pixel_weights(torch.tensor([1.02, 1.05]), "depth")
+    assert float(w[0]) == pytest.approx(float((kinect_sigma(torch.tensor(0.4)) / kinect_sigma(torch.tensor(1.02))) ** 2))
+    expected = float((w[0] * 0.02 + w[1] * 0.05) / w.sum())
+    assert axis_value(volume, 1.0) == (pytest.approx(expected, abs=1e-6), pytest.approx(float(w.sum()), rel=1e-5))
+    capped = TSDFVolume(axis_box(), 0.01, truncation=0.06, max_weight=1.0, device="cpu")
+    capped.integrate(flat_frames([1.02, 1.01, 1.05]))
+    assert axis_value(capped, 1.0) == (pytest.approx(((0.02 + 0.01) / 2 + 0.05) / 2, abs=1e-6), 1.0)
+
+
+def test_colors_are_averaged_like_the_distances(sphere_frames):
+    points = backproject_depth(sphere_frames)
+    paint = lambda p: ((p - BOX[0].float()) / 0.8).clamp(0, 1)  # noqa: E731  colour = position in the box
+    frames = DepthFrames(sphere_frames.depth, sphere_frames.K, sphere_frames.cam_to_world, paint(points))
+    mesh = TSDFVolume(BOX, VOXEL, device="cpu", with_color=True).integrate(frames).extract_mesh()
+    assert mesh.vertex_colors is not None and mesh.vertex_colors.shape == mesh.vertices.shape
+    assert float((mesh.vertex_colors - paint(mesh.vertices.float())).abs().max()) < 0.05
+
+
+def test_candidate_blocks_hold_every_updated_voxel(sphere_frames):
+    """The exact-coverage claim of `candidate_blocks`: a brute-force pass over every voxel of the
+    grid updates only voxels inside the candidate blocks."""
+    from neuralsurf.baselines.tsdf import observe_blocks
+
+    volume = TSDFVolume(BOX, VOXEL, block_size=4, device="cpu")
+    frame = sphere_frames[3]
+    rotation, translation = world_to_camera(frame.cam_to_world[0])
+    origin = torch.as_tensor(volume.origin)
+    keys = candidate_blocks(frame.depth[0], frame.K[0], rotation.T / VOXEL, (-rotation.T @ translation - origin) / VOXEL,
+                            VOXEL, volume.truncation, volume.free_space, 4, volume.block_counts)
+    every = torch.arange(int(volume.block_counts.prod()))
+    projection = (frame.K[0].double() @ torch.cat([rotation * VOXEL, (rotation @ origin + translation)[:, None]], 1))
+    index, _, _ = observe_blocks(volume._block_coords(every) * 4, volume._local, projection.float(), frame.depth[0],
+                                 volume.truncation, volume.free_space)
+    updated = torch.unique(every[index // 64])
+    assert len(updated) > 50 and torch.isin(updated, keys).all()
+    assert len(keys) < 2 * len(updated)  # and the candidates stay tight
+
+
+def test_auto_device_is_cpu_without_cuda():
+    volume = TSDFVolume(BOX, VOXEL)
+    assert volume.device.type == ("cuda" if torch.cuda.is_available() else "cpu")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_matches_cpu(sphere_frames):
+    cpu = TSDFVolume(BOX, VOXEL, device="cpu", sparse=True).integrate(sphere_frames).to_dense()
+    gpu = TSDFVolume(BOX, VOXEL, device="cuda", sparse=True).integrate(sphere_frames).to_dense()
+    torch.testing.assert_close(gpu[1].cpu(), cpu[1])
+    torch.testing.assert_close(gpu[0].cpu(), cpu[0], atol=1e-6, rtol=0, equal_nan=True)
+
+
+# -------------------------------------------------------------------------------- real data
+
+
+def read_seven_scenes(folder, **options) -> DepthFrames:
+    from neuralsurf.io import read_rgbd_folder
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # 7-Scenes colour is not registered to depth: said once
+        return read_rgbd_folder(folder, format="7scenes", **options)
+
+
+def assert_mesh_fits_depth(mesh: Mesh, frames: DepthFrames, tolerance: float) -> None:
+    """Median distance from back-projected depth (every 8th pixel) to the fused mesh."""
+    points = backproject_depth(frames)[:, ::8, ::8][frames.depth[:, ::8, ::8] > 0].double()
+    assert float(point_to_mesh_distance(points, mesh).median()) < tolerance
+
+
+def test_seven_scenes_few_frames(shared_data):
+    frames = read_seven_scenes(shared_data / "7scenes_redkitchen_every10", stride=10, with_color=False)
+    volume = TSDFVolume(depth_bounds(frames, margin=0.1), 0.03, device="cpu", sparse=True).integrate(frames)
+    mesh = volume.extract_mesh()
+    assert volume.n_blocks < 0.3 * int(volume.block_counts.prod())
+    assert_mesh_fits_depth(mesh, frames, 0.01)
+
+
+@pytest.mark.slow
+def test_seven_scenes_full_sequence_at_one_centimetre(shared_data, tmp_path):
+    frames = read_seven_scenes(shared_data / "7scenes_redkitchen_every10", with_color=True)
+    volume = TSDFVolume(depth_bounds(frames, margin=0.05), 0.01, truncation=0.04, device="cpu", sparse=True,
+                        with_color=True)
+    volume.integrate(frames)
+    dense_bytes = int(volume.block_counts.prod()) * volume.block_size**3 * 20
+    assert volume.memory_bytes < 0.1 * dense_bytes
+    mesh = volume.extract_mesh()
+    assert len(mesh.faces) > 500_000 and mesh.vertex_colors is not None
+    assert_mesh_fits_depth(mesh, frames[::10], 0.005)
+
+
+# -------------------------------------------------------------------------------- bad input
+
+
+def test_bad_input_is_explained(sphere_frames):
+    with pytest.raises(ConfigError, match="voxel_size"):
+        TSDFVolume(BOX, 0.0)
+    with pytest.raises(ConfigError, match="truncation"):
+        TSDFVolume(BOX, VOXEL, truncation=-0.01)
+    with pytest.warns(UserWarning, match="smaller than a voxel"):
+        TSDFVolume(BOX, VOXEL, truncation=0.5 * VOXEL, device="cpu")
+    with pytest.raises(ConfigError, match="weighting"):
+        TSDFVolume(BOX, VOXEL, weighting="fancy")
+    with pytest.raises(InputError, match="bounds"):
+        TSDFVolume([[0, 0, 0], [1, -1, 1]], VOXEL)
+    with pytest.raises(ConfigError, match="sparse=True"):
+        TSDFVolume([[0, 0, 0], [100, 100, 100]], 0.01, device="cpu")  # 10^12 voxels
+    volume = TSDFVolume(BOX, VOXEL, device="cpu")
+    with pytest.raises(ExtractionError, match="integrate"):
+        volume.extract_mesh()
+    with pytest.raises(InputError, match="DepthFrames"):
+        volume.integrate(sphere_frames.depth)
+    wrong_K = sphere_frames.K.clone()
+    wrong_K[:, 0, 2] = 320.0  # K of a 640-wide camera on 64-wide images
+    with pytest.raises(InputError, match="principal point"):
+        volume.integrate(DepthFrames(sphere_frames.depth, wrong_K, sphere_frames.cam_to_world))
+    with pytest.raises(InputError, match="colors"):
+        TSDFVolume(BOX, VOXEL, device="cpu", with_color=True).integrate(sphere_frames)
+    if not torch.cuda.is_available():
+        with pytest.raises(DeviceError, match="CUDA"):
+            TSDFVolume(BOX, VOXEL, device="cuda")
+    outside = TSDFVolume([[5, 5, 5], [6, 6, 6]], VOXEL, device="cpu").integrate(sphere_frames)
+    with pytest.raises(ExtractionError, match="observed"):
+        outside.extract_mesh()
+    assert all(issubclass(e, NeuralsurfError) for e in (ConfigError, InputError, ExtractionError, DeviceError))
