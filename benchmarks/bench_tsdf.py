@@ -184,7 +184,7 @@ def run_subprocess(config: dict, threads: int) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def bench_kitchen(threads: int) -> None:
+def bench_kitchen(threads: int, repeats: int) -> None:
     if not KITCHEN.is_dir():
         print(f"\n7-Scenes: skipped, {KITCHEN} not found (set NEURALSURF_DATA)")
         return
@@ -196,18 +196,24 @@ def bench_kitchen(threads: int) -> None:
         ("ours sparse 1 cm", {"method": "sparse", "voxel": 0.01, "color": False}),
         ("ours sparse 1 cm +rgb", {"method": "sparse", "voxel": 0.01, "color": True, "write": True}),
     ]
-    print("\n7-Scenes redkitchen (100 frames 640x480), truncation 4 voxels, one subprocess per row")
+    print(f"\n7-Scenes redkitchen (100 frames 640x480), truncation 4 voxels, one subprocess per row and run, "
+          f"best of {repeats}", flush=True)
     header = (f"{'method':22} {'ms/frame':>9} {'vs Open3D':>10} {'extract s':>10} {'voxels':>12} {'storage MB':>11} "
               f"{'fusion MB':>10} {'peak MB':>8} {'faces':>9}")
     print(header + "\n" + "-" * len(header))
-    reference = None
-    for label, config in runs:
-        row = run_subprocess(config, threads)
-        reference = reference or row["ms_per_frame"]
+    rows: dict[str, dict] = {}
+    for _ in range(repeats):  # round robin, best time: machine load hits every row alike
+        for label, config in runs:
+            row = run_subprocess(config, threads)
+            if label not in rows or row["ms_per_frame"] < rows[label]["ms_per_frame"]:
+                rows[label] = row
+    reference = rows[runs[0][0]]["ms_per_frame"]
+    for label, _ in runs:
+        row = rows[label]
         ratio = row["ms_per_frame"] / reference
         storage = f"{row['storage_mb']:.0f}" if "storage_mb" in row else "-"
         print(f"{label:22} {row['ms_per_frame']:>9.1f} {ratio:>9.2f}x {row['extract_s']:>10.1f} {row['voxels']:>12,} "
-              f"{storage:>11} {row['fusion_mb']:>10.0f} {row['peak_mb']:>8.0f} {row['faces']:>9,}", flush=True)
+              f"{storage:>11} {row['fusion_mb']:>10.0f} {row['peak_mb']:>8.0f} {row['faces']:>9,}")
     print(f"room box {row['box_m']} m; voxels: allocated (ours) or in the cube (Open3D); fusion MB: peak RSS during "
           f"fusion + extraction minus the RSS before; peak MB: the whole process (imports, decoding the frames)")
     print(f"mesh for a look: {MESH_OUT}")
@@ -217,6 +223,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads (default 2)")
     parser.add_argument("--repeats", type=int, default=3, help="bunny: best of this many integrations")
+    parser.add_argument("--kitchen-repeats", type=int, default=2, help="7-Scenes: best of this many runs")
     parser.add_argument("--skip-7scenes", action="store_true")
     parser.add_argument("--skip-bunny", action="store_true")
     parser.add_argument("--one", help=argparse.SUPPRESS)
@@ -232,7 +239,7 @@ def main() -> None:
     if not args.skip_bunny:
         bench_bunny(args.repeats)
     if not args.skip_7scenes:
-        bench_kitchen(args.threads)
+        bench_kitchen(args.threads, args.kitchen_repeats)
 
 
 if __name__ == "__main__":

@@ -86,3 +86,57 @@ def _log_hparams(run_dir: Path, cfg: DictConfig, metrics: dict) -> None:
     scores = {f"metric/{k}": float(v) for k, v in metrics.items() if isinstance(v, (int, float))}
     with SummaryWriter(str(run_dir / "tensorboard")) as writer:
         writer.add_hparams(hparams, scores, run_name="hparams")
+
+
+def evaluate(cfg: DictConfig) -> list[dict]:
+    """Run the selected methods on the selected scenes (cfg.methods x cfg.scenes) and write
+    <run dir>/results.csv, results.json, results.md, plots/, renders/, meshes/ and report.html.
+    Returns the rows (one dict per method x scene)."""
+    import functools
+
+    from neuralsurf.errors import ConfigError
+    from neuralsurf.evaluation import run_benchmark, write_report
+    from neuralsurf.evaluation.runner import environment
+
+    run_dir = run_directory(cfg)
+    scenes, methods = list(cfg.scenes), list(cfg.methods)
+    for kind, names, known in (("scene", scenes, cfg.scene), ("method", methods, cfg.method)):
+        unknown = [name for name in names if name not in known]
+        if unknown:
+            raise ConfigError(f"unknown {kind}(s) {unknown}; choose from {sorted(known)} "
+                              f"(configs/{kind}/*.yaml)")
+
+    def unwrapped(build, *args, **kwargs):
+        """instantiate, re-raising the target's own error (SceneUnavailable stays a skip)."""
+        from hydra.errors import InstantiationException
+
+        try:
+            return build(*args, **kwargs)
+        except InstantiationException as error:
+            if error.__cause__ is not None:
+                raise error.__cause__ from None
+            raise
+
+    def scene_factory(name: str):
+        return lambda: unwrapped(instantiate, cfg.scene[name])
+
+    def method_factory(name: str):
+        config = OmegaConf.to_container(cfg.method[name], resolve=True)
+
+        def build():
+            method = unwrapped(instantiate, cfg.method[name], _partial_=True, _convert_="all")
+            return functools.partial(method, config=config)
+
+        return build
+
+    configs = {name: OmegaConf.to_container(cfg.method[name], resolve=True) for name in methods}
+    rows = run_benchmark({name: scene_factory(name) for name in scenes},
+                         {name: method_factory(name) for name in methods}, run_dir, seed=cfg.seed,
+                         n_samples=cfg.n_samples, render=cfg.render, render_size=cfg.render_size,
+                         save_meshes=cfg.save_meshes, configs=configs)
+    extra = {"environment": environment(), "scenes": scenes, "methods": methods,
+             "config": OmegaConf.to_container(cfg, resolve=True)}
+    table = write_report(rows, run_dir, extra)
+    print(f"\nresults in {run_dir.resolve()} (report.html, results.csv, results.json)\n")
+    print(table)
+    return rows

@@ -345,3 +345,16 @@ def test_slice_image_colours():
     assert black.any() and not black[32, 32] and not black[0, 0]
     assert black.sum() < 0.1 * black.size  # a thin contour, not a filled disc
     assert slice_image(np.zeros((4, 5))).shape == (4, 5, 3)
+
+
+def test_marching_cubes_skips_cells_with_invalid_corners():
+    grid = make_grid(UNIT_BOX, 48)
+    index = np.stack(np.meshgrid(*[np.arange(s) for s in grid.shape], indexing="ij"), -1).reshape(-1, 3)
+    values = Sphere().sdf(torch.from_numpy(grid.world(index))).numpy().reshape(grid.shape)
+    valid = np.ones(grid.shape, dtype=bool)
+    valid[: grid.shape[0] // 2] = False  # the x < 0 half is unobserved
+    half = marching_cubes(values, grid, valid=valid)
+    full = marching_cubes(values, grid)
+    assert half.vertices[:, 0].min() >= -grid.spacing
+    assert 0.4 * len(full.faces) < len(half.faces) < 0.6 * len(full.faces)
+    assert int(half.faces.max()) == len(half.vertices) - 1  # unused vertices are dropped

@@ -43,7 +43,6 @@ from __future__ import annotations
 import math
 import os
 import warnings
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -63,6 +62,8 @@ _MESH_CHUNK_BLOCKS = 8
 """Marching cubes runs on chunks of this many blocks per axis."""
 _PIN = 1e-4
 """A surface crossing closer than this fraction of an edge to a grid point is placed on the point."""
+_MAX_KEYS = 1 << 24
+"""Candidate block keys enumerated at a time (bounds memory when boxes are large)."""
 _BITMAP_LIMIT = 1 << 27
 """Candidate blocks are deduplicated in a bitmap over all blocks up to this many blocks, else sorted."""
 _BYTES_PER_VOXEL = {False: 8, True: 20}
@@ -189,22 +190,29 @@ def pixel_block_boxes(depth: Tensor, K: Tensor, rotation: Tensor, translation: T
 
 
 def box_keys(lo: Tensor, hi: Tensor, block_counts: Tensor) -> Tensor:
-    """Keys of every block in some box: lo, hi Float[Tensor, "n 3"] inclusive block ranges (clipped
-    to the volume) -> Int64[Tensor, "k"] linear keys (i * ny + j) * nz + k, with repeats."""
+    """Keys of every block in some boxes: lo, hi Float[Tensor, "n 3"] inclusive block ranges (clipped
+    to the volume) -> Int64[Tensor, "k"] linear keys (i * ny + j) * nz + k, with repeats. Boxes are
+    enumerated in groups of equal span, at most _MAX_KEYS keys at a time."""
     counts = block_counts.to(lo.device, torch.float32)
     keep = ((hi >= 0) & (lo < counts) & (hi >= lo)).all(1)
     lo, hi = lo[keep].clamp_min(0), torch.minimum(hi[keep], counts - 1)
-    if not len(lo):
-        return torch.empty(0, dtype=torch.int64, device=lo.device)
     dtype = torch.int32 if int(block_counts.prod()) < 2**31 else torch.int64
     strides = torch.tensor([int(block_counts[1] * block_counts[2]), int(block_counts[2]), 1], dtype=dtype,
                            device=lo.device)
     extent = (hi - lo).to(dtype)
-    steps = torch.minimum(torch.arange(int(extent.max()) + 1, dtype=dtype, device=lo.device), extent[..., None])
-    steps = steps * strides[:, None]  # (n, 3, span + 1): key offsets along each axis (repeats past the end)
     first = (lo.to(dtype) * strides).sum(1, dtype=dtype)
-    keys = first[:, None, None, None] + steps[:, 0, :, None, None] + steps[:, 1, None, :, None] + steps[:, 2, None, None, :]
-    return keys.reshape(-1).long()
+    span = extent.amax(1)
+    keys = [torch.empty(0, dtype=torch.int64, device=lo.device)]
+    for size in torch.unique(span).tolist():
+        pick = (span == size).nonzero()[:, 0]
+        steps = torch.arange(size + 1, dtype=dtype, device=lo.device)
+        for part in pick.split(max(1, _MAX_KEYS // (size + 1) ** 3)):
+            # key offsets along each axis, (p, 3, size + 1); steps past a box's end repeat its last block
+            offsets = torch.minimum(steps, extent[part][..., None]) * strides[:, None]
+            box = (first[part][:, None, None, None] + offsets[:, 0, :, None, None] + offsets[:, 1, None, :, None]
+                   + offsets[:, 2, None, None, :])
+            keys.append(box.reshape(-1).long())
+    return torch.cat(keys)
 
 
 def candidate_blocks(depth: Tensor, K: Tensor, rotation: Tensor, translation: Tensor, voxel_size: float,
@@ -219,7 +227,7 @@ def candidate_blocks(depth: Tensor, K: Tensor, rotation: Tensor, translation: Te
     """
     lo, hi = pixel_block_boxes(depth, K, rotation, translation, voxel_size, truncation, free_space, block_size)
     lo, hi = lo.permute(2, 0, 1)[None], hi.permute(2, 0, 1)[None]  # (1, 3, h, w)
-    pool = lambda t: torch.nn.functional.max_pool2d(t, tile, stride=tile, ceil_mode=True)  # noqa: E731
+    pool = lambda t: torch.nn.functional.max_pool2d(t, tile, stride=tile, ceil_mode=True)
     tile_lo, tile_hi = -pool(-lo), pool(hi)  # (1, 3, h / tile, w / tile)
     merged = ((tile_hi - tile_lo).amax(1) <= 1)[0]  # tiles whose pixels fall into 2 x 2 x 2 blocks at most
     height, width = depth.shape
@@ -284,8 +292,8 @@ class TSDFVolume:
         free_space: how far in front of the observed surface (projective distance, metres) voxels
             are updated, with +truncation; default 2 x truncation. Voxels next to a surface that
             the cameras see only at grazing angles have projective distances beyond the truncation;
-            this margin still observes them, which closes most holes (KinectFusion and Open3D carve
-            the whole frustum, i.e. math.inf, which also works but costs a full-frustum pass).
+            this margin still observes them, which closes most holes. (KinectFusion and Open3D carve
+            all the free space in the frustum; larger values come closer to that, at a higher cost.)
         max_memory: bytes the dense volume may take; default 80 % of the device's available memory.
     """
 
@@ -305,8 +313,9 @@ class TSDFVolume:
                 f"of the surface are often not updated and the mesh gets holes; use 2 to 5 voxels",
                 stacklevel=2,
             )
-        if free_space is not None and not (isinstance(free_space, (int, float)) and free_space > 0):
-            raise ConfigError(f"free_space must be a positive length in metres (or math.inf), got {free_space!r}")
+        if free_space is not None and not (isinstance(free_space, (int, float)) and math.isfinite(free_space)
+                                           and free_space > 0):
+            raise ConfigError(f"free_space must be a positive, finite length in metres, got {free_space!r}")
         if weighting not in WEIGHTINGS:
             raise ConfigError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
         if max_weight is not None and not (math.isfinite(max_weight) and max_weight > 0):
@@ -387,7 +396,7 @@ class TSDFVolume:
                     f"while growing) but {self.device} has {available_memory(self.device) / 2**30:.2f} GiB available; "
                     f"use a larger voxel_size, a smaller truncation or tighter bounds"
                 )
-            grow = lambda t: torch.cat([t, t.new_zeros((capacity - len(t),) + t.shape[1:])])  # noqa: E731
+            grow = lambda t: torch.cat([t, t.new_zeros((capacity - len(t),) + t.shape[1:])])
             self._tsdf, self._weight = grow(self._tsdf), grow(self._weight)
             self._color = None if self._color is None else grow(self._color)
         slots = torch.arange(self._used, needed, device=self.device)
@@ -414,10 +423,11 @@ class TSDFVolume:
         if self.with_color and frames.colors is None:
             raise InputError("this TSDFVolume was made with with_color=True but the frames have no colors; "
                              "pass DepthFrames(..., colors=...) or make the volume with with_color=False")
-        frames = frames if frames.depth.device == self.device else frames.to(self.device)
+        move = lambda t: t.to(self.device, non_blocking=True)  # the tensors only: no new DepthFrames to validate
+        depth, K, pose = move(frames.depth), move(frames.K), move(frames.cam_to_world)
+        colors = move(frames.colors) if self.with_color else None
         for i in range(len(frames)):
-            colors = frames.colors[i] if self.with_color else None
-            self._integrate_frame(frames.depth[i], frames.K[i], frames.cam_to_world[i], colors)
+            self._integrate_frame(depth[i], K[i], pose[i], None if colors is None else colors[i])
             self.frames_integrated += 1
         return self
 
@@ -547,7 +557,7 @@ class TSDFVolume:
                 "both sides inside the truncation band; check the truncation (a few voxels) and the poses"
             )
         keys = np.concatenate(keys_out)
-        unique, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+        _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
         faces = inverse[np.concatenate(faces_out)]
         faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
         used, faces = np.unique(faces, return_inverse=True)
@@ -689,5 +699,15 @@ def open3d_frame(frame: DepthFrames, with_color: bool = False):
     return rgbd, intrinsic, extrinsic
 
 
-__all__ = ["TSDFVolume", "WEIGHTINGS", "available_memory", "candidate_blocks", "depth_bounds", "fuse_open3d",
-           "open3d_frame", "pixel_weights", "resolve_device", "world_to_camera"]
+__all__ = [
+    "WEIGHTINGS",
+    "TSDFVolume",
+    "available_memory",
+    "candidate_blocks",
+    "depth_bounds",
+    "fuse_open3d",
+    "open3d_frame",
+    "pixel_weights",
+    "resolve_device",
+    "world_to_camera",
+]

@@ -1,0 +1,105 @@
+"""Reconstruction methods of the benchmark: method(scene, *, seed, run_dir, **parameters) -> Mesh.
+
+A method that does not apply to a scene raises `NotApplicable` (its row is "skipped"); any other
+exception makes the row "failed". Every method also accepts `config` (its own plain config, kept for
+provenance, e.g. in the neural checkpoints).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from neuralsurf.errors import NeuralsurfError
+from neuralsurf.evaluation.scenes import BenchmarkScene
+from neuralsurf.structures import Mesh
+
+
+class NotApplicable(NeuralsurfError):
+    """This method does not take this scene's kind of input; the row is skipped with the reason."""
+
+
+def neural_sdf(scene: BenchmarkScene, *, model: nn.Module | None = None, loss=None,
+               trainer: dict[str, Any] | None = None, extract: dict[str, Any] | None = None,
+               device: str = "auto", checkpoint: str | None = None, save_checkpoint: bool = True,
+               seed: int = 0, run_dir: str | Path | None = None, config: dict | None = None) -> Mesh:
+    """Fit a neural SDF to the scene's cloud with `neuralsurf.fit` (as train.py does) and extract it;
+    or, with `checkpoint`, score an existing fit (model rebuilt from the checkpoint's config)."""
+    from neuralsurf.extract import extract_mesh
+    from neuralsurf.training import fit
+
+    extract = dict(extract or {})
+    if checkpoint is not None:
+        field = load_field(checkpoint, device)
+    else:
+        if model is None:
+            raise NeuralsurfError("neural_sdf needs a model (a model config) or a checkpoint")
+        trainer = dict(trainer or {})
+        trainer.pop("resume", None)
+        fit_dir = Path(run_dir) if (run_dir is not None and save_checkpoint) else None
+        result = fit(model, scene.cloud, loss=loss, device=device, seed=seed, run_dir=fit_dir,
+                     resume=False, config=config or {}, **trainer)
+        field = result.field
+    return extract_mesh(field, **extract)
+
+
+def load_field(path: str | Path, device: str = "auto"):
+    """A NormalizedField from a checkpoint of `fit` (train.py's or evaluate.py's): the model is rebuilt
+    from the checkpoint's stored config (its "model" section, `_target_` + instantiate)."""
+    from hydra.utils import instantiate
+
+    from neuralsurf.models.field import NormalizedField
+    from neuralsurf.structures import Normalization
+    from neuralsurf.training import load_checkpoint, resolve_device
+
+    path = Path(path)
+    if not path.is_file():
+        raise NeuralsurfError(f"checkpoint {path} not found; pass the last.pt of a train.py or evaluate.py run")
+    state = load_checkpoint(path)
+    model_config = (state.get("config") or {}).get("model")
+    if not model_config:
+        raise NeuralsurfError(f"checkpoint {path} stores no model config (config['model']); cannot rebuild it")
+    model = instantiate(model_config, _convert_="all")
+    model.load_state_dict(state["model"])
+    box = float(((state["config"].get("trainer") or {}).get("sampling") or {}).get("box", 0.55))
+    field = NormalizedField(model, Normalization.from_state_dict(state["normalization"]), margin=box - 0.5)
+    return field.to(resolve_device(device)).eval()
+
+
+def poisson(scene: BenchmarkScene, *, depth: int = 9, density_trim: float | None = None, scale: float = 1.1,
+            normal_k: int = 30, n_threads: int = 1, seed: int = 0, run_dir=None, config=None) -> Mesh:
+    """Screened Poisson (Open3D) on the scene's cloud; normals estimated where the scene has none."""
+    import warnings
+
+    from neuralsurf.baselines import reconstruct_poisson
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*estimat.*")
+        return reconstruct_poisson(scene.cloud, depth=depth, density_trim=density_trim, scale=scale,
+                                   normal_k=normal_k, n_threads=n_threads)
+
+
+def tsdf(scene: BenchmarkScene, *, voxel_fraction: float = 1 / 256, truncation_voxels: float = 4.0,
+         margin_fraction: float = 0.05, device: str = "auto", weighting: str = "constant",
+         seed: int = 0, run_dir=None, config=None) -> Mesh:
+    """TSDF fusion of the scene's depth frames; the voxel is `voxel_fraction` of the longest side of
+    the box of the back-projected input (enlarged by `margin_fraction`; the ground truth is not used)."""
+    from neuralsurf.baselines import TSDFVolume
+
+    if scene.frames is None:
+        raise NotApplicable("TSDF fusion needs depth frames; this scene is a point cloud")
+    points = scene.cloud.points.double().cpu()
+    lo, hi = points.min(0).values, points.max(0).values
+    size = float((hi - lo).max())
+    bounds = torch.stack([lo - margin_fraction * size, hi + margin_fraction * size])
+    voxel = voxel_fraction * size
+    volume = TSDFVolume(bounds, voxel, truncation_voxels * voxel, device=device, weighting=weighting)
+    return volume.integrate(scene.frames).extract_mesh()
+
+
+def broken(scene: BenchmarkScene, *, message: str = "this method always fails", **_: Any) -> Mesh:
+    """A method that raises: checks that a failing method becomes a "failed" row (tests, demos)."""
+    raise RuntimeError(message)

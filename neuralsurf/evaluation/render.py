@@ -1,0 +1,208 @@
+"""Headless renders and charts, in numpy + PIL: meshes ray-cast with Open3D's RaycastingScene
+(no OpenGL, no display), Lambert shading or a colour ramp of the distance to the ground truth;
+bar charts and scatter plots drawn with PIL (matplotlib is not a dependency)."""
+
+from __future__ import annotations
+
+import io
+import math
+
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+from neuralsurf.structures import Mesh
+
+BACKGROUND = (255, 255, 255)
+PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),
+           (227, 119, 194), (127, 127, 127)]
+
+
+def default_view(bounds: np.ndarray, azimuth_deg: float = 35.0, elevation_deg: float = 20.0,
+                 up=(0.0, 1.0, 0.0), distance: float = 2.2) -> dict:
+    """A camera looking at the centre of `bounds` (2, 3) from the given angles (y up)."""
+    bounds = np.asarray(bounds, dtype=np.float64)
+    center = bounds.mean(0)
+    radius = float(np.linalg.norm(bounds[1] - bounds[0])) / 2
+    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
+    direction = np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
+    return {"center": center, "eye": center + distance * radius * direction, "up": np.asarray(up, float)}
+
+
+def raycast(mesh: Mesh, view: dict, width: int = 320, height: int = 320, fov_deg: float = 40.0):
+    """Cast one ray per pixel: (hit mask (h, w), world hit points (h, w, 3), unit normals (h, w, 3))."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(mesh.vertices.detach().cpu().numpy().astype(np.float32)),
+                        o3d.core.Tensor(mesh.faces.cpu().numpy().astype(np.uint32)))
+    rays = scene.create_rays_pinhole(fov_deg, view["center"].tolist(), view["eye"].tolist(), view["up"].tolist(),
+                                     width, height)
+    answer = scene.cast_rays(rays)
+    t = answer["t_hit"].numpy()
+    hit = np.isfinite(t)
+    rays_np = rays.numpy()
+    points = rays_np[..., :3] + rays_np[..., 3:] * np.where(hit, t, 0.0)[..., None]
+    normals = answer["primitive_normals"].numpy()
+    direction = rays_np[..., 3:] / np.linalg.norm(rays_np[..., 3:], axis=-1, keepdims=True)
+    # two-sided: face the normal towards the camera (open meshes show their inside)
+    normals = np.where((normals * direction).sum(-1, keepdims=True) > 0, -normals, normals)
+    return hit, points, normals, direction
+
+
+def shade(mesh: Mesh, view: dict, width: int = 320, height: int = 320, color=(0.75, 0.78, 0.85)) -> np.ndarray:
+    """Lambert-shaded image (h, w, 3) uint8 with a head light; white background."""
+    hit, _, normals, direction = raycast(mesh, view, width, height)
+    lambert = np.clip(-(normals * direction).sum(-1), 0.0, 1.0)
+    intensity = 0.2 + 0.8 * lambert
+    image = np.where(hit[..., None], intensity[..., None] * np.asarray(color), 1.0)
+    return (np.clip(image, 0, 1) * 255).astype(np.uint8)
+
+
+def colormap(values: np.ndarray) -> np.ndarray:
+    """A blue -> green -> yellow -> red ramp of values in [0, 1] (n, 3) floats."""
+    stops = np.array([[0.19, 0.21, 0.58], [0.13, 0.57, 0.55], [0.48, 0.82, 0.32], [0.99, 0.91, 0.14],
+                      [0.85, 0.15, 0.10]])
+    x = np.clip(values, 0, 1) * (len(stops) - 1)
+    low = np.floor(x).astype(int).clip(0, len(stops) - 2)
+    frac = (x - low)[..., None]
+    return stops[low] * (1 - frac) + stops[low + 1] * frac
+
+
+def distance_image(mesh: Mesh, gt: Mesh, view: dict, max_distance: float, width: int = 320,
+                   height: int = 320) -> np.ndarray:
+    """`mesh` coloured by the unsigned distance of each visible point to `gt` (0 blue .. max_distance
+    and beyond red), lightly shaded; (h, w, 3) uint8."""
+    import open3d as o3d
+
+    hit, points, normals, direction = raycast(mesh, view, width, height)
+    gt_scene = o3d.t.geometry.RaycastingScene()
+    gt_scene.add_triangles(o3d.core.Tensor(gt.vertices.detach().cpu().numpy().astype(np.float32)),
+                           o3d.core.Tensor(gt.faces.cpu().numpy().astype(np.uint32)))
+    distance = np.zeros(hit.shape, dtype=np.float64)
+    if hit.any():
+        query = o3d.core.Tensor(points[hit].astype(np.float32))
+        distance[hit] = gt_scene.compute_distance(query).numpy()
+    lambert = np.clip(-(normals * direction).sum(-1), 0.0, 1.0)
+    colors = colormap(distance / max_distance) * (0.5 + 0.5 * lambert)[..., None]
+    image = np.where(hit[..., None], colors, 1.0)
+    return (np.clip(image, 0, 1) * 255).astype(np.uint8)
+
+
+def _font(size: int = 14):
+    try:
+        return ImageFont.load_default(size=size)
+    except TypeError:  # Pillow < 10.1
+        return ImageFont.load_default()
+
+
+def labelled_row(images: list[np.ndarray], labels: list[str]) -> Image.Image:
+    """Images side by side, each with a caption above it."""
+    h = max(i.shape[0] for i in images)
+    band = 22
+    canvas = Image.new("RGB", (sum(i.shape[1] for i in images), h + band), BACKGROUND)
+    draw, x = ImageDraw.Draw(canvas), 0
+    for image, label in zip(images, labels):
+        size = max(8, min(14, image.shape[1] // 20))
+        chars = max(4, int(image.shape[1] / (0.6 * size)))
+        canvas.paste(Image.fromarray(image), (x, band))
+        draw.text((x + 4, 3), label if len(label) <= chars else label[: chars - 1] + "…", fill=(0, 0, 0),
+                  font=_font(size))
+        x += image.shape[1]
+    return canvas
+
+
+def png_bytes(image: Image.Image) -> bytes:
+    buffer = io.BytesIO()
+    image.save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def _nice_max(value: float) -> float:
+    if not math.isfinite(value) or value <= 0:
+        return 1.0
+    exponent = 10 ** math.floor(math.log10(value))
+    for step in (1, 2, 2.5, 5, 10):
+        if value <= step * exponent:
+            return step * exponent
+    return 10 * exponent
+
+
+def bar_chart(title: str, groups: list[str], series: list[str], values: dict[tuple[str, str], float],
+              width: int = 720, height: int = 360, log: bool = False) -> Image.Image:
+    """Grouped bars: one group per `groups` entry (scenes), one bar per `series` entry (methods);
+    values[(group, series)], missing or NaN values leave a gap. `log` plots log10 (values > 0)."""
+    image = Image.new("RGB", (width, height), BACKGROUND)
+    draw, font = ImageDraw.Draw(image), _font(12)
+    left, right, top, bottom = 70, 150, 30, 50
+    draw.text((left, 8), title, fill=(0, 0, 0), font=_font(15))
+    finite = [v for v in values.values() if v is not None and math.isfinite(v) and (v > 0 or not log)]
+    if log and finite:
+        lo_exp, hi_exp = math.floor(math.log10(min(finite))), math.ceil(math.log10(max(finite)))
+        hi_exp = max(hi_exp, lo_exp + 1)
+        scale = lambda v: (math.log10(v) - lo_exp) / (hi_exp - lo_exp)  # noqa: E731
+        ticks = [(10.0**e, (e - lo_exp) / (hi_exp - lo_exp)) for e in range(lo_exp, hi_exp + 1)]
+    else:
+        top_value = _nice_max(max(finite, default=1.0))
+        scale = lambda v: v / top_value  # noqa: E731
+        ticks = [(top_value * k / 4, k / 4) for k in range(5)]
+    plot_h, plot_w = height - top - bottom, width - left - right
+    for value, fraction in ticks:
+        y = top + plot_h * (1 - fraction)
+        draw.line([(left, y), (left + plot_w, y)], fill=(225, 225, 225))
+        draw.text((4, y - 7), f"{value:.3g}", fill=(60, 60, 60), font=font)
+    draw.line([(left, top), (left, top + plot_h), (left + plot_w, top + plot_h)], fill=(0, 0, 0))
+    group_w = plot_w / max(1, len(groups))
+    bar_w = group_w * 0.8 / max(1, len(series))
+    for g, group in enumerate(groups):
+        x0 = left + g * group_w + group_w * 0.1
+        for s, name in enumerate(series):
+            value = values.get((group, name))
+            if value is None or not math.isfinite(value) or (log and value <= 0):
+                continue
+            h = plot_h * min(max(scale(value), 0.0), 1.0)
+            x = x0 + s * bar_w
+            draw.rectangle([x, top + plot_h - h, x + bar_w - 2, top + plot_h], fill=PALETTE[s % len(PALETTE)])
+        draw.text((x0, top + plot_h + 6), group[:18], fill=(0, 0, 0), font=font)
+    for s, name in enumerate(series):
+        y = top + 4 + 18 * s
+        draw.rectangle([width - right + 12, y, width - right + 24, y + 12], fill=PALETTE[s % len(PALETTE)])
+        draw.text((width - right + 30, y - 1), name, fill=(0, 0, 0), font=font)
+    return image
+
+
+def scatter_plot(title: str, x_label: str, y_label: str, points: list[tuple[float, float, str, str]],
+                 width: int = 720, height: int = 360) -> Image.Image:
+    """Scatter of (x, y, series, label) on log-x (time) and linear y axes; colour by series."""
+    image = Image.new("RGB", (width, height), BACKGROUND)
+    draw, font = ImageDraw.Draw(image), _font(12)
+    left, right, top, bottom = 70, 150, 30, 50
+    plot_h, plot_w = height - top - bottom, width - left - right
+    draw.text((left, 8), title, fill=(0, 0, 0), font=_font(15))
+    points = [p for p in points if math.isfinite(p[0]) and math.isfinite(p[1]) and p[0] > 0]
+    series = sorted({p[2] for p in points})
+    draw.line([(left, top), (left, top + plot_h), (left + plot_w, top + plot_h)], fill=(0, 0, 0))
+    draw.text((left + plot_w // 2 - 40, height - 20), x_label, fill=(0, 0, 0), font=font)
+    draw.text((4, top - 22), y_label, fill=(0, 0, 0), font=font)
+    if points:
+        lx = [math.log10(p[0]) for p in points]
+        x_lo, x_hi = math.floor(min(lx)), math.ceil(max(lx))
+        x_hi = max(x_hi, x_lo + 1)
+        y_hi = _nice_max(max(p[1] for p in points))
+        for e in range(x_lo, x_hi + 1):
+            x = left + plot_w * (e - x_lo) / (x_hi - x_lo)
+            draw.line([(x, top), (x, top + plot_h)], fill=(230, 230, 230))
+            draw.text((x - 10, top + plot_h + 4), f"{10.0**e:g}", fill=(60, 60, 60), font=font)
+        for k in range(5):
+            y = top + plot_h * (1 - k / 4)
+            draw.text((4, y - 7), f"{y_hi * k / 4:.3g}", fill=(60, 60, 60), font=font)
+        for (xv, yv, name, label), lxv in zip(points, lx):
+            x = left + plot_w * (lxv - x_lo) / (x_hi - x_lo)
+            y = top + plot_h * (1 - min(yv / y_hi, 1.0))
+            color = PALETTE[series.index(name) % len(PALETTE)]
+            draw.ellipse([x - 5, y - 5, x + 5, y + 5], fill=color)
+            draw.text((x + 7, y - 7), label[:16], fill=(80, 80, 80), font=font)
+    for s, name in enumerate(series):
+        y = top + 4 + 18 * s
+        draw.rectangle([width - right + 12, y, width - right + 24, y + 12], fill=PALETTE[s % len(PALETTE)])
+        draw.text((width - right + 30, y - 1), name, fill=(0, 0, 0), font=font)
+    return image

@@ -1,0 +1,136 @@
+"""Writing the results: results.csv, results.json, a Markdown table, PNG plots, report.html."""
+
+from __future__ import annotations
+
+import base64
+import csv
+import html
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+TABLE_COLUMNS = [("method", "method"), ("scene", "scene"), ("status", "status"),
+                 ("chamfer_l1", "Chamfer-L1"), ("chamfer_l1_exact", "Chamfer-L1 exact"),
+                 ("fscore_1%", "F@1%"), ("normal_consistency", "NC"), ("iou", "IoU"),
+                 ("hausdorff", "Hausdorff"), ("seconds", "time s"), ("peak_rss_mb", "peak RSS MiB"),
+                 ("n_faces", "faces"), ("watertight", "watertight")]
+
+
+def _cell(value: Any) -> str:
+    if value is None or value == "":
+        return ""
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        return "—" if math.isnan(value) else f"{value:.4g}"
+    return str(value)
+
+
+def markdown_table(rows: list[dict[str, Any]]) -> str:
+    """One line per row: the headline metrics; skipped/failed rows show their reason."""
+    lines = ["| " + " | ".join(h for _, h in TABLE_COLUMNS) + " |", "|" + "---|" * len(TABLE_COLUMNS)]
+    for row in rows:
+        if row["status"] == "ok":
+            cells = [_cell(row.get(key)) for key, _ in TABLE_COLUMNS]
+        else:
+            reason = row.get("reason", "").replace("|", "/").replace("\n", " ")[:120]
+            cells = [row["method"], row["scene"], f"{row['status']}: {reason}"] + [""] * (len(TABLE_COLUMNS) - 3)
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def write_tables(rows: list[dict[str, Any]], run_dir: Path, extra: dict[str, Any] | None = None) -> None:
+    """results.csv (one line per row, union of the columns) and results.json ({"rows", ...extra})."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    columns: list[str] = []
+    for row in rows:
+        columns += [key for key in row if key not in columns]
+    with open(run_dir / "results.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows(rows)
+    clean = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
+             for row in rows]
+    (run_dir / "results.json").write_text(json.dumps({"rows": clean, **(extra or {})}, indent=2, default=str))
+
+
+def write_plots(rows: list[dict[str, Any]], run_dir: Path) -> list[str]:
+    """Bar charts (Chamfer-L1, F@1%, time per scene and method) and a time vs. accuracy scatter."""
+    from neuralsurf.evaluation.render import bar_chart, scatter_plot
+
+    ok = [r for r in rows if r["status"] == "ok"]
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    plots = {
+        "chamfer_l1.png": bar_chart("Chamfer-L1 (fraction of gt box, lower is better)", scenes, methods,
+                                    {(r["scene"], r["method"]): r.get("chamfer_l1") for r in ok}, log=True),
+        "fscore.png": bar_chart("F-score at 1% (higher is better)", scenes, methods,
+                                {(r["scene"], r["method"]): r.get("fscore_1%") for r in ok}),
+        "time.png": bar_chart("wall time in seconds (log)", scenes, methods,
+                              {(r["scene"], r["method"]): r.get("seconds") for r in ok}, log=True),
+        "time_vs_chamfer.png": scatter_plot("time vs. accuracy", "seconds (log)", "Chamfer-L1",
+                                            [(r["seconds"], r["chamfer_l1"], r["method"], r["scene"]) for r in ok]),
+    }
+    folder = run_dir / "plots"
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, image in plots.items():
+        image.save(folder / name)
+    return [f"plots/{name}" for name in plots]
+
+
+def _img(run_dir: Path, path: str, alt: str) -> str:
+    data = base64.b64encode((run_dir / path).read_bytes()).decode("ascii")
+    return f'<img src="data:image/png;base64,{data}" alt="{html.escape(alt)}">'
+
+
+def write_html(rows: list[dict[str, Any]], run_dir: Path, plots: list[str], title: str = "neuralsurf evaluation",
+               extra: dict[str, Any] | None = None) -> Path:
+    """One self-contained report.html: the table, the plots and every render (base64 PNGs)."""
+    head = "".join(f"<th>{html.escape(h)}</th>" for _, h in TABLE_COLUMNS)
+    body = []
+    for row in rows:
+        if row["status"] == "ok":
+            cells = "".join(f"<td>{html.escape(_cell(row.get(k)))}</td>" for k, _ in TABLE_COLUMNS)
+        else:
+            cells = (f"<td>{html.escape(row['method'])}</td><td>{html.escape(row['scene'])}</td>"
+                     f"<td class='{row['status']}' colspan='{len(TABLE_COLUMNS) - 2}'>"
+                     f"{html.escape(row['status'])}: {html.escape(row.get('reason', ''))}</td>")
+        body.append(f"<tr>{cells}</tr>")
+    scenes = {r["scene"]: r.get("scene_description", "") for r in rows}
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'>",
+        f"<title>{html.escape(title)}</title><style>",
+        "body{font-family:sans-serif;margin:2em} table{border-collapse:collapse;font-size:13px}",
+        "td,th{border:1px solid #ccc;padding:3px 6px;text-align:right} td:nth-child(-n+3){text-align:left}",
+        ".failed{color:#b00;text-align:left} .skipped{color:#777;text-align:left} img{max-width:100%;margin:4px}",
+        "</style></head><body>",
+        f"<h1>{html.escape(title)}</h1>",
+        "<p>Distances are fractions of the ground truth's longest side (its normalised frame).</p>",
+        "<ul>" + "".join(f"<li><b>{html.escape(s)}</b>: {html.escape(d)}</li>" for s, d in scenes.items()) + "</ul>",
+        f"<h2>Results</h2><table><tr>{head}</tr>{''.join(body)}</table>",
+        "<h2>Plots</h2>", *[_img(run_dir, p, p) for p in plots],
+        "<h2>Renders</h2><p>ground truth | reconstruction | distance to ground truth (blue 0, red &ge; 1%)</p>",
+    ]
+    for row in rows:
+        if row.get("render"):
+            parts.append(f"<h3>{html.escape(row['method'])} on {html.escape(row['scene'])}</h3>")
+            parts.append(_img(run_dir, row["render"], f"{row['method']} on {row['scene']}"))
+    if extra:
+        parts.append("<h2>Environment and config</h2><pre>" + html.escape(json.dumps(extra, indent=2, default=str))
+                     + "</pre>")
+    parts.append("</body></html>")
+    path = run_dir / "report.html"
+    path.write_text("\n".join(parts))
+    return path
+
+
+def write_report(rows: list[dict[str, Any]], run_dir: str | Path, extra: dict[str, Any] | None = None) -> str:
+    """Everything above; returns the Markdown table."""
+    run_dir = Path(run_dir)
+    write_tables(rows, run_dir, extra)
+    plots = write_plots(rows, run_dir)
+    write_html(rows, run_dir, plots, extra=extra)
+    table = markdown_table(rows)
+    (run_dir / "results.md").write_text(table + "\n")
+    return table

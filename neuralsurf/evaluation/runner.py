@@ -1,0 +1,203 @@
+"""The method x scene loop: build each scene once, run every method on it, measure, render.
+
+Plain Python: scenes and methods come in as factories (cli.evaluate builds them from the configs),
+so research code can call `run_benchmark` without Hydra.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import platform
+import random
+import time
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from neuralsurf.evaluation.methods import NotApplicable
+from neuralsurf.evaluation.scenes import BenchmarkScene, SceneUnavailable
+from neuralsurf.structures import Mesh
+
+SceneFactory = Callable[[], BenchmarkScene]
+MethodFactory = Callable[[], Callable[..., Mesh]]
+
+
+def environment() -> dict[str, str]:
+    """Versions and machine, recorded with every row."""
+    import open3d
+
+    import neuralsurf
+
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none"
+    return {"neuralsurf": neuralsurf.__version__, "torch": torch.__version__, "open3d": open3d.__version__,
+            "numpy": np.__version__, "python": platform.python_version(),
+            "machine": f"{platform.node()} {platform.platform()} {platform.processor() or platform.machine()}",
+            "cpu_threads": str(torch.get_num_threads()), "gpu": gpu}
+
+
+def reset_peak_memory() -> None:
+    """Reset the process's RSS high-water mark (VmHWM) and CUDA's peak counter."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass  # not Linux, or not allowed: VmHWM then is the process's lifetime peak
+    if torch.cuda.is_available():
+        torch.cuda.reset_peak_memory_stats()
+
+
+def peak_memory_mb() -> tuple[float, float]:
+    """(CPU RSS high-water mark, CUDA max allocated) in MiB since `reset_peak_memory`; NaN if unknown."""
+    rss = math.nan
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                rss = int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    cuda = torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else math.nan
+    return rss, cuda
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def check_mesh(mesh: Any) -> Mesh:
+    """A usable reconstruction, or a ValueError saying why not (the row becomes "failed")."""
+    if not isinstance(mesh, Mesh):
+        raise ValueError(f"the method returned {type(mesh).__name__}, not a neuralsurf Mesh")
+    if mesh.is_empty or len(mesh.vertices) == 0:
+        raise ValueError("the method returned an empty mesh")
+    if not torch.isfinite(mesh.vertices).all():
+        raise ValueError("the method returned a mesh with NaN or infinite vertices")
+    return mesh
+
+
+def run_benchmark(
+    scenes: dict[str, SceneFactory],
+    methods: dict[str, MethodFactory],
+    run_dir: str | Path,
+    *,
+    seed: int = 0,
+    n_samples: int = 100_000,
+    render: bool = True,
+    render_size: int = 320,
+    save_meshes: bool = True,
+    configs: dict[str, Any] | None = None,
+    log: Callable[[str], None] = print,
+) -> list[dict[str, Any]]:
+    """Run every method on every scene; one row (a dict) per (method, scene), in scene-major order.
+
+    Each row has method, scene, status ("ok" | "skipped" | "failed"), reason, seconds (the method's
+    wall time, scene building excluded), peak_rss_mb, cuda_peak_mb, n_vertices, n_faces, watertight,
+    every `evaluate_mesh` metric (gt's normalised frame), file paths of the mesh and render (relative
+    to `run_dir`), the method's config (JSON) and the environment (versions, machine).
+    """
+    from neuralsurf.metrics import evaluate_mesh
+
+    run_dir = Path(run_dir)
+    configs = configs or {}
+    env = environment()
+    rows: list[dict[str, Any]] = []
+    for scene_name, make_scene in scenes.items():
+        base = {"scene": scene_name, "seed": seed, **env}
+        try:
+            scene = make_scene()
+            scene_error = None
+        except SceneUnavailable as error:
+            scene, scene_error = None, ("skipped", f"scene unavailable: {error}")
+        except Exception as error:  # noqa: BLE001 - a broken scene must not stop the run
+            scene, scene_error = None, ("failed", f"scene failed: {type(error).__name__}: {error}")
+            _write_traceback(run_dir, f"scene_{scene_name}")
+        if scene is not None:
+            log(f"scene {scene_name}: {scene.description}")
+            base["scene_description"] = scene.description
+        gt_image = None
+        for method_name, make_method in methods.items():
+            row = {"method": method_name, **base, "status": "ok", "reason": "",
+                   "config": json.dumps(configs.get(method_name, {}), sort_keys=True, default=str)}
+            rows.append(row)
+            if scene_error is not None:
+                row["status"], row["reason"] = scene_error
+                log(f"  {method_name:>12} on {scene_name}: {row['status']} ({row['reason']})")
+                continue
+            seed_everything(seed)
+            reset_peak_memory()
+            started = time.perf_counter()
+            try:
+                method = make_method()
+                mesh = check_mesh(method(scene, seed=seed, run_dir=run_dir / "fits" / f"{scene_name}__{method_name}"))
+                row["seconds"] = time.perf_counter() - started
+                row["peak_rss_mb"], row["cuda_peak_mb"] = peak_memory_mb()
+                metrics = evaluate_mesh(mesh, scene.ground_truth, n_samples=n_samples, seed=seed)
+                if not math.isfinite(metrics["chamfer_l1"]):
+                    raise ValueError(f"the metrics are not finite (chamfer_l1 = {metrics['chamfer_l1']})")
+            except NotApplicable as error:
+                row["status"], row["reason"] = "skipped", str(error)
+                log(f"  {method_name:>12} on {scene_name}: skipped ({error})")
+                continue
+            except Exception as error:  # noqa: BLE001 - a failing method is a row, the run goes on
+                row.setdefault("seconds", time.perf_counter() - started)
+                row["status"], row["reason"] = "failed", f"{type(error).__name__}: {error}"
+                _write_traceback(run_dir, f"{scene_name}__{method_name}")
+                log(f"  {method_name:>12} on {scene_name}: FAILED ({row['reason']})")
+                continue
+            row.update(metrics)
+            row.update(n_vertices=len(mesh.vertices), n_faces=len(mesh.faces), watertight=bool(mesh.is_watertight))
+            if save_meshes:
+                from neuralsurf.io import write_mesh
+
+                path = Path("meshes") / f"{scene_name}__{method_name}.ply"
+                write_mesh(run_dir / path, mesh)
+                row["mesh"] = str(path)
+            if render:
+                try:
+                    gt_image = gt_image if gt_image is not None else _gt_render(scene, run_dir, render_size)
+                    row["render"] = _render_row(scene, mesh, method_name, gt_image, run_dir, render_size)
+                except Exception as error:  # noqa: BLE001 - a render problem must not lose the numbers
+                    row["render_error"] = f"{type(error).__name__}: {error}"
+            log(f"  {method_name:>12} on {scene_name}: chamfer_l1 {row['chamfer_l1']:.5f}  "
+                f"F@1% {row.get('fscore_1%', math.nan):.3f}  {row['seconds']:.1f} s  "
+                f"{row['peak_rss_mb']:.0f} MiB  {row['n_faces']} faces")
+    return rows
+
+
+def _write_traceback(run_dir: Path, name: str) -> None:
+    path = run_dir / "errors" / f"{name}.txt"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(traceback.format_exc())
+
+
+def _view(scene: BenchmarkScene) -> dict:
+    from neuralsurf.evaluation.render import default_view
+
+    return default_view(scene.ground_truth.bounds.double().cpu().numpy())
+
+
+def _gt_render(scene: BenchmarkScene, run_dir: Path, size: int):
+    from neuralsurf.evaluation.render import shade
+
+    return shade(scene.ground_truth, _view(scene), size, size, color=(0.80, 0.80, 0.80))
+
+
+def _render_row(scene: BenchmarkScene, mesh: Mesh, method: str, gt_image, run_dir: Path, size: int) -> str:
+    """ground truth | reconstruction shaded | reconstruction coloured by distance to gt -> one PNG."""
+    from neuralsurf.evaluation.render import distance_image, labelled_row, shade
+
+    view = _view(scene)
+    lo, hi = scene.ground_truth.bounds.double().cpu().numpy()
+    max_distance = 0.01 * float((hi - lo).max())  # the F-score's 1 % threshold: red = beyond it
+    images = [gt_image, shade(mesh, view, size, size), distance_image(mesh, scene.ground_truth, view, max_distance,
+                                                                     size, size)]
+    labels = [f"{scene.name}: ground truth", f"{method}", f"{method}: distance (red >= 1%)"]
+    path = Path("renders") / f"{scene.name}__{method}.png"
+    (run_dir / path).parent.mkdir(parents=True, exist_ok=True)
+    labelled_row(images, labels).save(run_dir / path)
+    return str(path)

@@ -1,0 +1,149 @@
+"""evaluate.py's harness: every scene/method/suite config composes; a tiny run writes the tables, the
+plots, the renders and report.html; a failing method is a row; two runs give the same metrics."""
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+from neuralsurf.evaluation import BenchmarkScene
+from neuralsurf.structures import Mesh
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+SCENES = sorted(p.stem for p in (CONFIGS / "scene").glob("*.yaml"))
+METHODS = sorted(p.stem for p in (CONFIGS / "method").glob("*.yaml"))
+SUITES = sorted(p.stem for p in (CONFIGS / "suite").glob("*.yaml"))
+METRICS = ["chamfer_l1", "chamfer_l2", "chamfer_l1_exact", "normal_consistency", "fscore_1%", "hausdorff"]
+
+
+def compose_evaluate(overrides: list[str]):
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return compose(config_name="evaluate", overrides=overrides)
+
+
+def tiny_run(tmp_path: Path, overrides: list[str] = ()) -> list[dict]:
+    from neuralsurf.cli import evaluate
+
+    cfg = compose_evaluate(["suite=tiny", "methods=[poisson,neural_sdf,tsdf]", *overrides])
+    OmegaConf.set_struct(cfg, False)
+    cfg.run_dir = str(tmp_path)
+    return evaluate(cfg)
+
+
+@pytest.mark.parametrize("suite", SUITES)
+def test_every_suite_composes_and_names_known_scenes_and_methods(suite):
+    cfg = compose_evaluate([f"suite={suite}"])
+    assert cfg.scenes and cfg.methods
+    assert set(cfg.scenes) <= set(cfg.scene) and set(cfg.methods) <= set(cfg.method)
+    OmegaConf.to_container(cfg, resolve=True)  # every interpolation resolves
+
+
+def test_every_scene_and_method_config_is_loaded():
+    cfg = compose_evaluate([])
+    assert set(SCENES) == set(cfg.scene) and set(METHODS) - {"broken"} == set(cfg.method)
+    for name in SCENES:
+        assert cfg.scene[name]._target_.startswith("neuralsurf.evaluation.scenes.")
+    # the neural method reuses train.py's groups
+    assert cfg.method.neural_sdf.model._target_ == "neuralsurf.models.SDFMLP"
+    assert cfg.method.neural_sdf.loss._target_ == "neuralsurf.losses.LossWeights"
+    assert "steps" in cfg.method.neural_sdf.trainer and "resolution" in cfg.method.neural_sdf.extract
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_every_method_config_instantiates(method):
+    cfg = compose_evaluate([f"methods=[{method}]"])
+    if method not in cfg.method:  # extra methods (broken) are loaded on demand
+        cfg = compose_evaluate([f"+method@method.{method}={method}", f"methods=[{method}]"])
+    assert callable(instantiate(cfg.method[method], _partial_=True, _convert_="all"))
+
+
+def test_cheap_scene_configs_instantiate():
+    cfg = compose_evaluate(["scene.sphere.n_points=500", "data_root=/nonexistent"])
+    scene = instantiate(cfg.scene.sphere)
+    assert isinstance(scene, BenchmarkScene) and len(scene.cloud) == 500 and scene.frames is None
+    with pytest.raises(Exception, match="data_root"):
+        instantiate(cfg.scene.stanford_scans)
+
+
+def test_a_scene_without_its_data_is_skipped_with_the_reason(tmp_path):
+    rows = tiny_run(tmp_path, ["scenes=[stanford_scans]", "data_root=/nonexistent"])
+    assert [r["status"] for r in rows] == ["skipped"] * 3
+    assert all("data_root" in r["reason"] for r in rows)
+
+
+def test_tiny_run_writes_tables_plots_renders_and_report(tmp_path):
+    rows = tiny_run(tmp_path)
+    status = {(r["method"], r["scene"]): r["status"] for r in rows}
+    assert status == {("poisson", "sphere"): "ok", ("neural_sdf", "sphere"): "ok", ("tsdf", "sphere"): "skipped"}
+    ok = [r for r in rows if r["status"] == "ok"]
+    for row in ok:
+        assert all(math.isfinite(row[m]) for m in METRICS)
+        assert row["seconds"] > 0 and row["peak_rss_mb"] > 0 and row["n_faces"] > 0
+        assert isinstance(row["watertight"], bool)
+    with open(tmp_path / "results.csv") as handle:
+        table = list(csv.DictReader(handle))
+    assert len(table) == 3 and {"torch", "open3d", "neuralsurf", "machine", "config"} <= set(table[0])
+    stored = json.loads((tmp_path / "results.json").read_text())
+    assert len(stored["rows"]) == 3 and stored["environment"]["torch"] == torch.__version__
+    report = (tmp_path / "report.html").read_text()
+    assert "<table>" in report and "neural_sdf" in report and "skipped" in report
+    plots = list((tmp_path / "plots").glob("*.png"))
+    assert len(plots) == 4
+    assert report.count("<img ") == len(plots) + len(ok)  # every plot and every render, embedded
+    assert "data:image/png;base64," in report and 'src="renders/' not in report
+    for row in ok:
+        from PIL import Image
+
+        image = np.asarray(Image.open(tmp_path / row["render"]))
+        assert image.ndim == 3 and image.std() > 0  # something was drawn
+
+
+def test_a_failing_method_is_a_row_and_the_run_goes_on(tmp_path):
+    rows = tiny_run(tmp_path, ["+method@method.broken=broken", "methods=[broken,poisson]"])
+    by_method = {r["method"]: r for r in rows}
+    assert by_method["broken"]["status"] == "failed" and "always fails" in by_method["broken"]["reason"]
+    assert by_method["poisson"]["status"] == "ok"
+    assert (tmp_path / "errors" / "sphere__broken.txt").is_file()
+    assert "failed" in (tmp_path / "report.html").read_text()
+
+
+def test_empty_or_nan_meshes_are_failed_rows(tmp_path):
+    from neuralsurf.evaluation import run_benchmark
+    from neuralsurf.evaluation.scenes import analytic
+
+    empty = Mesh(torch.zeros(0, 3, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.int64))
+    nan = Mesh(torch.eye(3, dtype=torch.float64), torch.tensor([[0, 1, 2]]))
+    object.__setattr__(nan, "vertices", torch.full((3, 3), math.nan, dtype=torch.float64))  # as a buggy method
+    methods = {"empty": lambda: (lambda scene, **_: empty), "nan": lambda: (lambda scene, **_: nan)}
+    rows = run_benchmark({"sphere": lambda: analytic(n_points=500)}, methods, tmp_path, n_samples=500,
+                         render=False, save_meshes=False)
+    assert [r["status"] for r in rows] == ["failed", "failed"]
+    assert "empty" in rows[0]["reason"] and "NaN" in rows[1]["reason"]
+
+
+def test_two_runs_give_the_same_metrics(tmp_path):
+    first = tiny_run(tmp_path / "a", ["methods=[neural_sdf,poisson]", "render=false"])
+    second = tiny_run(tmp_path / "b", ["methods=[neural_sdf,poisson]", "render=false"])
+    for a, b in zip(first, second):
+        assert a["status"] == b["status"] == "ok"
+        for name in METRICS:
+            assert a[name] == pytest.approx(b[name], abs=1e-6), (a["method"], name)
+
+
+def test_neural_checkpoint_is_scored_again(tmp_path):
+    """evaluate.py method.neural_sdf.checkpoint=... rebuilds the model from the checkpoint's config."""
+    first = tiny_run(tmp_path / "fit", ["methods=[neural_sdf]", "render=false",
+                                        "method.neural_sdf.save_checkpoint=true"])
+    checkpoint = tmp_path / "fit" / "fits" / "sphere__neural_sdf" / "checkpoints" / "last.pt"
+    assert checkpoint.is_file()
+    again = tiny_run(tmp_path / "again", ["methods=[neural_sdf]", "render=false",
+                                          f"method.neural_sdf.checkpoint={checkpoint}"])
+    assert again[0]["status"] == "ok"
+    assert again[0]["chamfer_l1"] == pytest.approx(first[0]["chamfer_l1"], abs=1e-6)
