@@ -93,9 +93,13 @@ def bench_bunny(repeats: int) -> None:
         return time.perf_counter() - started, volume
 
     def theirs():
-        volume = integration.UniformTSDFVolume(length=resolution * voxel, resolution=resolution, sdf_trunc=truncation,
-                                               color_type=integration.TSDFVolumeColorType.NoColor,
-                                               origin=(bounds[0] - 0.5 * voxel).numpy())
+        volume = integration.UniformTSDFVolume(
+            length=resolution * voxel,
+            resolution=resolution,
+            sdf_trunc=truncation,
+            color_type=integration.TSDFVolumeColorType.NoColor,
+            origin=(bounds[0] - 0.5 * voxel).numpy(),
+        )
         started = time.perf_counter()
         for inputs in o3d_inputs:
             volume.integrate(*inputs)
@@ -113,16 +117,20 @@ def bench_bunny(repeats: int) -> None:
     between = float(evaluate_mesh(meshes["dense"], meshes["open3d"])["chamfer_l1_exact"])
     same = torch.equal(meshes["dense"].faces, meshes["sparse"].faces)
 
-    print(f"\nBunny: 24 views 320x240, voxel {voxel * 1000:.3f} mm (1/256), truncation 3 voxels, "
-          f"grid {resolution}^3 for Open3D, {tuple(volumes['dense'].grid_shape)} for ours")
+    print(
+        f"\nBunny: 24 views 320x240, voxel {voxel * 1000:.3f} mm (1/256), truncation 3 voxels, "
+        f"grid {resolution}^3 for Open3D, {tuple(volumes['dense'].grid_shape)} for ours"
+    )
     header = f"{'method':22} {'ms/frame':>9} {'vs Open3D':>10} {'chamfer_l1_exact':>17} {'faces':>8}"
     print(header + "\n" + "-" * len(header))
     for name, label in (("open3d", "Open3D Uniform"), ("dense", "ours dense"), ("sparse", "ours sparse")):
         ms = best[name] / len(frames) * 1000
         ratio = best[name] / best["open3d"]
         print(f"{label:22} {ms:>9.1f} {ratio:>9.2f}x {chamfer[name]:>17.2e} {len(meshes[name].faces):>8}")
-    print(f"ours vs Open3D mesh: chamfer_l1_exact {between:.2e} (unit frame) = {between / (1 / 256):.2f} voxel; "
-          f"dense == sparse mesh: {same}; ours/Open3D < 1 means ours is faster")
+    print(
+        f"ours vs Open3D mesh: chamfer_l1_exact {between:.2e} (unit frame) = {between / (1 / 256):.2f} voxel; "
+        f"dense == sparse mesh: {same}; ours/Open3D < 1 means ours is faster"
+    )
 
 
 # ---------------------------------------------------------------------------------- 7-Scenes
@@ -149,9 +157,13 @@ def run_kitchen(config: dict) -> dict:
 
         integration = o3d.pipelines.integration
         resolution = int(np.ceil(float((bounds[1] - bounds[0]).max()) / voxel)) + 1
-        volume = integration.UniformTSDFVolume(length=resolution * voxel, resolution=resolution,
-                                               sdf_trunc=truncation, color_type=integration.TSDFVolumeColorType.NoColor,
-                                               origin=(bounds[0] - 0.5 * voxel).numpy())
+        volume = integration.UniformTSDFVolume(
+            length=resolution * voxel,
+            resolution=resolution,
+            sdf_trunc=truncation,
+            color_type=integration.TSDFVolumeColorType.NoColor,
+            origin=(bounds[0] - 0.5 * voxel).numpy(),
+        )
         inputs = [open3d_frame(frames[i]) for i in range(len(frames))]
         started = time.perf_counter()
         for item in inputs:
@@ -161,8 +173,14 @@ def run_kitchen(config: dict) -> dict:
         mesh = Mesh.from_open3d(volume.extract_triangle_mesh())
         result.update(voxels=resolution**3)
     else:
-        volume = TSDFVolume(bounds, voxel, truncation, device="cpu", sparse=config["method"] == "sparse",
-                            with_color=config["color"])
+        volume = TSDFVolume(
+            bounds,
+            voxel,
+            truncation,
+            device="cpu",
+            sparse=config["method"] == "sparse",
+            with_color=config["color"],
+        )
         started = time.perf_counter()
         volume.integrate(frames)
         seconds = time.perf_counter() - started
@@ -171,8 +189,13 @@ def run_kitchen(config: dict) -> dict:
         result.update(voxels=volume.n_blocks * volume.block_size**3, storage_mb=volume.memory_bytes / 2**20)
         if config.get("write"):
             mesh.to_trimesh().export(MESH_OUT)
-    result.update(ms_per_frame=seconds / len(frames) * 1000, extract_s=time.perf_counter() - extract_started,
-                  faces=len(mesh.faces), peak_mb=max(load_peak, peak_mb()), fusion_mb=peak_mb() - before)
+    result.update(
+        ms_per_frame=seconds / len(frames) * 1000,
+        extract_s=time.perf_counter() - extract_started,
+        faces=len(mesh.faces),
+        peak_mb=max(load_peak, peak_mb()),
+        fusion_mb=peak_mb() - before,
+    )
     return result
 
 
@@ -196,10 +219,15 @@ def bench_kitchen(threads: int, repeats: int) -> None:
         ("ours sparse 1 cm", {"method": "sparse", "voxel": 0.01, "color": False}),
         ("ours sparse 1 cm +rgb", {"method": "sparse", "voxel": 0.01, "color": True, "write": True}),
     ]
-    print(f"\n7-Scenes redkitchen (100 frames 640x480), truncation 4 voxels, one subprocess per row and run, "
-          f"best of {repeats}", flush=True)
-    header = (f"{'method':22} {'ms/frame':>9} {'vs Open3D':>10} {'extract s':>10} {'voxels':>12} {'storage MB':>11} "
-              f"{'fusion MB':>10} {'peak MB':>8} {'faces':>9}")
+    print(
+        f"\n7-Scenes redkitchen (100 frames 640x480), truncation 4 voxels, one subprocess per row and run, "
+        f"best of {repeats}",
+        flush=True,
+    )
+    header = (
+        f"{'method':22} {'ms/frame':>9} {'vs Open3D':>10} {'extract s':>10} {'voxels':>12} {'storage MB':>11} "
+        f"{'fusion MB':>10} {'peak MB':>8} {'faces':>9}"
+    )
     print(header + "\n" + "-" * len(header))
     rows: dict[str, dict] = {}
     for _ in range(repeats):  # round robin, best time: machine load hits every row alike
@@ -212,15 +240,21 @@ def bench_kitchen(threads: int, repeats: int) -> None:
         row = rows[label]
         ratio = row["ms_per_frame"] / reference
         storage = f"{row['storage_mb']:.0f}" if "storage_mb" in row else "-"
-        print(f"{label:22} {row['ms_per_frame']:>9.1f} {ratio:>9.2f}x {row['extract_s']:>10.1f} {row['voxels']:>12,} "
-              f"{storage:>11} {row['fusion_mb']:>10.0f} {row['peak_mb']:>8.0f} {row['faces']:>9,}")
-    print(f"room box {row['box_m']} m; voxels: allocated (ours) or in the cube (Open3D); fusion MB: peak RSS during "
-          f"fusion + extraction minus the RSS before; peak MB: the whole process (imports, decoding the frames)")
+        print(
+            f"{label:22} {row['ms_per_frame']:>9.1f} {ratio:>9.2f}x {row['extract_s']:>10.1f} {row['voxels']:>12,} "
+            f"{storage:>11} {row['fusion_mb']:>10.0f} {row['peak_mb']:>8.0f} {row['faces']:>9,}"
+        )
+    print(
+        f"room box {row['box_m']} m; voxels: allocated (ours) or in the cube (Open3D); fusion MB: peak RSS during "
+        f"fusion + extraction minus the RSS before; peak MB: the whole process (imports, decoding the frames)"
+    )
     print(f"mesh for a look: {MESH_OUT}")
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads (default 2)")
     parser.add_argument("--repeats", type=int, default=3, help="bunny: best of this many integrations")
     parser.add_argument("--kitchen-repeats", type=int, default=2, help="7-Scenes: best of this many runs")
@@ -234,8 +268,10 @@ def main() -> None:
         return
     import open3d as o3d
 
-    print(f"torch {torch.__version__} ({torch.get_num_threads()} threads), open3d {o3d.__version__}, "
-          f"{os.cpu_count()} CPU cores, CPU only")
+    print(
+        f"torch {torch.__version__} ({torch.get_num_threads()} threads), open3d {o3d.__version__}, "
+        f"{os.cpu_count()} CPU cores, CPU only"
+    )
     if not args.skip_bunny:
         bench_bunny(args.repeats)
     if not args.skip_7scenes:

@@ -147,3 +147,23 @@ def test_neural_checkpoint_is_scored_again(tmp_path):
                                           f"method.neural_sdf.checkpoint={checkpoint}"])
     assert again[0]["status"] == "ok"
     assert again[0]["chamfer_l1"] == pytest.approx(first[0]["chamfer_l1"], abs=1e-6)
+
+
+def test_quick_suite_runs_with_tiny_settings(tmp_path):
+    """CI's smoke run of `python evaluate.py suite=quick`: its scenes and methods, tiny sizes."""
+    pytest.importorskip("pymeshlab", reason="the bunny scenes need neuralsurf[data]")
+    from neuralsurf.cli import evaluate
+
+    cfg = compose_evaluate([
+        "suite=quick", "n_samples=1000", "render_size=48", "save_meshes=false", "device=cpu",
+        "scene.sphere.n_points=1000", "scene.bunny_noisy.n_points=2000", "method.poisson.depth=5",
+        "method.neural_sdf.trainer.steps=3", "method.neural_sdf.trainer.batch_size=128",
+        "method.neural_sdf.trainer.sampling.n_near=2000", "method.neural_sdf.trainer.sampling.n_free=500",
+        "method.neural_sdf.extract.resolution=24", "method.neural_sdf.save_checkpoint=false",
+    ])
+    OmegaConf.set_struct(cfg, False)
+    cfg.run_dir = str(tmp_path)
+    rows = evaluate(cfg)
+    assert {(r["scene"], r["method"]) for r in rows} == {(s, m) for s in cfg.scenes for m in cfg.methods}
+    assert all(r["status"] == ("skipped" if r["method"] == "tsdf" else "ok") for r in rows), rows
+    assert (tmp_path / "report.html").is_file()

@@ -46,10 +46,13 @@ def test_back_projected_depth_lies_on_the_mesh(sphere_mesh):
 
 def test_misses_are_zero_and_the_silhouette_matches_the_sphere():
     center = torch.tensor([0.0, 0.0, 2.0])
-    frames = scan_depth(Sphere(tuple(center.tolist()), 0.5).mesh(5), cam_to_world=torch.eye(4), K=K_SMALL,
-                        width=64, height=48)
+    frames = scan_depth(
+        Sphere(tuple(center.tolist()), 0.5).mesh(5), cam_to_world=torch.eye(4), K=K_SMALL, width=64, height=48
+    )
     v, u = torch.meshgrid(torch.arange(48.0), torch.arange(64.0), indexing="ij")
-    rays = torch.nn.functional.normalize(torch.stack([(u - 31.5) / 60, (v - 23.5) / 60, torch.ones_like(u)], -1), dim=-1)
+    rays = torch.nn.functional.normalize(
+        torch.stack([(u - 31.5) / 60, (v - 23.5) / 60, torch.ones_like(u)], -1), dim=-1
+    )
     distance_to_axis = torch.linalg.cross(rays, center.expand_as(rays)).norm(dim=-1)  # ray-centre distance
     clear_hit, clear_miss = distance_to_axis < 0.48, distance_to_axis > 0.5
     assert (frames.depth[0][clear_hit] > 0).all() and (frames.depth[0][clear_miss] == 0).all()
@@ -59,8 +62,9 @@ def test_orbit_cameras_look_at_the_centre_from_the_distance(sphere_mesh):
     frames = scan_depth(sphere_mesh, n_views=8, width=80, height=60, distance=2.0)
     center = torch.tensor(SPHERE.center)
     eye = frames.cam_to_world[:, :3, 3].double()
-    torch.testing.assert_close((eye - center).norm(dim=-1), torch.full((8,), 2.0, dtype=torch.float64), atol=1e-5,
-                               rtol=0)
+    torch.testing.assert_close(
+        (eye - center).norm(dim=-1), torch.full((8,), 2.0, dtype=torch.float64), atol=1e-5, rtol=0
+    )
     uv, z = project_points(center.float().expand(8, 1, 3), frames.K, frames.cam_to_world)
     torch.testing.assert_close(uv[:, 0], torch.tensor([39.5, 29.5]).expand(8, 2), atol=1e-3, rtol=0)
     assert (z > 0).all()
@@ -97,8 +101,16 @@ def test_fibonacci_directions_are_unit_and_spread():
 
 def test_gaussian_noise_has_the_requested_sigma():
     clean = scan_depth(wall(), cam_to_world=torch.eye(4), K=K_SMALL, width=64, height=48)
-    noisy = scan_depth(wall(), cam_to_world=torch.eye(4), K=K_SMALL, width=64, height=48, noise="gaussian",
-                       sigma=0.004, seed=3)
+    noisy = scan_depth(
+        wall(),
+        cam_to_world=torch.eye(4),
+        K=K_SMALL,
+        width=64,
+        height=48,
+        noise="gaussian",
+        sigma=0.004,
+        seed=3,
+    )
     residual = noisy.depth - clean.depth
     assert float(residual.std()) == pytest.approx(0.004, rel=0.05)
     assert abs(float(residual.mean())) < 0.0005
@@ -113,10 +125,22 @@ def test_kinect_noise_follows_the_axial_model():
 
 
 def test_kinect_drops_grazing_angles_and_depth_edges(sphere_mesh):
-    frames = scan_depth(sphere_mesh, cam_to_world=look_at((0.1, -0.2, 0.5), SPHERE.center)[None], K=K_SMALL,
-                        width=64, height=48)
-    kinect = scan_depth(sphere_mesh, cam_to_world=frames.cam_to_world, K=K_SMALL, width=64, height=48,
-                        noise="kinect", max_angle_deg=60.0)
+    frames = scan_depth(
+        sphere_mesh,
+        cam_to_world=look_at((0.1, -0.2, 0.5), SPHERE.center)[None],
+        K=K_SMALL,
+        width=64,
+        height=48,
+    )
+    kinect = scan_depth(
+        sphere_mesh,
+        cam_to_world=frames.cam_to_world,
+        K=K_SMALL,
+        width=64,
+        height=48,
+        noise="kinect",
+        max_angle_deg=60.0,
+    )
     clean, kept = frames.depth[0], kinect.depth[0] > 0
     assert kept.sum() < (clean > 0).sum()
     assert not (kept & depth_edges(frames.depth, 0.03)[0]).any()  # nothing kept next to the silhouette

@@ -41,6 +41,7 @@ Extraction
 from __future__ import annotations
 
 import math
+import numbers
 import os
 import warnings
 
@@ -71,7 +72,7 @@ _BYTES_PER_VOXEL = {False: 8, True: 20}
 
 
 def resolve_device(device: str | torch.device) -> torch.device:
-    """"auto" -> CUDA when available, else CPU; any other value is checked to be usable."""
+    """ "auto" -> CUDA when available, else CPU; any other value is checked to be usable."""
     if str(device) == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
@@ -95,6 +96,13 @@ def available_memory(device: torch.device) -> int:
     except OSError:
         pass
     return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+
+
+def _positive(value, name: str, what: str) -> float:
+    """`value` as a float, or ConfigError unless it is a positive finite number."""
+    if not (isinstance(value, numbers.Real) and math.isfinite(value) and value > 0):
+        raise ConfigError(f"{name} must be positive and finite ({what}), got {value!r}")
+    return float(value)
 
 
 def _as_bounds(bounds) -> np.ndarray:
@@ -153,8 +161,16 @@ def _unique_keys(keys: Tensor, total: int) -> Tensor:
     return torch.unique(keys)
 
 
-def pixel_block_boxes(depth: Tensor, K: Tensor, rotation: Tensor, translation: Tensor, voxel_size: float,
-                      truncation: float, free_space: float, block_size: int) -> tuple[Tensor, Tensor]:
+def pixel_block_boxes(
+    depth: Tensor,
+    K: Tensor,
+    rotation: Tensor,
+    translation: Tensor,
+    voxel_size: float,
+    truncation: float,
+    free_space: float,
+    block_size: int,
+) -> tuple[Tensor, Tensor]:
     """Per pixel, the range of blocks that can hold a voxel updated through it.
 
     A voxel is updated through pixel p when it projects onto p, so it lies within half a pixel's
@@ -197,8 +213,9 @@ def box_keys(lo: Tensor, hi: Tensor, block_counts: Tensor) -> Tensor:
     keep = ((hi >= 0) & (lo < counts) & (hi >= lo)).all(1)
     lo, hi = lo[keep].clamp_min(0), torch.minimum(hi[keep], counts - 1)
     dtype = torch.int32 if int(block_counts.prod()) < 2**31 else torch.int64
-    strides = torch.tensor([int(block_counts[1] * block_counts[2]), int(block_counts[2]), 1], dtype=dtype,
-                           device=lo.device)
+    strides = torch.tensor(
+        [int(block_counts[1] * block_counts[2]), int(block_counts[2]), 1], dtype=dtype, device=lo.device
+    )
     extent = (hi - lo).to(dtype)
     first = (lo.to(dtype) * strides).sum(1, dtype=dtype)
     span = extent.amax(1)
@@ -209,15 +226,28 @@ def box_keys(lo: Tensor, hi: Tensor, block_counts: Tensor) -> Tensor:
         for part in pick.split(max(1, _MAX_KEYS // (size + 1) ** 3)):
             # key offsets along each axis, (p, 3, size + 1); steps past a box's end repeat its last block
             offsets = torch.minimum(steps, extent[part][..., None]) * strides[:, None]
-            box = (first[part][:, None, None, None] + offsets[:, 0, :, None, None] + offsets[:, 1, None, :, None]
-                   + offsets[:, 2, None, None, :])
+            box = (
+                first[part][:, None, None, None]
+                + offsets[:, 0, :, None, None]
+                + offsets[:, 1, None, :, None]
+                + offsets[:, 2, None, None, :]
+            )
             keys.append(box.reshape(-1).long())
     return torch.cat(keys)
 
 
-def candidate_blocks(depth: Tensor, K: Tensor, rotation: Tensor, translation: Tensor, voxel_size: float,
-                     truncation: float, free_space: float, block_size: int, block_counts: Tensor,
-                     tile: int = 4) -> Tensor:
+def candidate_blocks(
+    depth: Tensor,
+    K: Tensor,
+    rotation: Tensor,
+    translation: Tensor,
+    voxel_size: float,
+    truncation: float,
+    free_space: float,
+    block_size: int,
+    block_counts: Tensor,
+    tile: int = 4,
+) -> Tensor:
     """Blocks that may hold a voxel this frame updates (see `pixel_block_boxes`): sorted unique keys.
 
     The pixels' block ranges are merged per `tile` x `tile` pixels (min / max pooling) where the
@@ -225,22 +255,27 @@ def candidate_blocks(depth: Tensor, K: Tensor, rotation: Tensor, translation: Te
     the other tiles (depth edges) keep their own ranges. Arguments as in `pixel_block_boxes`;
     block_counts: Int[Tensor, "3"] blocks per axis. Returns Int64[Tensor, "b"].
     """
-    lo, hi = pixel_block_boxes(depth, K, rotation, translation, voxel_size, truncation, free_space, block_size)
+    lo, hi = pixel_block_boxes(
+        depth, K, rotation, translation, voxel_size, truncation, free_space, block_size
+    )
     lo, hi = lo.permute(2, 0, 1)[None], hi.permute(2, 0, 1)[None]  # (1, 3, h, w)
     pool = lambda t: torch.nn.functional.max_pool2d(t, tile, stride=tile, ceil_mode=True)
     tile_lo, tile_hi = -pool(-lo), pool(hi)  # (1, 3, h / tile, w / tile)
     merged = ((tile_hi - tile_lo).amax(1) <= 1)[0]  # tiles whose pixels fall into 2 x 2 x 2 blocks at most
     height, width = depth.shape
     alone = ~merged.repeat_interleave(tile, 0).repeat_interleave(tile, 1)[:height, :width] & (depth > 0)
-    keys = torch.cat([
-        box_keys(tile_lo[0].permute(1, 2, 0)[merged], tile_hi[0].permute(1, 2, 0)[merged], block_counts),
-        box_keys(lo[0].permute(1, 2, 0)[alone], hi[0].permute(1, 2, 0)[alone], block_counts),
-    ])
+    keys = torch.cat(
+        [
+            box_keys(tile_lo[0].permute(1, 2, 0)[merged], tile_hi[0].permute(1, 2, 0)[merged], block_counts),
+            box_keys(lo[0].permute(1, 2, 0)[alone], hi[0].permute(1, 2, 0)[alone], block_counts),
+        ]
+    )
     return _unique_keys(keys, int(block_counts.prod()))
 
 
-def observe_blocks(blocks: Tensor, local: Tensor, projection: Tensor, depth: Tensor, truncation: float,
-                   free_space: float) -> tuple[Tensor, Tensor, Tensor]:
+def observe_blocks(
+    blocks: Tensor, local: Tensor, projection: Tensor, depth: Tensor, truncation: float, free_space: float
+) -> tuple[Tensor, Tensor, Tensor]:
     """Projective signed distances of the voxels of some blocks that one depth image observes.
 
     Args:
@@ -297,44 +332,62 @@ class TSDFVolume:
         max_memory: bytes the dense volume may take; default 80 % of the device's available memory.
     """
 
-    def __init__(self, bounds, voxel_size: float, truncation: float | None = None, device="auto",
-                 weighting: str = "constant", max_weight: float | None = None, sparse: bool = False,
-                 block_size: int = 8, with_color: bool = False, free_space: float | None = None,
-                 max_memory: int | None = None):
+    def __init__(
+        self,
+        bounds,
+        voxel_size: float,
+        truncation: float | None = None,
+        device="auto",
+        weighting: str = "constant",
+        max_weight: float | None = None,
+        sparse: bool = False,
+        block_size: int = 8,
+        with_color: bool = False,
+        free_space: float | None = None,
+        max_memory: int | None = None,
+    ):
         box = _as_bounds(bounds)
-        if not (isinstance(voxel_size, (int, float)) and math.isfinite(voxel_size) and voxel_size > 0):
-            raise ConfigError(f"voxel_size must be a positive length in metres, got {voxel_size!r}")
-        truncation = 3.0 * voxel_size if truncation is None else truncation
-        if not (isinstance(truncation, (int, float)) and math.isfinite(truncation) and truncation > 0):
-            raise ConfigError(f"truncation must be a positive length in metres, got {truncation!r}")
+        voxel_size = _positive(voxel_size, "voxel_size", "a length in metres")
+        truncation = (
+            3.0 * voxel_size
+            if truncation is None
+            else _positive(truncation, "truncation", "a length in metres")
+        )
         if truncation < voxel_size:
             warnings.warn(
                 f"truncation {truncation:g} is smaller than a voxel ({voxel_size:g}): grid points on one side "
                 f"of the surface are often not updated and the mesh gets holes; use 2 to 5 voxels",
                 stacklevel=2,
             )
-        if free_space is not None and not (isinstance(free_space, (int, float)) and math.isfinite(free_space)
-                                           and free_space > 0):
-            raise ConfigError(f"free_space must be a positive, finite length in metres, got {free_space!r}")
+        free_space = (
+            2.0 * truncation
+            if free_space is None
+            else _positive(free_space, "free_space", "a length in metres")
+        )
+        max_weight = (
+            None
+            if max_weight is None
+            else _positive(max_weight, "max_weight", "a weight, or None for no cap")
+        )
         if weighting not in WEIGHTINGS:
             raise ConfigError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
-        if max_weight is not None and not (math.isfinite(max_weight) and max_weight > 0):
-            raise ConfigError(f"max_weight must be a positive number or None (no cap), got {max_weight!r}")
         if not (isinstance(block_size, (int, np.integer)) and block_size >= 2):
-            raise ConfigError(f"block_size must be an integer >= 2 (voxels per block side), got {block_size!r}")
+            raise ConfigError(
+                f"block_size must be an integer >= 2 (voxels per block side), got {block_size!r}"
+            )
         self.device = resolve_device(device)
         self.bounds = torch.as_tensor(box)
         self.origin = box[0].copy()
-        self.voxel_size = float(voxel_size)
-        self.truncation = float(truncation)
-        self.free_space = 2.0 * self.truncation if free_space is None else float(free_space)
-        self.weighting, self.max_weight = weighting, None if max_weight is None else float(max_weight)
+        self.voxel_size, self.truncation, self.free_space = voxel_size, truncation, free_space
+        self.weighting, self.max_weight = weighting, max_weight
         self.sparse, self.block_size, self.with_color = bool(sparse), int(block_size), bool(with_color)
         points = np.floor((box[1] - box[0]) / voxel_size + 1e-9).astype(np.int64) + 1
         self.block_counts = torch.as_tensor(-(-points // block_size))
         self.frames_integrated = 0
         voxels = self.block_size**3
-        local = torch.stack(torch.meshgrid(*[torch.arange(self.block_size)] * 3, indexing="ij"), -1).reshape(-1, 3)
+        local = torch.stack(torch.meshgrid(*[torch.arange(self.block_size)] * 3, indexing="ij"), -1).reshape(
+            -1, 3
+        )
         self._local = local.to(self.device, torch.float32)  # (B^3, 3) voxel offsets inside a block
         if self.sparse:
             self._keys = torch.empty(0, dtype=torch.int64, device=self.device)  # sorted block keys
@@ -421,9 +474,12 @@ class TSDFVolume:
             )
         check_intrinsics(frames.K, frames.width, frames.height, "DepthFrames.K")
         if self.with_color and frames.colors is None:
-            raise InputError("this TSDFVolume was made with with_color=True but the frames have no colors; "
-                             "pass DepthFrames(..., colors=...) or make the volume with with_color=False")
-        move = lambda t: t.to(self.device, non_blocking=True)  # the tensors only: no new DepthFrames to validate
+            raise InputError(
+                "this TSDFVolume was made with with_color=True but the frames have no colors; "
+                "pass DepthFrames(..., colors=...) or make the volume with with_color=False"
+            )
+        # move the tensors, not the DepthFrames: no second validation, and any device works
+        move = lambda t: t.to(self.device, non_blocking=True)
         depth, K, pose = move(frames.depth), move(frames.K), move(frames.cam_to_world)
         colors = move(frames.colors) if self.with_color else None
         for i in range(len(frames)):
@@ -436,19 +492,35 @@ class TSDFVolume:
         Float[Tensor, "h w 3"] | None."""
         rotation, translation = world_to_camera(cam_to_world)
         origin = torch.as_tensor(self.origin, dtype=torch.float64, device=rotation.device)
-        keys = candidate_blocks(depth, K, rotation.T / self.voxel_size,
-                                (-rotation.T @ translation - origin) / self.voxel_size, self.voxel_size,
-                                self.truncation, self.free_space, self.block_size, self.block_counts)
+        keys = candidate_blocks(
+            depth,
+            K,
+            rotation.T / self.voxel_size,
+            (-rotation.T @ translation - origin) / self.voxel_size,
+            self.voxel_size,
+            self.truncation,
+            self.free_space,
+            self.block_size,
+            self.block_counts,
+        )
         # grid index -> homogeneous pixel: K (R (origin + v i) + t), relative to the origin for precision
-        projection = K.double() @ torch.cat([rotation * self.voxel_size, (rotation @ origin + translation)[:, None]], 1)
+        projection = K.double() @ torch.cat(
+            [rotation * self.voxel_size, (rotation @ origin + translation)[:, None]], 1
+        )
         projection = projection.float()
         weights = None if self.weighting == "constant" else pixel_weights(depth, self.weighting).reshape(-1)
         voxels = self.block_size**3
         per_chunk = max(1, _CHUNK_VOXELS // voxels)
         for start in range(0, len(keys), per_chunk):
             chunk = keys[start : start + per_chunk]
-            index, sdf, pixel = observe_blocks(self._block_coords(chunk) * self.block_size, self._local, projection,
-                                               depth, self.truncation, self.free_space)
+            index, sdf, pixel = observe_blocks(
+                self._block_coords(chunk) * self.block_size,
+                self._local,
+                projection,
+                depth,
+                self.truncation,
+                self.free_space,
+            )
             if not len(index):
                 continue
             block = index // voxels
@@ -460,8 +532,12 @@ class TSDFVolume:
                 if fresh.any():
                     slots[fresh] = self._allocate(chunk[fresh])
             voxel = slots[block] * voxels + index % voxels
-            self._update(voxel, sdf, None if weights is None else weights[pixel],
-                         None if colors is None else colors.reshape(-1, 3)[pixel])
+            self._update(
+                voxel,
+                sdf,
+                None if weights is None else weights[pixel],
+                None if colors is None else colors.reshape(-1, 3)[pixel],
+            )
 
     def _update(self, voxel: Tensor, sdf: Tensor, weight: Tensor | None, color: Tensor | None) -> None:
         """Running weighted averages at Int64[Tensor, "n"] distinct flat voxel indices with new
@@ -484,14 +560,17 @@ class TSDFVolume:
         counts = self.block_counts.to(blocks.device)
         inside = ((blocks >= 0) & (blocks < counts)).all(-1)
         keys = (blocks[..., 0] * counts[1] + blocks[..., 1]) * counts[2] + blocks[..., 2]
-        slots = torch.where(inside, self._slots_of(torch.where(inside, keys, 0).reshape(-1)).reshape(keys.shape), -1)
+        slots = torch.where(
+            inside, self._slots_of(torch.where(inside, keys, 0).reshape(-1)).reshape(keys.shape), -1
+        )
         present = slots >= 0
         safe = slots.clamp_min(0)
         c, b = blocks.shape[0], self.block_size
 
         def assemble(storage: Tensor) -> Tensor:
-            values = torch.where(present.reshape(-1, *[1] * (storage.ndim - 1)),
-                                 storage[safe.reshape(-1)], 0.0)  # (c^3, B^3[, 3])
+            values = torch.where(
+                present.reshape(-1, *[1] * (storage.ndim - 1)), storage[safe.reshape(-1)], 0.0
+            )  # (c^3, B^3[, 3])
             values = values.reshape(c, c, c, b, b, b, *storage.shape[2:])
             values = values.permute(0, 3, 1, 4, 2, 5, *range(6, values.ndim))
             return values.reshape(c * b, c * b, c * b, *storage.shape[2:])
@@ -542,8 +621,13 @@ class TSDFVolume:
             tsdf, weight = tsdf[:side, :side, :side], weight[:side, :side, :side]
             color = None if color is None else color[:side, :side, :side]
             start = corner.numpy() * chunk * self.block_size
-            piece = _mesh_chunk(tsdf.cpu().numpy(), (weight > 0).cpu().numpy(),
-                                None if color is None else color.cpu().numpy(), start, grid_points)
+            piece = _mesh_chunk(
+                tsdf.cpu().numpy(),
+                (weight > 0).cpu().numpy(),
+                None if color is None else color.cpu().numpy(),
+                start,
+                grid_points,
+            )
             if piece is None:
                 continue
             keys_out.append(piece[0])
@@ -559,19 +643,24 @@ class TSDFVolume:
         keys = np.concatenate(keys_out)
         _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
         faces = inverse[np.concatenate(faces_out)]
-        faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
+        faces = faces[
+            (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])
+        ]
         used, faces = np.unique(faces, return_inverse=True)
         faces = faces.reshape(-1, 3)
         points = np.concatenate(points_out)[first][used]
         vertices = torch.from_numpy((self.origin + points * self.voxel_size).astype(np.float32))
         colors = None
         if self.with_color:
-            colors = torch.from_numpy(np.clip(np.concatenate(colors_out)[first][used], 0, 1).astype(np.float32))
+            colors = torch.from_numpy(
+                np.clip(np.concatenate(colors_out)[first][used], 0, 1).astype(np.float32)
+            )
         return Mesh(vertices, torch.from_numpy(faces.astype(np.int64)), colors)
 
 
-def _mesh_chunk(tsdf: np.ndarray, valid: np.ndarray, color: np.ndarray | None, start: np.ndarray,
-                grid_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray] | None:
+def _mesh_chunk(
+    tsdf: np.ndarray, valid: np.ndarray, color: np.ndarray | None, start: np.ndarray, grid_points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray] | None:
     """Marching cubes of one chunk, with vertex keys for welding.
 
     Args:
@@ -587,7 +676,9 @@ def _mesh_chunk(tsdf: np.ndarray, valid: np.ndarray, color: np.ndarray | None, s
     from skimage.measure import marching_cubes
 
     invalid = torch.from_numpy(~valid)[None, None].float()
-    cell_ok = torch.nn.functional.max_pool3d(invalid, 2, stride=1)[0, 0].numpy() == 0  # all 8 corners observed
+    cell_ok = (
+        torch.nn.functional.max_pool3d(invalid, 2, stride=1)[0, 0].numpy() == 0
+    )  # all 8 corners observed
     values = np.where(valid, tsdf, np.float32(1.0)).astype(np.float32)
     t = torch.from_numpy(values)[None, None]
     cell_max = torch.nn.functional.max_pool3d(t, 2, stride=1)[0, 0].numpy()
@@ -607,8 +698,13 @@ def _mesh_chunk(tsdf: np.ndarray, valid: np.ndarray, color: np.ndarray | None, s
     return keys, points, colors, faces
 
 
-def _edge_keys(vertices: np.ndarray, values: np.ndarray, color: np.ndarray | None, start: np.ndarray,
-               grid_points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+def _edge_keys(
+    vertices: np.ndarray,
+    values: np.ndarray,
+    color: np.ndarray | None,
+    start: np.ndarray,
+    grid_points: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """The grid edge of every marching-cubes vertex, found from the values (not from the float32
     position, which differs between chunks), and its exact float64 position and colour.
 
@@ -660,7 +756,9 @@ def _edge_keys(vertices: np.ndarray, values: np.ndarray, color: np.ndarray | Non
     return keys, points + start, colors
 
 
-def fuse_open3d(frames: DepthFrames, bounds, voxel_size: float, truncation: float, with_color: bool = False) -> Mesh:
+def fuse_open3d(
+    frames: DepthFrames, bounds, voxel_size: float, truncation: float, with_color: bool = False
+) -> Mesh:
     """Reference: Open3D's UniformTSDFVolume on the same frames, its voxel centres on our grid points.
 
     The uniform volume is a cube of `resolution` voxels per side covering `bounds`; its voxel centres
@@ -673,10 +771,16 @@ def fuse_open3d(frames: DepthFrames, bounds, voxel_size: float, truncation: floa
     box = _as_bounds(bounds)
     resolution = int(np.ceil((box[1] - box[0]).max() / voxel_size)) + 1
     integration = o3d.pipelines.integration
-    color_type = integration.TSDFVolumeColorType.RGB8 if with_color else integration.TSDFVolumeColorType.NoColor
-    volume = integration.UniformTSDFVolume(length=resolution * voxel_size, resolution=resolution,
-                                           sdf_trunc=truncation, color_type=color_type,
-                                           origin=box[0] - 0.5 * voxel_size)
+    color_type = (
+        integration.TSDFVolumeColorType.RGB8 if with_color else integration.TSDFVolumeColorType.NoColor
+    )
+    volume = integration.UniformTSDFVolume(
+        length=resolution * voxel_size,
+        resolution=resolution,
+        sdf_trunc=truncation,
+        color_type=color_type,
+        origin=box[0] - 0.5 * voxel_size,
+    )
     for i in range(len(frames)):
         volume.integrate(*open3d_frame(frames[i], with_color))
     return Mesh.from_open3d(volume.extract_triangle_mesh())
@@ -693,8 +797,12 @@ def open3d_frame(frame: DepthFrames, with_color: bool = False):
     if with_color and frame.colors is not None:
         color = np.ascontiguousarray((frame.colors[0].cpu().numpy() * 255).round().astype(np.uint8))
     rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
-        o3d.geometry.Image(color), o3d.geometry.Image(np.ascontiguousarray(frame.depth[0].cpu().numpy())),
-        depth_scale=1.0, depth_trunc=1e6, convert_rgb_to_intensity=False)
+        o3d.geometry.Image(color),
+        o3d.geometry.Image(np.ascontiguousarray(frame.depth[0].cpu().numpy())),
+        depth_scale=1.0,
+        depth_trunc=1e6,
+        convert_rgb_to_intensity=False,
+    )
     extrinsic = np.linalg.inv(frame.cam_to_world[0].double().cpu().numpy())
     return rgbd, intrinsic, extrinsic
 

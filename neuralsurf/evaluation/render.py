@@ -139,11 +139,11 @@ def bar_chart(title: str, groups: list[str], series: list[str], values: dict[tup
     if log and finite:
         lo_exp, hi_exp = math.floor(math.log10(min(finite))), math.ceil(math.log10(max(finite)))
         hi_exp = max(hi_exp, lo_exp + 1)
-        scale = lambda v: (math.log10(v) - lo_exp) / (hi_exp - lo_exp)  # noqa: E731
+        scale = lambda v: (math.log10(v) - lo_exp) / (hi_exp - lo_exp)
         ticks = [(10.0**e, (e - lo_exp) / (hi_exp - lo_exp)) for e in range(lo_exp, hi_exp + 1)]
     else:
         top_value = _nice_max(max(finite, default=1.0))
-        scale = lambda v: v / top_value  # noqa: E731
+        scale = lambda v: v / top_value
         ticks = [(top_value * k / 4, k / 4) for k in range(5)]
     plot_h, plot_w = height - top - bottom, width - left - right
     for value, fraction in ticks:

@@ -72,7 +72,7 @@ def seed_everything(seed: int) -> None:
 def check_mesh(mesh: Any) -> Mesh:
     """A usable reconstruction, or a ValueError saying why not (the row becomes "failed")."""
     if not isinstance(mesh, Mesh):
-        raise ValueError(f"the method returned {type(mesh).__name__}, not a neuralsurf Mesh")
+        raise TypeError(f"the method returned {type(mesh).__name__}, not a neuralsurf Mesh")
     if mesh.is_empty or len(mesh.vertices) == 0:
         raise ValueError("the method returned an empty mesh")
     if not torch.isfinite(mesh.vertices).all():

@@ -47,7 +47,11 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> Tensor:
         raise InputError(f"look_at needs eye != target, both are {eye.tolist()}")
     forward = forward / forward.norm()
     up = torch.as_tensor(up, dtype=torch.float64).reshape(3)
-    for candidate in (up, torch.tensor([0.0, 0, 1], dtype=torch.float64), torch.tensor([1.0, 0, 0], dtype=torch.float64)):
+    for candidate in (
+        up,
+        torch.tensor([0.0, 0, 1], dtype=torch.float64),
+        torch.tensor([1.0, 0, 0], dtype=torch.float64),
+    ):
         down = -(candidate - (candidate @ forward) * forward)
         if float(down.norm()) > 1e-6 * float(candidate.norm()):
             break
@@ -61,11 +65,14 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> Tensor:
 def intrinsics_from_fov(width: int, height: int, fov_deg: float) -> Tensor:
     """Float64[Tensor, "3 3"]: square-pixel K with vertical field of view `fov_deg`, centred image."""
     focal = (height / 2) / math.tan(math.radians(fov_deg) / 2)
-    return torch.tensor([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]], dtype=torch.float64)
+    return torch.tensor(
+        [[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]], dtype=torch.float64
+    )
 
 
-def orbit_cameras(center, radius: float, n_views: int, fov_deg: float, aspect: float,
-                  distance: float | None = None) -> Tensor:
+def orbit_cameras(
+    center, radius: float, n_views: int, fov_deg: float, aspect: float, distance: float | None = None
+) -> Tensor:
     """Float64[Tensor, "n 4 4"]: cameras on a Fibonacci sphere around `center`, looking at it.
 
     The default distance puts the bounding sphere (`radius`) just inside the narrower field of
@@ -84,7 +91,9 @@ def kinect_sigma(z: Tensor) -> Tensor:
     return 0.0012 + 0.0019 * (z - 0.4) ** 2
 
 
-def render_depth(mesh: Mesh, K: Tensor, cam_to_world: Tensor, width: int, height: int) -> tuple[Tensor, Tensor]:
+def render_depth(
+    mesh: Mesh, K: Tensor, cam_to_world: Tensor, width: int, height: int
+) -> tuple[Tensor, Tensor]:
     """Exact z-depth of `mesh` seen by pinhole cameras, by Open3D's ray casting.
 
     Args:
@@ -102,13 +111,16 @@ def render_depth(mesh: Mesh, K: Tensor, cam_to_world: Tensor, width: int, height
         o3d.core.Tensor((mesh.vertices.detach().double().cpu() - center).float().numpy()),
         o3d.core.Tensor(mesh.faces.cpu().numpy().astype(np.uint32)),
     )
-    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64),
-                          indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij"
+    )
     depth, cosine = [], []
     for k, p in zip(K, pose):  # one camera at a time bounds memory
         x = (u - k[0, 2] - k[0, 1] * (v - k[1, 2]) / k[1, 1]) / k[0, 0]
         y = (v - k[1, 2]) / k[1, 1]
-        direction = torch.nn.functional.normalize(torch.stack([x, y, torch.ones_like(x)], -1), dim=-1)  # (h, w, 3)
+        direction = torch.nn.functional.normalize(
+            torch.stack([x, y, torch.ones_like(x)], -1), dim=-1
+        )  # (h, w, 3)
         world = direction @ p[:3, :3].T
         origin = (p[:3, 3] - center).expand_as(world)
         hit = scene.cast_rays(o3d.core.Tensor(torch.cat([origin, world], -1).float().numpy()))
@@ -184,12 +196,16 @@ def scan_depth(
         DepthFrames with depth (n, height, width) float32 metres (0 = no reading), K, cam_to_world.
     """
     if not isinstance(mesh, Mesh) or mesh.is_empty:
-        raise InputError(f"scan_depth needs a non-empty neuralsurf Mesh, got {type(mesh).__name__}"
-                         + (" without faces" if isinstance(mesh, Mesh) else ""))
+        raise InputError(
+            f"scan_depth needs a non-empty neuralsurf Mesh, got {type(mesh).__name__}"
+            + (" without faces" if isinstance(mesh, Mesh) else "")
+        )
     if noise not in NOISE_MODELS:
         raise ConfigError(f"noise must be one of {NOISE_MODELS}, got {noise!r}")
     if sigma is not None and noise != "gaussian":
-        raise ConfigError(f"sigma sets the 'gaussian' noise only; the {noise!r} model takes no sigma (pass sigma=None)")
+        raise ConfigError(
+            f"sigma sets the 'gaussian' noise only; the {noise!r} model takes no sigma (pass sigma=None)"
+        )
     sigma = 0.001 if sigma is None else float(sigma)
     if not (math.isfinite(sigma) and sigma >= 0):
         raise ConfigError(f"sigma must be a non-negative standard deviation in metres, got {sigma}")
@@ -235,5 +251,15 @@ def scan_depth(
     return DepthFrames(depth.float(), K.float(), pose.float())
 
 
-__all__ = ["NOISE_MODELS", "check_intrinsics", "depth_edges", "fibonacci_sphere", "intrinsics_from_fov", "kinect_sigma", "look_at",
-           "orbit_cameras", "render_depth", "scan_depth"]
+__all__ = [
+    "NOISE_MODELS",
+    "check_intrinsics",
+    "depth_edges",
+    "fibonacci_sphere",
+    "intrinsics_from_fov",
+    "kinect_sigma",
+    "look_at",
+    "orbit_cameras",
+    "render_depth",
+    "scan_depth",
+]
