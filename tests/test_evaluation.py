@@ -13,7 +13,7 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from neuralsurf.evaluation import BenchmarkScene
+from neuralsurf.scenes import Scene
 from neuralsurf.structures import Mesh
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -67,7 +67,7 @@ def test_every_method_config_instantiates(method):
 def test_cheap_scene_configs_instantiate():
     cfg = compose_evaluate(["scene.sphere.n_points=500", "data_root=/nonexistent"])
     scene = instantiate(cfg.scene.sphere)
-    assert isinstance(scene, BenchmarkScene) and len(scene.cloud) == 500 and scene.frames is None
+    assert isinstance(scene, Scene) and len(scene.cloud) == 500 and scene.frames is None
     with pytest.raises(Exception, match="data_root"):
         instantiate(cfg.scene.stanford_scans)
 

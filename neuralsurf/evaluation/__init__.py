@@ -3,7 +3,7 @@
 from neuralsurf.evaluation.methods import NotApplicable, load_field, neural_sdf, poisson, tsdf
 from neuralsurf.evaluation.report import markdown_table, write_report
 from neuralsurf.evaluation.runner import run_benchmark
-from neuralsurf.evaluation.scenes import BenchmarkScene, SceneUnavailable
+from neuralsurf.evaluation.scenes import SceneUnavailable
 
-__all__ = ["BenchmarkScene", "NotApplicable", "SceneUnavailable", "load_field", "markdown_table", "neural_sdf",
+__all__ = ["NotApplicable", "SceneUnavailable", "load_field", "markdown_table", "neural_sdf",
            "poisson", "run_benchmark", "tsdf", "write_report"]

@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 from neuralsurf.errors import NeuralsurfError
-from neuralsurf.evaluation.scenes import BenchmarkScene
+from neuralsurf.scenes import Scene
 from neuralsurf.structures import Mesh
 
 
@@ -22,7 +22,7 @@ class NotApplicable(NeuralsurfError):
     """This method does not take this scene's kind of input; the row is skipped with the reason."""
 
 
-def neural_sdf(scene: BenchmarkScene, *, model: nn.Module | None = None, loss=None,
+def neural_sdf(scene: Scene, *, model: nn.Module | None = None, loss=None,
                trainer: dict[str, Any] | None = None, extract: dict[str, Any] | None = None,
                device: str = "auto", checkpoint: str | None = None, save_checkpoint: bool = True,
                seed: int = 0, run_dir: str | Path | None = None, config: dict | None = None) -> Mesh:
@@ -69,7 +69,7 @@ def load_field(path: str | Path, device: str = "auto"):
     return field.to(resolve_device(device)).eval()
 
 
-def poisson(scene: BenchmarkScene, *, depth: int = 9, density_trim: float | None = None, scale: float = 1.1,
+def poisson(scene: Scene, *, depth: int = 9, density_trim: float | None = None, scale: float = 1.1,
             normal_k: int = 30, n_threads: int = 1, seed: int = 0, run_dir=None, config=None) -> Mesh:
     """Screened Poisson (Open3D) on the scene's cloud; normals estimated where the scene has none."""
     import warnings
@@ -82,7 +82,7 @@ def poisson(scene: BenchmarkScene, *, depth: int = 9, density_trim: float | None
                                    normal_k=normal_k, n_threads=n_threads)
 
 
-def tsdf(scene: BenchmarkScene, *, voxel_fraction: float = 1 / 256, truncation_voxels: float = 4.0,
+def tsdf(scene: Scene, *, voxel_fraction: float = 1 / 256, truncation_voxels: float = 4.0,
          margin_fraction: float = 0.05, device: str = "auto", weighting: str = "constant",
          seed: int = 0, run_dir=None, config=None) -> Mesh:
     """TSDF fusion of the scene's depth frames; the voxel is `voxel_fraction` of the longest side of
@@ -100,6 +100,6 @@ def tsdf(scene: BenchmarkScene, *, voxel_fraction: float = 1 / 256, truncation_v
     return volume.integrate(scene.frames).extract_mesh()
 
 
-def broken(scene: BenchmarkScene, *, message: str = "this method always fails", **_: Any) -> Mesh:
+def broken(scene: Scene, *, message: str = "this method always fails", **_: Any) -> Mesh:
     """A method that raises: checks that a failing method becomes a "failed" row (tests, demos)."""
     raise RuntimeError(message)

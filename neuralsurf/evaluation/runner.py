@@ -20,10 +20,11 @@ import numpy as np
 import torch
 
 from neuralsurf.evaluation.methods import NotApplicable
-from neuralsurf.evaluation.scenes import BenchmarkScene, SceneUnavailable
+from neuralsurf.evaluation.scenes import SceneUnavailable
+from neuralsurf.scenes import Scene
 from neuralsurf.structures import Mesh
 
-SceneFactory = Callable[[], BenchmarkScene]
+SceneFactory = Callable[[], Scene]
 MethodFactory = Callable[[], Callable[..., Mesh]]
 
 
@@ -175,19 +176,19 @@ def _write_traceback(run_dir: Path, name: str) -> None:
     path.write_text(traceback.format_exc())
 
 
-def _view(scene: BenchmarkScene) -> dict:
+def _view(scene: Scene) -> dict:
     from neuralsurf.evaluation.render import default_view
 
     return default_view(scene.ground_truth.bounds.double().cpu().numpy())
 
 
-def _gt_render(scene: BenchmarkScene, run_dir: Path, size: int):
+def _gt_render(scene: Scene, run_dir: Path, size: int):
     from neuralsurf.evaluation.render import shade
 
     return shade(scene.ground_truth, _view(scene), size, size, color=(0.80, 0.80, 0.80))
 
 
-def _render_row(scene: BenchmarkScene, mesh: Mesh, method: str, gt_image, run_dir: Path, size: int) -> str:
+def _render_row(scene: Scene, mesh: Mesh, method: str, gt_image, run_dir: Path, size: int) -> str:
     """ground truth | reconstruction shaded | reconstruction coloured by distance to gt -> one PNG."""
     from neuralsurf.evaluation.render import distance_image, labelled_row, shade
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from neuralsurf.geometry import cloud_from_mesh
 from neuralsurf.scenes.analytic import analytic_shape
-from neuralsurf.structures import Mesh, PointCloud
+from neuralsurf.structures import DepthFrames, Mesh, PointCloud
 
 
 @dataclass(frozen=True)
@@ -20,6 +20,10 @@ class Scene:
     """The input point cloud (with normals when the recipe provides them)."""
     ground_truth: Mesh | None = None
     """The true surface, for metrics; None for captures without one."""
+    frames: DepthFrames | None = None
+    """Depth images with cameras, for methods that fuse depth (TSDF); `cloud` is then their back-projection."""
+    description: str = ""
+    """One line for reports."""
 
 
 def mesh_scene(mesh: Mesh, n_points: int = 100_000, noise: float = 0.0, normals: bool = True,
