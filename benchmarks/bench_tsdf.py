@@ -256,7 +256,7 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads (default 2)")
-    parser.add_argument("--repeats", type=int, default=3, help="bunny: best of this many integrations")
+    parser.add_argument("--repeats", type=int, default=5, help="bunny: best of this many integrations")
     parser.add_argument("--kitchen-repeats", type=int, default=2, help="7-Scenes: best of this many runs")
     parser.add_argument("--skip-7scenes", action="store_true")
     parser.add_argument("--skip-bunny", action="store_true")
@@ -270,12 +270,14 @@ def main() -> None:
 
     print(
         f"torch {torch.__version__} ({torch.get_num_threads()} threads), open3d {o3d.__version__}, "
-        f"{os.cpu_count()} CPU cores, CPU only"
+        f"{os.cpu_count()} CPU cores, CPU only; load average {os.getloadavg()[0]:.1f} (other processes "
+        f"slow torch's many short parallel ops more than Open3D's one loop per frame: compare quiet runs)"
     )
     if not args.skip_bunny:
         bench_bunny(args.repeats)
     if not args.skip_7scenes:
         bench_kitchen(args.threads, args.kitchen_repeats)
+    print(f"load average at the end: {os.getloadavg()[0]:.1f}")
 
 
 if __name__ == "__main__":
