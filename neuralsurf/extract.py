@@ -58,7 +58,7 @@ def make_grid(bounds, resolution: int) -> Grid:
     Every axis uses the same spacing (cubic voxels); the shorter axes get enough cells to cover
     the box and are centred on it, so the grid covers the box and overhangs it by less than one cell.
     """
-    box = _as_bounds(bounds)
+    box = as_bounds(bounds)
     if not (isinstance(resolution, (int, np.integer)) and resolution >= 2):
         raise ConfigError(
             f"resolution must be an integer >= 2 (cells along the longest side), got {resolution!r}"
@@ -71,7 +71,7 @@ def make_grid(bounds, resolution: int) -> Grid:
     return Grid(origin=origin, spacing=spacing, cells=tuple(int(c) for c in cells))
 
 
-def _as_bounds(bounds) -> np.ndarray:
+def as_bounds(bounds) -> np.ndarray:
     """Array-like (2, 3) min/max corners -> Float[ndarray, "2 3"] float64, checked."""
     try:
         if isinstance(bounds, Tensor):
@@ -100,7 +100,7 @@ def _resolve_bounds(field: Field, bounds) -> np.ndarray:
                 f"no extraction box: pass bounds=[[xmin, ymin, zmin], [xmax, ymax, zmax]] (world frame) "
                 f"or give the field a (2, 3) `bounds` attribute; {type(field).__name__} has none"
             )
-    return _as_bounds(bounds)
+    return as_bounds(bounds)
 
 
 def _field_device(field: Field, device: torch.device | str | None) -> torch.device:

@@ -276,9 +276,9 @@ class Normalization:
 def _check_rigid(cam_to_world: Tensor, name: str, tolerance: float = 1e-3) -> None:
     """Raise InputError unless every 4x4 matrix is a rigid motion (R^T R = I, det R = 1, last row 0 0 0 1)."""
     rotation = cam_to_world[:, :3, :3].double()
-    identity = torch.eye(3, dtype=torch.float64)
+    identity = torch.eye(3, dtype=torch.float64, device=cam_to_world.device)
     orthogonal_error = (rotation.transpose(1, 2) @ rotation - identity).abs().amax(dim=(1, 2))
-    bottom = torch.tensor([0, 0, 0, 1], dtype=cam_to_world.dtype)
+    bottom = torch.tensor([0, 0, 0, 1], dtype=cam_to_world.dtype, device=cam_to_world.device)
     bad = (orthogonal_error > tolerance) | (torch.linalg.det(rotation) < 0) | (
         (cam_to_world[:, 3] - bottom).abs().amax(dim=1) > tolerance
     )

@@ -14,7 +14,8 @@ from typing import Any
 import torch
 from torch import nn
 
-from neuralsurf.errors import ConfigError, DeviceError, InputError, NeuralsurfError
+from neuralsurf.devices import resolve_device
+from neuralsurf.errors import ConfigError, InputError, NeuralsurfError
 from neuralsurf.geometry import estimate_normals, orient_normals
 from neuralsurf.losses import LossWeights, evaluate_sdf_batch, sdf_losses
 from neuralsurf.models.field import NormalizedField
@@ -22,22 +23,6 @@ from neuralsurf.sampling import draw_batch, make_sdf_samples
 from neuralsurf.structures import Normalization, PointCloud
 
 CHECKPOINT_NAME = "last.pt"
-
-
-def resolve_device(device: str | torch.device = "auto") -> torch.device:
-    """"auto" -> CUDA when available, else CPU; "cuda" without a GPU is an error."""
-    if str(device) == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        resolved = torch.device(device)
-    except RuntimeError as error:
-        raise DeviceError(f"unknown device {device!r} ({error}); use auto, cpu or cuda[:index]") from None
-    if resolved.type == "cuda" and not torch.cuda.is_available():
-        raise DeviceError(
-            f"device={device!r} was requested but PyTorch sees no CUDA GPU "
-            f"(torch {torch.__version__}); use device=auto or device=cpu"
-        )
-    return resolved
 
 
 def cosine_schedule(step: int, steps: int, warmup_steps: int, min_ratio: float) -> float:

@@ -49,7 +49,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from neuralsurf.errors import ConfigError, DeviceError, ExtractionError, InputError
+from neuralsurf.devices import resolve_device
+from neuralsurf.errors import ConfigError, ExtractionError, InputError
+from neuralsurf.extract import as_bounds
 from neuralsurf.scenes.scanner import check_intrinsics, kinect_sigma
 from neuralsurf.structures import DepthFrames, Mesh
 
@@ -71,19 +73,6 @@ _BYTES_PER_VOXEL = {False: 8, True: 20}
 """tsdf + weight (float32), plus three float32 colour channels."""
 
 
-def resolve_device(device: str | torch.device) -> torch.device:
-    """ "auto" -> CUDA when available, else CPU; any other value is checked to be usable."""
-    if str(device) == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(device)
-    except (RuntimeError, TypeError) as error:
-        raise DeviceError(f"unknown device {device!r} ({error}); use 'auto', 'cpu' or 'cuda'") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise DeviceError(f"device {device} requested but CUDA is not available; use device='auto' or 'cpu'")
-    return device
-
-
 def available_memory(device: torch.device) -> int:
     """Bytes that can still be allocated on `device` (free GPU memory, or MemAvailable on Linux)."""
     if device.type == "cuda":
@@ -103,20 +92,6 @@ def _positive(value, name: str, what: str) -> float:
     if not (isinstance(value, numbers.Real) and math.isfinite(value) and value > 0):
         raise ConfigError(f"{name} must be positive and finite ({what}), got {value!r}")
     return float(value)
-
-
-def _as_bounds(bounds) -> np.ndarray:
-    """Array-like (2, 3) min/max corners -> Float[ndarray, "2 3"] float64, checked."""
-    try:
-        box = np.asarray(bounds.detach().cpu() if isinstance(bounds, Tensor) else bounds, dtype=np.float64)
-    except (TypeError, ValueError) as error:
-        raise InputError(f"bounds must be a (2, 3) array of min and max corners: {error}") from None
-    if box.shape != (2, 3) or not np.isfinite(box).all() or not (box[1] > box[0]).all():
-        raise InputError(
-            f"bounds must be a finite (2, 3) array [[xmin, ymin, zmin], [xmax, ymax, zmax]] with max > min, "
-            f"got {box.tolist() if box.size < 20 else box.shape}"
-        )
-    return box
 
 
 def depth_bounds(frames: DepthFrames, margin: float = 0.0) -> Tensor:
@@ -346,7 +321,7 @@ class TSDFVolume:
         free_space: float | None = None,
         max_memory: int | None = None,
     ):
-        box = _as_bounds(bounds)
+        box = as_bounds(bounds)
         voxel_size = _positive(voxel_size, "voxel_size", "a length in metres")
         truncation = (
             3.0 * voxel_size
@@ -768,7 +743,7 @@ def fuse_open3d(
     """
     import open3d as o3d
 
-    box = _as_bounds(bounds)
+    box = as_bounds(bounds)
     resolution = int(np.ceil((box[1] - box[0]).max() / voxel_size)) + 1
     integration = o3d.pipelines.integration
     color_type = (
@@ -819,6 +794,5 @@ __all__ = [
     "open3d_frame",
     "pixel_block_boxes",
     "pixel_weights",
-    "resolve_device",
     "world_to_camera",
 ]
