@@ -167,3 +167,17 @@ def test_quick_suite_runs_with_tiny_settings(tmp_path):
     assert {(r["scene"], r["method"]) for r in rows} == {(s, m) for s in cfg.scenes for m in cfg.methods}
     assert all(r["status"] == ("skipped" if r["method"] == "tsdf" else "ok") for r in rows), rows
     assert (tmp_path / "report.html").is_file()
+
+
+def test_renders_are_upright_and_not_mirrored():
+    """A cube at +x, +y seen from +z with y up appears in the image's top-right quarter."""
+    import trimesh
+
+    from neuralsurf.evaluation.render import default_view, raycast
+
+    cube = trimesh.creation.box(extents=[0.2, 0.2, 0.2])
+    cube.apply_translation([0.5, 0.5, 0.0])
+    view = default_view(np.array([[-1.0, -1, -1], [1, 1, 1]]), azimuth_deg=0, elevation_deg=0)
+    hit, *_ = raycast(Mesh.from_trimesh(cube), view, 64, 64)
+    rows, cols = np.nonzero(hit)
+    assert len(rows) and rows.max() < 32 and cols.min() >= 32

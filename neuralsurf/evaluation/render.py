@@ -35,8 +35,9 @@ def raycast(mesh: Mesh, view: dict, width: int = 320, height: int = 320, fov_deg
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(mesh.vertices.detach().cpu().numpy().astype(np.float32)),
                         o3d.core.Tensor(mesh.faces.cpu().numpy().astype(np.uint32)))
-    rays = scene.create_rays_pinhole(fov_deg, view["center"].tolist(), view["eye"].tolist(), view["up"].tolist(),
-                                     width, height)
+    # Open3D's pinhole rays put `up` towards the last image row: pass -up for an upright image
+    rays = scene.create_rays_pinhole(fov_deg, view["center"].tolist(), view["eye"].tolist(),
+                                     (-np.asarray(view["up"], float)).tolist(), width, height)
     answer = scene.cast_rays(rays)
     t = answer["t_hit"].numpy()
     hit = np.isfinite(t)
