@@ -211,3 +211,32 @@ def test_corrupt_range_grid(tmp_path):
     (tmp_path / "bad_shape.ply").write_text(text.replace("obj_info num_rows 6", "obj_info num_rows 5"))
     with pytest.raises(FileFormatError, match="5 rows x 7 cols"):
         read_range_scan(tmp_path / "bad_shape.ply")
+
+
+def test_scan_frames_back_project_onto_the_reconstruction(shared_data):
+    """Each scan rendered as a depth image from its scanner's side: its pixels back-project (through
+    the frame's pose into the .conf frame) onto bun_zipper.ply, as the raw scan points do."""
+    from neuralsurf.geometry import depth_to_cloud
+    from neuralsurf.io import read_range_scan_frames
+
+    folder = shared_data / "stanford_bunny"
+    frames = read_range_scan_frames(folder / "data" / "bun.conf", pixel_size=5e-4)
+    assert len(frames) == 10 and frames.height == frames.width
+    assert ((frames.depth > 0).flatten(1).sum(1) > 30_000).all()  # every scan is seen
+    cloud = depth_to_cloud(frames, with_normals=False)
+    distance = point_to_mesh_distance(cloud.points.double(), read_mesh(folder / "reconstruction" / "bun_zipper.ply"))
+    assert float(distance.median()) < 1e-4  # 0.055 mm at 0.25 mm pixels
+
+
+def test_scan_frames_need_triangles_and_positive_sizes(tmp_path):
+    points, _ = tilted_grid_scan()
+    (tmp_path / "scan.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex %d\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+        % len(points) + "\n".join(" ".join(map(str, p)) for p in points) + "\n")
+    (tmp_path / "a.conf").write_text("bmesh scan.ply 0 0 0 0 0 0 1\n")
+    from neuralsurf.io import read_range_scan_frames
+
+    with pytest.raises(FileFormatError, match="no triangles"):
+        read_range_scan_frames(tmp_path / "a.conf")
+    with pytest.raises(NeuralsurfError, match="pixel_size"):
+        read_range_scan_frames(tmp_path / "a.conf", pixel_size=0)

@@ -73,8 +73,9 @@ def stanford_scans(name: str = "stanford_scans", data_root: str = "../shared/dat
                    conf: str = "stanford_bunny/data/bun.conf",
                    ground_truth: str = "stanford_bunny/reconstruction/bun_zipper.ply") -> Scene:
     """The real range scans of the Stanford bunny, aligned by their .conf and merged into one cloud
-    (normals towards the scanners); ground truth: Stanford's zippered reconstruction."""
-    from neuralsurf.io import read_mesh, read_range_scans
+    (normals towards the scanners), and as one depth image per scan (read_range_scan_frames) for
+    TSDF fusion; ground truth: Stanford's zippered reconstruction."""
+    from neuralsurf.io import read_mesh, read_range_scan_frames, read_range_scans
 
     root = Path(data_root)
     conf_path, gt_path = root / conf, root / ground_truth
@@ -86,4 +87,4 @@ def stanford_scans(name: str = "stanford_scans", data_root: str = "../shared/dat
     normals = torch.cat([c.normals.double() for c in clouds]) if all(c.has_normals for c in clouds) else None
     cloud = PointCloud(points, normals)
     text = f"{len(clouds)} real range scans aligned by {conf_path.name} ({len(cloud)} points)"
-    return Scene(name, cloud, read_mesh(gt_path), None, text)
+    return Scene(name, cloud, read_mesh(gt_path), read_range_scan_frames(conf_path), text)

@@ -28,9 +28,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from neuralsurf.errors import FileFormatError, InputError
+from neuralsurf.errors import ConfigError, FileFormatError, InputError
 from neuralsurf.io.pointclouds import PathLike, build_cloud, named, parse_ply_header, read_ply_vertices
-from neuralsurf.structures import PointCloud
+from neuralsurf.structures import DepthFrames, Mesh, PointCloud
 
 SCANNER_DIRECTION = (0.0, 0.0, 1.0)
 """Direction from a scan's points towards its scanner, in the scan's own frame (+z)."""
@@ -149,6 +149,12 @@ def read_range_scan(path: PathLike, with_normals: bool = True) -> PointCloud:
 
 def _read_scan_arrays(path: Path, with_normals: bool) -> tuple[np.ndarray, np.ndarray | None]:
     """Points (n, 3) in the file's dtype and normals (n, 3) float64 or None of a range-scan PLY."""
+    points, triangles = _read_scan_geometry(path, with_triangles=with_normals)
+    return points, scan_normals(points, triangles) if with_normals else None
+
+
+def _read_scan_geometry(path: Path, with_triangles: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points (n, 3) in the file's dtype and triangles (f, 3) int64 (or None) of a range-scan PLY."""
     path = _existing_file(path, "range scan")
     data = path.read_bytes()
     try:
@@ -158,12 +164,61 @@ def _read_scan_arrays(path: Path, with_normals: bool) -> tuple[np.ndarray, np.nd
                 f"no x, y, z vertex properties (found {sorted(columns)}); it is not a range scan"
             )
         points = np.stack([columns[k] for k in "xyz"], axis=1)
-        triangles = _ply_triangles(data, points) if with_normals else None
+        triangles = _ply_triangles(data, points) if with_triangles else None
     except FileFormatError as error:
         raise named(path, error) from error
     if len(points) == 0:
         raise InputError(f"{str(path)!r} contains no points; check the file was written completely")
-    return points, scan_normals(points, triangles) if with_normals else None
+    return points, triangles
+
+
+def read_range_scan_frames(conf_path: PathLike, pixel_size: float = 2.5e-4, distance: float = 1.0) -> DepthFrames:
+    """Every scan of a `.conf` file as a depth image from its scanner's side, for TSDF fusion.
+
+    A Cyberware scanner is not a pinhole camera, so each scan's triangles (module docstring) are
+    ray cast by a pinhole camera placed `distance` beyond the scan on its scanner's side (+z of the
+    scan frame), looking along -z, with a footprint of `pixel_size` per pixel at the scan: the rays
+    are nearly parallel to the scanner's, and every depth is a point of the scan's own surface.
+    All frames share one image size (the largest scan's, centred on each scan's box).
+
+    Returns:
+        DepthFrames (n_scans, h, w), depth in the scans' units (0 where no triangle is hit),
+        cam_to_world = `.conf` transform @ camera-in-scan pose (world = the `.conf`'s common frame).
+    Raises:
+        FileFormatError for a scan without triangles (no `face` or `range_grid` element);
+        ConfigError for a non-positive pixel_size or distance.
+    """
+    from neuralsurf.scenes.scanner import render_depth
+
+    for name, value in (("pixel_size", pixel_size), ("distance", distance)):
+        if not (np.isfinite(value) and value > 0):
+            raise ConfigError(f"{name} must be a positive length in the scans' units, got {value}")
+    conf_path = Path(conf_path)
+    scans = []
+    for name, transform in read_range_scan_conf(conf_path):
+        points, triangles = _read_scan_geometry(conf_path.parent / name)
+        if triangles is None or len(triangles) == 0:
+            raise FileFormatError(
+                f"{str(conf_path.parent / name)!r} has no triangles (ASCII 'face' or 'range_grid' element); "
+                f"a depth image needs the scan's surface, not only its points"
+            )
+        scans.append((Mesh(torch.from_numpy(points.astype(np.float64)), torch.from_numpy(triangles)), transform))
+    lows, highs = zip(*(mesh.bounds for mesh, _ in scans))
+    focals = [(distance + float(hi[2] - lo[2])) / pixel_size for lo, hi in zip(lows, highs)]  # footprint at the far side
+    half = max(float(((hi - lo)[:2] / 2).max()) * f / distance for lo, hi, f in zip(lows, highs, focals))
+    size = 2 * int(np.ceil(half)) + 4  # the nearest points spread widest; a 2-pixel border
+    flip = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))  # camera x = x, y = -y, z = -z
+    depths, Ks, poses = [], [], []
+    for (mesh, transform), lo, hi, focal in zip(scans, lows, highs, focals):
+        camera = torch.eye(4, dtype=torch.float64)
+        camera[:3, :3] = flip
+        camera[:3, 3] = torch.stack([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[2] + distance])
+        K = torch.tensor([[focal, 0, (size - 1) / 2], [0, focal, (size - 1) / 2], [0, 0, 1]], dtype=torch.float64)
+        depth, _ = render_depth(mesh, K[None], camera[None], size, size)
+        depths.append(depth[0])
+        Ks.append(K)
+        poses.append(transform @ camera)
+    return DepthFrames(torch.stack(depths), torch.stack(Ks), torch.stack(poses))
 
 
 def scan_normals(points: np.ndarray, triangles: np.ndarray | None) -> np.ndarray:
