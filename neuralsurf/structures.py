@@ -291,6 +291,21 @@ def _check_rigid(cam_to_world: Tensor, name: str, tolerance: float = 1e-3) -> No
         )
 
 
+def check_intrinsics(K: Tensor, width: int, height: int, name: str = "K") -> None:
+    """Raise InputError when a principal point of K (n, 3, 3) lies outside its width x height image or a
+    focal length is not positive (intrinsics of another resolution or camera)."""
+    cx, cy = K[:, 0, 2], K[:, 1, 2]
+    bad = (cx < 0) | (cx > width) | (cy < 0) | (cy > height) | (K[:, 0, 0] <= 0) | (K[:, 1, 1] <= 0)
+    if bad.any():
+        i = int(bad.nonzero()[0])
+        raise InputError(
+            f"mismatched intrinsics: {name}[{i}] does not fit a {width}x{height} image: "
+            f"fx={float(K[i, 0, 0]):g}, fy={float(K[i, 1, 1]):g}, "
+            f"principal point ({float(cx[i]):g}, {float(cy[i]):g}) must lie inside [0, {width}] x [0, {height}]; "
+            f"intrinsics calibrated at another resolution must be scaled with the image (fx, fy, cx, cy by the same factor)"
+        )
+
+
 @dataclass(frozen=True)
 class DepthFrames:
     """A batch of depth images with OpenCV pinhole cameras (x right, y down, z forward)."""
@@ -317,8 +332,7 @@ class DepthFrames:
         K = K.expand(n, 3, 3).clone() if K.shape == (3, 3) else K
         if K.shape != (n, 3, 3):
             raise InputError(f"DepthFrames.K must be 3x3 or (n={n}, 3, 3), got {tuple(K.shape)}")
-        if (K[:, 0, 0] <= 0).any() or (K[:, 1, 1] <= 0).any():
-            raise InputError("DepthFrames.K has a non-positive focal length (fx, fy); check the intrinsics")
+        check_intrinsics(K, depth.shape[2], depth.shape[1], "DepthFrames.K")
         pose = torch.as_tensor(self.cam_to_world, dtype=torch.float32)
         pose = pose[None] if pose.shape == (4, 4) else pose
         if pose.shape != (n, 4, 4):

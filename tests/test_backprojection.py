@@ -178,7 +178,7 @@ def test_chunks_do_not_change_the_result():
 
 
 def test_bad_arguments():
-    frames = DepthFrames(torch.zeros(1, 4, 4), K, torch.eye(4))
+    frames = DepthFrames(torch.zeros(1, 48, 64), K, torch.eye(4))
     with pytest.raises(InputError, match="no valid pixel"):
         depth_to_cloud(frames)
     with pytest.raises(InputError, match="stride"):

@@ -52,7 +52,7 @@ from torch import Tensor
 from neuralsurf.devices import resolve_device
 from neuralsurf.errors import ConfigError, ExtractionError, InputError
 from neuralsurf.extract import as_bounds
-from neuralsurf.scenes.scanner import check_intrinsics, kinect_sigma
+from neuralsurf.scenes.scanner import kinect_sigma
 from neuralsurf.structures import DepthFrames, Mesh
 
 WEIGHTINGS = ("constant", "depth")
@@ -447,7 +447,6 @@ class TSDFVolume:
                 f"integrate needs a neuralsurf.structures.DepthFrames (depth, K, cam_to_world), got "
                 f"{type(frames).__name__}; build one with DepthFrames(depth, K, cam_to_world)"
             )
-        check_intrinsics(frames.K, frames.width, frames.height, "DepthFrames.K")
         if self.with_color and frames.colors is None:
             raise InputError(
                 "this TSDFVolume was made with with_color=True but the frames have no colors; "

@@ -38,7 +38,7 @@ import torch
 from neuralsurf.errors import ConfigError, FileFormatError, InputError
 from neuralsurf.io.pointclouds import PathLike
 from neuralsurf.io.range_scans import quaternion_to_matrix
-from neuralsurf.structures import DepthFrames
+from neuralsurf.structures import DepthFrames, check_intrinsics
 
 FORMATS = ("7scenes", "tum", "redwood")
 """RGB-D folder layouts `read_rgbd_folder` understands (plus "auto")."""
@@ -365,7 +365,7 @@ def read_trajectory_log(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
 def _load(listing: _Listing, keep: np.ndarray, with_color: bool, path: Path) -> DepthFrames:
     first = read_depth_png(listing.depth_paths[keep[0]], listing.depth_scale, listing.invalid)
     height, width = first.shape
-    _check_intrinsics(listing.K, height, width, path)  # before decoding the rest
+    check_intrinsics(torch.from_numpy(listing.K)[None], width, height, f"the intrinsics of {str(path)!r}")  # before decoding the rest
     depth = np.empty((len(keep), height, width), dtype=np.float32)  # filled in place: no stacking copy
     depth[0] = first
     for slot, i in enumerate(keep[1:], start=1):
@@ -400,17 +400,6 @@ def _load(listing: _Listing, keep: np.ndarray, with_color: bool, path: Path) -> 
         bad = [str(listing.depth_paths[i]) for i, p in zip(keep, poses) if not torch.isfinite(p).all()]
         raise InputError(f"{len(bad)} poses are NaN or inf (first for {bad[0]!r}); drop those frames")
     return DepthFrames(torch.from_numpy(depth), torch.from_numpy(listing.K).float(), poses.float(), colors)
-
-
-def _check_intrinsics(K: np.ndarray, height: int, width: int, path: Path) -> None:
-    if K.shape != (3, 3):
-        raise InputError(f"K must be a 3x3 matrix, got shape {K.shape}")
-    cx, cy = K[0, 2], K[1, 2]
-    if not (0 <= cx <= width and 0 <= cy <= height):
-        raise InputError(
-            f"mismatched intrinsics for {str(path)!r}: the principal point ({cx:g}, {cy:g}) lies outside the "
-            f"{width}x{height} depth image; K belongs to another resolution or camera"
-        )
 
 
 def _read_matrix(path: Path, shape: tuple[int, int], what: str) -> np.ndarray:

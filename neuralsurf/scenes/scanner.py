@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.structures import DepthFrames, Mesh
+from neuralsurf.structures import DepthFrames, Mesh, check_intrinsics
 
 NOISE_MODELS = ("none", "gaussian", "kinect")
 
@@ -145,19 +145,6 @@ def depth_edges(depth: Tensor, edge_jump: float) -> Tensor:
     return edge & (depth > 0)
 
 
-def check_intrinsics(K: Tensor, width: int, height: int, name: str = "K") -> None:
-    """Raise InputError when a principal point lies outside its image or a focal length is not positive."""
-    cx, cy = K[:, 0, 2], K[:, 1, 2]
-    bad = (cx < 0) | (cx > width) | (cy < 0) | (cy > height) | (K[:, 0, 0] <= 0) | (K[:, 1, 1] <= 0)
-    if bad.any():
-        i = int(bad.nonzero()[0])
-        raise InputError(
-            f"{name}[{i}] does not fit a {width}x{height} image: fx={float(K[i, 0, 0]):g}, fy={float(K[i, 1, 1]):g}, "
-            f"principal point ({float(cx[i]):g}, {float(cy[i]):g}) must lie inside [0, {width}] x [0, {height}]; "
-            f"intrinsics calibrated at another resolution must be scaled with the image (fx, fy, cx, cy by the same factor)"
-        )
-
-
 def scan_depth(
     mesh: Mesh,
     n_views: int = 24,
@@ -253,7 +240,6 @@ def scan_depth(
 
 __all__ = [
     "NOISE_MODELS",
-    "check_intrinsics",
     "depth_edges",
     "fibonacci_sphere",
     "intrinsics_from_fov",
