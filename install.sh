@@ -9,12 +9,17 @@ PYTHON="${PYTHON:-python3}"
 extras="data"
 [ "${1:-}" = "dev" ] && extras="data,dev"
 
-# System libraries of Open3D's wheel: libusb-1.0 and OpenMP.
-if ! ldconfig -p | grep -q "libusb-1.0.so.0" || ! ldconfig -p | grep -q "libgomp.so.1"; then
+# System packages: libusb-1.0 and OpenMP for Open3D's wheel; for the tests (dev), Chromium and its
+# driver, which open report.html headless as a user would see it.
+packages=()
+ldconfig -p | grep -q "libusb-1.0.so.0" || packages+=(libusb-1.0-0)
+ldconfig -p | grep -q "libgomp.so.1" || packages+=(libgomp1)
+if [ "${1:-}" = "dev" ] && ! command -v chromedriver >/dev/null; then packages+=(chromium chromium-driver); fi
+if [ ${#packages[@]} -gt 0 ]; then
   sudo=""
   [ "$(id -u)" -ne 0 ] && sudo="sudo"
   $sudo apt-get update -qq
-  $sudo apt-get install -y -qq libusb-1.0-0 libgomp1
+  $sudo apt-get install -y -qq "${packages[@]}"
 fi
 
 # PyTorch: pinned, so that pip does not pull a multi-GB CUDA build onto a CPU machine. Machines

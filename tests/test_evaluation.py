@@ -1,7 +1,9 @@
 """evaluate.py's harness: every scene/method/suite config composes; a tiny run writes the tables, the
-plots, the renders and report.html; a failing method is a row; two runs give the same metrics."""
+plots, the renders and report.html (opened in headless Chromium); a failing method is a row; two runs
+give the same metrics."""
 
 import csv
+import io
 import json
 import math
 from pathlib import Path
@@ -181,3 +183,48 @@ def test_renders_are_upright_and_not_mirrored():
     hit, *_ = raycast(Mesh.from_trimesh(cube), view, 64, 64)
     rows, cols = np.nonzero(hit)
     assert len(rows) and rows.max() < 32 and cols.min() >= 32
+
+
+def chromium_driver():
+    """Headless Chromium under Selenium, from Debian's chromium and chromium-driver (./install.sh dev)."""
+    import shutil
+
+    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium missing: run ./install.sh dev")
+    browser, driver = shutil.which("chromium") or shutil.which("chromium-browser"), shutil.which("chromedriver")
+    if not (browser and driver):
+        pytest.skip("Chromium or chromedriver missing: ./install.sh dev installs Debian's chromium and chromium-driver")
+    options = webdriver.ChromeOptions()
+    options.binary_location = browser
+    for flag in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                 "--window-size=1280,2000"):
+        options.add_argument(flag)
+    return webdriver.Chrome(options=options, service=webdriver.ChromeService(executable_path=driver))
+
+
+def test_report_opens_in_headless_chromium_with_table_plots_and_every_render(tmp_path):
+    """report.html as a user sees it: one table row per result (a failed one with its reason), and every
+    plot and render decoded by the browser and laid out with a size."""
+    from PIL import Image
+    from selenium.webdriver.common.by import By
+
+    rows = tiny_run(tmp_path, ["+method@method.broken=broken", "methods=[broken,poisson,neural_sdf]"])
+    browser = chromium_driver()
+    try:
+        browser.get((tmp_path / "report.html").as_uri())
+        table_rows = browser.find_elements(By.CSS_SELECTOR, "table tr")
+        assert len(table_rows) == 1 + len(rows) and all(r.is_displayed() for r in table_rows)
+        failed = browser.find_element(By.CSS_SELECTOR, "td.failed")
+        assert failed.is_displayed() and "always fails" in failed.text
+        images = browser.execute_script(
+            "return Array.from(document.images).map(i => [i.alt, i.complete, i.naturalWidth, i.naturalHeight,"
+            " i.getBoundingClientRect().width, i.getBoundingClientRect().height])")
+        renders = [r for r in rows if r.get("render")]
+        assert len(renders) == sum(r["status"] == "ok" for r in rows) == 2
+        assert len(images) == 4 + len(renders)  # four plots and one render per reconstruction
+        for alt, complete, width, height, shown_width, shown_height in images:
+            assert complete and width > 0 and height > 0 and shown_width > 0 and shown_height > 0, alt
+        assert {f"{r['method']} on {r['scene']}" for r in renders} <= {alt for alt, *_ in images}
+        screenshot = np.asarray(Image.open(io.BytesIO(browser.get_screenshot_as_png())))
+        assert screenshot.std() > 0  # not a blank page
+    finally:
+        browser.quit()
