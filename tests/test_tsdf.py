@@ -221,13 +221,14 @@ def test_candidate_blocks_hold_every_updated_voxel(sphere_frames, free_space):
 
     volume = TSDFVolume(BOX, VOXEL, block_size=4, device="cpu", free_space=free_space)
     frame = sphere_frames[3]
-    rotation, translation = world_to_camera(frame.cam_to_world[0])
+    rotation, translation = world_to_camera(frame.cam_to_world)
     origin = torch.as_tensor(volume.origin)
+    to_grid = rotation.transpose(1, 2)
     keys = candidate_blocks(
-        frame.depth[0],
-        frame.K[0],
-        rotation.T / VOXEL,
-        (-rotation.T @ translation - origin) / VOXEL,
+        frame.depth,
+        frame.K,
+        to_grid / VOXEL,
+        ((-to_grid @ translation[..., None])[..., 0] - origin) / VOXEL,
         VOXEL,
         volume.truncation,
         volume.free_space,
@@ -235,18 +236,18 @@ def test_candidate_blocks_hold_every_updated_voxel(sphere_frames, free_space):
         volume.block_counts,
     )
     every = torch.arange(int(volume.block_counts.prod()))
-    projection = frame.K[0].double() @ torch.cat(
-        [rotation * VOXEL, (rotation @ origin + translation)[:, None]], 1
+    projection = frame.K.double() @ torch.cat(
+        [rotation * VOXEL, (rotation @ origin + translation)[..., None]], 2
     )
-    index, _, _ = observe_blocks(
+    seen, _, _ = observe_blocks(
         volume._block_coords(every) * 4,
         volume._local,
         projection.float(),
-        frame.depth[0],
+        frame.depth,
         volume.truncation,
         volume.free_space,
     )
-    updated = torch.unique(every[index // 64])
+    updated = torch.unique(every[seen[0].nonzero()[:, 0] // 64])
     assert len(updated) > 50 and torch.isin(updated, keys).all()
     assert len(keys) < (2 if free_space is None else 3) * len(updated)  # and the candidates stay tight
 
@@ -254,6 +255,26 @@ def test_candidate_blocks_hold_every_updated_voxel(sphere_frames, free_space):
 def test_auto_device_is_cpu_without_cuda():
     volume = TSDFVolume(BOX, VOXEL)
     assert volume.device.type == ("cuda" if torch.cuda.is_available() else "cpu")
+
+
+@pytest.mark.parametrize("sparse", [False, True])
+def test_frames_fused_in_batches_equal_frames_fused_one_by_one(sphere_frames, sparse):
+    """frames_per_pass (the GPU default) changes how the work is grouped, not the result: the same
+    running averages, in the same order, with depth weights, a weight cap and colour."""
+    points = backproject_depth(sphere_frames)
+    frames = DepthFrames(sphere_frames.depth, sphere_frames.K, sphere_frames.cam_to_world, points.abs().clamp(0, 1))
+    make = lambda n: TSDFVolume(BOX, VOXEL, device="cpu", sparse=sparse, weighting="depth", max_weight=5.0,
+                                with_color=True, frames_per_pass=n).integrate(frames)
+    one, batched = make(1), make(7)  # 24 frames: passes of 7, 7, 7 and 3
+    (tsdf, weight), (batched_tsdf, batched_weight) = one.to_dense(), batched.to_dense()
+    assert torch.equal(weight, batched_weight)  # every voxel saw the same pixels
+    torch.testing.assert_close(batched_tsdf, tsdf, equal_nan=True, rtol=0, atol=1e-6)  # float32 rounding
+    mesh, batched_mesh = one.extract_mesh(), batched.extract_mesh()
+    assert torch.equal(mesh.faces, batched_mesh.faces)
+    torch.testing.assert_close(batched_mesh.vertex_colors, mesh.vertex_colors, rtol=0, atol=1e-5)
+    assert one.n_blocks == batched.n_blocks
+    with pytest.raises(ConfigError, match="frames_per_pass"):
+        TSDFVolume(BOX, VOXEL, frames_per_pass=0)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

@@ -59,8 +59,12 @@ WEIGHTINGS = ("constant", "depth")
 """Per-observation weights: "constant" = 1; "depth" = inverse variance of the Kinect v1 axial noise
 model (Nguyen et al. 2012), (sigma(0.4 m) / sigma(z))^2, which is 1 at 0.4 m and 0.2 at 1.5 m."""
 
-_CHUNK_VOXELS = 1 << 21
-"""Voxels updated per vectorised step (bounds temporary memory: ~25 floats per voxel)."""
+_CHUNK_OBSERVATIONS = {"cpu": 1 << 21, "cuda": 1 << 25}
+"""Voxel observations (voxels x frames) per vectorised step, at most (temporary memory: ~40 bytes
+each; on CUDA also at most 1/400 of the free memory)."""
+_FRAMES_PER_PASS = {"cpu": 1, "cuda": 32}
+"""Default frames fused per pass: one on a CPU (each frame visits only its own voxels); on a GPU a
+batch, so that the fixed cost of a pass (kernel launches, a few host syncs) is shared."""
 _MESH_CHUNK_BLOCKS = 8
 """Marching cubes runs on chunks of this many blocks per axis."""
 _PIN = 1e-4
@@ -120,11 +124,11 @@ def pixel_weights(depth: Tensor, weighting: str) -> Tensor:
 
 
 def world_to_camera(cam_to_world: Tensor) -> tuple[Tensor, Tensor]:
-    """Float[Tensor, "4 4"] rigid pose -> rotation Float64[Tensor, "3 3"], translation Float64[Tensor, "3"]
-    with x_camera = rotation @ x_world + translation."""
+    """Float[Tensor, "... 4 4"] rigid poses -> rotations Float64[Tensor, "... 3 3"] and translations
+    Float64[Tensor, "... 3"] with x_camera = rotation @ x_world + translation."""
     pose = cam_to_world.double()
-    rotation = pose[:3, :3].T
-    return rotation, -rotation @ pose[:3, 3]
+    rotation = pose[..., :3, :3].transpose(-1, -2)
+    return rotation, -(rotation @ pose[..., :3, 3:])[..., 0]
 
 
 def _unique_keys(keys: Tensor, total: int) -> Tensor:
@@ -146,7 +150,7 @@ def pixel_block_boxes(
     free_space: float,
     block_size: int,
 ) -> tuple[Tensor, Tensor]:
-    """Per pixel, the range of blocks that can hold a voxel updated through it.
+    """Per pixel of some frames, the range of blocks that can hold a voxel updated through it.
 
     A voxel is updated through pixel p when it projects onto p, so it lies within half a pixel's
     footprint (z times half the pixel's diagonal in normalised coordinates) of a point of p's
@@ -155,24 +159,26 @@ def pixel_block_boxes(
     not a heuristic.
 
     Args:
-        depth: Float[Tensor, "h w"] z-depth (0 = invalid); K: Float[Tensor, "3 3"].
+        depth: Float[Tensor, "f h w"] z-depth (0 = invalid); K: Float[Tensor, "f 3 3"].
         rotation, translation: camera -> grid coordinates, x_grid = rotation @ x_camera + translation,
-            Float[Tensor, "3 3"] and Float[Tensor, "3"]; grid coordinates are voxel indices.
+            Float[Tensor, "f 3 3"] and Float[Tensor, "f 3"]; grid coordinates are voxel indices.
         voxel_size, truncation, free_space: metres; block_size: voxels per block side.
     Returns:
-        lo, hi: Float[Tensor, "h w 3"] first and last block index per axis (whole numbers, as floats
+        lo, hi: Float[Tensor, "f h w 3"] first and last block index per axis (whole numbers, as floats
         for pooling); invalid pixels get lo = +inf, hi = -inf.
     """
-    height, width = depth.shape
-    fx, fy, cx, cy, skew = (float(K[i, j]) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2), (0, 1)))
-    rows = torch.arange(height, dtype=torch.float32, device=depth.device)[:, None]
-    cols = torch.arange(width, dtype=torch.float32, device=depth.device)
-    y = ((rows - cy) / fy).expand(height, width)
+    _, height, width = depth.shape
+    K = K.to(depth)[:, :, :, None, None]  # (f, 3, 3, 1, 1): broadcasts over pixels
+    fx, fy, cx, cy, skew = K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 0, 1]
+    rows = torch.arange(height, dtype=depth.dtype, device=depth.device)[:, None]
+    cols = torch.arange(width, dtype=depth.dtype, device=depth.device)
+    y = ((rows - cy) / fy).expand_as(depth)
     x = (cols - cx - skew * y) / fx
-    ray = torch.stack([x, y, torch.ones_like(x)], -1) @ rotation.float().T  # grid units per metre of z
-    near = ray * (depth - free_space).clamp_min(1e-6)[..., None] + translation.float()
-    far = ray * (depth + truncation)[..., None] + translation.float()
-    half_pixel = 0.5 * math.hypot((1 + abs(skew) / fy) / fx, 1 / fy)  # normalised half-diagonal of a pixel
+    ray = torch.stack([x, y, torch.ones_like(x)], -1) @ rotation.to(depth)[:, None].transpose(-1, -2)
+    offset = translation.to(depth)[:, None, None]  # grid units per metre of z (ray), then origin
+    near = ray * (depth - free_space).clamp_min(1e-6)[..., None] + offset
+    far = ray * (depth + truncation)[..., None] + offset
+    half_pixel = 0.5 * torch.hypot((1 + skew.abs() / fy) / fx, 1 / fy)  # normalised half-diagonal of a pixel
     grow = (half_pixel * (depth + truncation) / voxel_size)[..., None]
     lo = torch.div(torch.ceil(torch.minimum(near, far) - grow), block_size, rounding_mode="floor")
     hi = torch.div(torch.floor(torch.maximum(near, far) + grow), block_size, rounding_mode="floor")
@@ -223,26 +229,28 @@ def candidate_blocks(
     block_counts: Tensor,
     tile: int = 4,
 ) -> Tensor:
-    """Blocks that may hold a voxel this frame updates (see `pixel_block_boxes`): sorted unique keys.
+    """Blocks that may hold a voxel one of these frames updates (see `pixel_block_boxes`): sorted
+    unique keys.
 
     The pixels' block ranges are merged per `tile` x `tile` pixels (min / max pooling) where the
     merged range spans at most two blocks per axis, which is most of a smooth surface; pixels of
-    the other tiles (depth edges) keep their own ranges. Arguments as in `pixel_block_boxes`;
-    block_counts: Int[Tensor, "3"] blocks per axis. Returns Int64[Tensor, "b"].
+    the other tiles (depth edges) keep their own ranges. Arguments as in `pixel_block_boxes`
+    (frames batched); block_counts: Int[Tensor, "3"] blocks per axis. Returns Int64[Tensor, "b"].
     """
     lo, hi = pixel_block_boxes(
         depth, K, rotation, translation, voxel_size, truncation, free_space, block_size
     )
-    lo, hi = lo.permute(2, 0, 1)[None], hi.permute(2, 0, 1)[None]  # (1, 3, h, w)
+    lo, hi = lo.permute(0, 3, 1, 2), hi.permute(0, 3, 1, 2)  # (f, 3, h, w)
     pool = lambda t: torch.nn.functional.max_pool2d(t, tile, stride=tile, ceil_mode=True)
-    tile_lo, tile_hi = -pool(-lo), pool(hi)  # (1, 3, h / tile, w / tile)
-    merged = ((tile_hi - tile_lo).amax(1) <= 1)[0]  # tiles whose pixels fall into 2 x 2 x 2 blocks at most
-    height, width = depth.shape
-    alone = ~merged.repeat_interleave(tile, 0).repeat_interleave(tile, 1)[:height, :width] & (depth > 0)
+    tile_lo, tile_hi = -pool(-lo), pool(hi)  # (f, 3, h / tile, w / tile)
+    merged = (tile_hi - tile_lo).amax(1) <= 1  # tiles whose pixels fall into 2 x 2 x 2 blocks at most
+    _, height, width = depth.shape
+    alone = ~merged.repeat_interleave(tile, 1).repeat_interleave(tile, 2)[:, :height, :width] & (depth > 0)
+    boxes = lambda t, where: t.permute(0, 2, 3, 1)[where]
     keys = torch.cat(
         [
-            box_keys(tile_lo[0].permute(1, 2, 0)[merged], tile_hi[0].permute(1, 2, 0)[merged], block_counts),
-            box_keys(lo[0].permute(1, 2, 0)[alone], hi[0].permute(1, 2, 0)[alone], block_counts),
+            box_keys(boxes(tile_lo, merged), boxes(tile_hi, merged), block_counts),
+            box_keys(boxes(lo, alone), boxes(hi, alone), block_counts),
         ]
     )
     return _unique_keys(keys, int(block_counts.prod()))
@@ -251,36 +259,35 @@ def candidate_blocks(
 def observe_blocks(
     blocks: Tensor, local: Tensor, projection: Tensor, depth: Tensor, truncation: float, free_space: float
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Projective signed distances of the voxels of some blocks that one depth image observes.
+    """Projective signed distances of the voxels of some blocks, as each of some depth images sees them.
 
     Args:
         blocks: Int64[Tensor, "m 3"] grid index of each block's first voxel.
         local: Float[Tensor, "v 3"] voxel offsets inside a block (v = block_size^3).
-        projection: Float[Tensor, "3 4"] grid index (homogeneous) -> (z u, z v, z) with (u, v) pixel
-            coordinates (K [R | t] composed with the grid's voxel size and origin).
-        depth: Float[Tensor, "h w"] z-depth (0 = invalid); truncation, free_space: metres.
-    Returns:
-        index Int64[Tensor, "n"] into the m * v voxels (row-major: block, then offset) of the voxels
-        that project (nearest pixel) onto a valid depth d with -truncation <= d - z <= free_space;
-        sdf Float[Tensor, "n"] = min(d - z, truncation); pixel Int64[Tensor, "n"] linear pixel index
-        (row * w + col).
+        projection: Float[Tensor, "f 3 4"] per frame, grid index (homogeneous) -> (z u, z v, z) with
+            (u, v) pixel coordinates (K [R | t] composed with the grid's voxel size and origin).
+        depth: Float[Tensor, "f h w"] z-depth (0 = invalid); truncation, free_space: metres.
+    Returns, over the m * v voxels (row-major: block, then offset):
+        seen Bool[Tensor, "f m*v"]: the voxel projects (nearest pixel) onto a valid depth d of the
+        frame with -truncation <= d - z <= free_space; sdf Float[Tensor, "f m*v"] = min(d - z,
+        truncation); pixel Int64[Tensor, "f m*v"] linear pixel index (row * w + col).
     """
-    height, width = depth.shape
-    base = blocks.float() @ projection[:, :3].T + projection[:, 3]  # (m, 3)
-    offset = local @ projection[:, :3].T  # (v, 3)
-    z = base[:, 2:3] + offset[:, 2]  # (m, v)
+    frames, height, width = depth.shape
+    linear = projection[:, :, :3].transpose(1, 2)  # (f, 3, 3)
+    base = blocks.float() @ linear + projection[:, None, :, 3]  # (f, m, 3)
+    offset = local @ linear  # (f, v, 3)
+    z = base[..., 2:3] + offset[:, None, :, 2]  # (f, m, v)
     inverse = z.reciprocal()
-    u = (base[:, 0:1] + offset[:, 0]).mul_(inverse)
-    v = (base[:, 1:2] + offset[:, 1]).mul_(inverse)
+    u = (base[..., 0:1] + offset[:, None, :, 0]).mul_(inverse)
+    v = (base[..., 1:2] + offset[:, None, :, 1]).mul_(inverse)
     seen = (u >= -0.5) & (u < width - 0.5) & (v >= -0.5) & (v < height - 0.5) & (z > 0)
     column = u.add_(0.5).floor_().clamp_(0, width - 1)
     row = v.add_(0.5).floor_().clamp_(0, height - 1)
-    pixel = row.mul_(width).add_(column).long()
-    observed = depth.reshape(-1)[pixel]
-    sdf = observed - z
-    seen &= (observed > 0) & (sdf >= -truncation) & (sdf <= free_space)
-    index = seen.reshape(-1).nonzero()[:, 0]
-    return index, sdf.reshape(-1)[index].clamp_max_(truncation), pixel.reshape(-1)[index]
+    pixel = row.mul_(width).add_(column).long().reshape(frames, -1)
+    observed = depth.reshape(frames, -1).gather(1, pixel)
+    sdf = observed - z.reshape(frames, -1)
+    seen = seen.reshape(frames, -1) & (observed > 0) & (sdf >= -truncation) & (sdf <= free_space)
+    return seen, sdf.clamp_max_(truncation), pixel
 
 
 class TSDFVolume:
@@ -305,6 +312,9 @@ class TSDFVolume:
             this margin still observes them, which closes most holes. (KinectFusion and Open3D carve
             all the free space in the frustum; larger values come closer to that, at a higher cost.)
         max_memory: bytes the dense volume may take; default 80 % of the device's available memory.
+        frames_per_pass: frames fused together in one vectorised pass over the union of their
+            candidate blocks (the result is the same as one at a time, in order); default 1 on a
+            CPU and 32 on a GPU, where per-pass costs dominate.
     """
 
     def __init__(
@@ -320,6 +330,7 @@ class TSDFVolume:
         with_color: bool = False,
         free_space: float | None = None,
         max_memory: int | None = None,
+        frames_per_pass: int | None = None,
     ):
         box = as_bounds(bounds)
         voxel_size = _positive(voxel_size, "voxel_size", "a length in metres")
@@ -356,6 +367,14 @@ class TSDFVolume:
         self.voxel_size, self.truncation, self.free_space = voxel_size, truncation, free_space
         self.weighting, self.max_weight = weighting, max_weight
         self.sparse, self.block_size, self.with_color = bool(sparse), int(block_size), bool(with_color)
+        kind = "cuda" if self.device.type == "cuda" else "cpu"
+        frames_per_pass = _FRAMES_PER_PASS[kind] if frames_per_pass is None else frames_per_pass
+        if not (isinstance(frames_per_pass, (int, np.integer)) and frames_per_pass >= 1):
+            raise ConfigError(f"frames_per_pass must be an integer >= 1, got {frames_per_pass!r}")
+        self.frames_per_pass = int(frames_per_pass)
+        self._chunk_observations = _CHUNK_OBSERVATIONS[kind]
+        if kind == "cuda":
+            self._chunk_observations = min(self._chunk_observations, available_memory(self.device) // 400)
         points = np.floor((box[1] - box[0]) / voxel_size + 1e-9).astype(np.int64) + 1
         self.block_counts = torch.as_tensor(-(-points // block_size))
         self.frames_integrated = 0
@@ -453,24 +472,27 @@ class TSDFVolume:
                 "pass DepthFrames(..., colors=...) or make the volume with with_color=False"
             )
         # move the tensors, not the DepthFrames: no second validation, and any device works
-        move = lambda t: t.to(self.device, non_blocking=True)
-        depth, K, pose = move(frames.depth), move(frames.K), move(frames.cam_to_world)
-        colors = move(frames.colors) if self.with_color else None
-        for i in range(len(frames)):
-            self._integrate_frame(depth[i], K[i], pose[i], None if colors is None else colors[i])
-            self.frames_integrated += 1
+        depth = frames.depth.to(self.device, non_blocking=True)
+        colors = frames.colors.to(self.device, non_blocking=True) if self.with_color else None
+        for start in range(0, len(frames), self.frames_per_pass):
+            part = slice(start, start + self.frames_per_pass)
+            self._integrate_frames(
+                depth[part], frames.K[part].cpu(), frames.cam_to_world[part].cpu(), None if colors is None else colors[part]
+            )
+            self.frames_integrated += len(depth[part])
         return self
 
-    def _integrate_frame(self, depth: Tensor, K: Tensor, cam_to_world: Tensor, colors: Tensor | None) -> None:
-        """Fuse one depth image Float[Tensor, "h w"] seen by K (3x3) at cam_to_world (4x4), colours
-        Float[Tensor, "h w 3"] | None."""
+    def _integrate_frames(self, depth: Tensor, K: Tensor, cam_to_world: Tensor, colors: Tensor | None) -> None:
+        """Fuse depth images Float[Tensor, "f h w"] seen by K Float[Tensor, "f 3 3"] at cam_to_world
+        Float[Tensor, "f 4 4"] (both on the CPU), colours Float[Tensor, "f h w 3"] | None, in order."""
         rotation, translation = world_to_camera(cam_to_world)
-        origin = torch.as_tensor(self.origin, dtype=torch.float64, device=rotation.device)
+        origin = torch.as_tensor(self.origin, dtype=torch.float64)
+        to_grid = rotation.transpose(1, 2)  # camera -> world rotation
         keys = candidate_blocks(
             depth,
-            K,
-            rotation.T / self.voxel_size,
-            (-rotation.T @ translation - origin) / self.voxel_size,
+            K.to(self.device),
+            (to_grid / self.voxel_size).to(self.device),
+            ((-to_grid @ translation[..., None])[..., 0] - origin).div(self.voxel_size).to(self.device),
             self.voxel_size,
             self.truncation,
             self.free_space,
@@ -478,16 +500,14 @@ class TSDFVolume:
             self.block_counts,
         )
         # grid index -> homogeneous pixel: K (R (origin + v i) + t), relative to the origin for precision
-        projection = K.double() @ torch.cat(
-            [rotation * self.voxel_size, (rotation @ origin + translation)[:, None]], 1
-        )
-        projection = projection.float()
-        weights = None if self.weighting == "constant" else pixel_weights(depth, self.weighting).reshape(-1)
-        voxels = self.block_size**3
-        per_chunk = max(1, _CHUNK_VOXELS // voxels)
+        projection = K.double() @ torch.cat([rotation * self.voxel_size, (rotation @ origin + translation)[..., None]], 2)
+        projection = projection.float().to(self.device)
+        n_frames, voxels = len(depth), self.block_size**3
+        weights = None if self.weighting == "constant" else pixel_weights(depth, self.weighting).reshape(n_frames, -1)
+        per_chunk = max(1, self._chunk_observations // (voxels * n_frames))
         for start in range(0, len(keys), per_chunk):
             chunk = keys[start : start + per_chunk]
-            index, sdf, pixel = observe_blocks(
+            seen, sdf, pixel = observe_blocks(
                 self._block_coords(chunk) * self.block_size,
                 self._local,
                 projection,
@@ -495,36 +515,41 @@ class TSDFVolume:
                 self.truncation,
                 self.free_space,
             )
-            if not len(index):
-                continue
-            block = index // voxels
             slots = self._slots_of(chunk)
-            if self.sparse:  # allocate the blocks this frame updates for the first time
-                touched = torch.zeros(len(chunk), dtype=torch.bool, device=self.device)
-                touched[block] = True
+            if self.sparse:  # allocate the blocks these frames update for the first time; skip the others
+                touched = seen.reshape(n_frames, len(chunk), voxels).any(2).any(0)
                 fresh = touched & (slots < 0)
                 if fresh.any():
                     slots[fresh] = self._allocate(chunk[fresh])
-            voxel = slots[block] * voxels + index % voxels
-            self._update(
-                voxel,
-                sdf,
-                None if weights is None else weights[pixel],
-                None if colors is None else colors.reshape(-1, 3)[pixel],
-            )
+                keep = (slots >= 0).nonzero()[:, 0]
+                if len(keep) < len(chunk):
+                    pick = lambda t: t.reshape(n_frames, len(chunk), voxels)[:, keep].reshape(n_frames, -1)
+                    slots, seen, sdf, pixel = slots[keep], pick(seen), pick(sdf), pick(pixel)
+            voxel = (slots[:, None] * voxels + torch.arange(voxels, device=self.device)).reshape(-1)
+            self._update(voxel, seen, sdf, pixel, weights, colors)
 
-    def _update(self, voxel: Tensor, sdf: Tensor, weight: Tensor | None, color: Tensor | None) -> None:
-        """Running weighted averages at Int64[Tensor, "n"] distinct flat voxel indices with new
-        observations sdf Float[Tensor, "n"], weight Float[Tensor, "n"] (None = 1), color Float[Tensor, "n 3"]."""
-        tsdf, weights = self._tsdf.view(-1), self._weight.view(-1)
-        old = weights[voxel]
-        total = old + (1.0 if weight is None else weight)
-        share = (1.0 / total) if weight is None else weight / total  # of the new observation
-        tsdf[voxel] = torch.lerp(tsdf[voxel], sdf, share)
-        weights[voxel] = total if self.max_weight is None else total.clamp_max(self.max_weight)
+    def _update(
+        self, voxel: Tensor, seen: Tensor, sdf: Tensor, pixel: Tensor, weights: Tensor | None, colors: Tensor | None
+    ) -> None:
+        """Running weighted averages at Int64[Tensor, "n"] distinct flat voxel indices with the
+        observations of f frames in order: seen Bool[Tensor, "f n"], sdf Float[Tensor, "f n"], pixel
+        Int64[Tensor, "f n"]; per-pixel weights Float[Tensor, "f hw"] (None = 1) and colours
+        Float[Tensor, "f h w 3"] | None."""
+        tsdf, weight = self._tsdf.view(-1)[voxel], self._weight.view(-1)[voxel]
+        color = None if colors is None else self._color.view(-1, 3)[voxel]
+        for i in range(len(seen)):
+            new = 1.0 if weights is None else weights[i][pixel[i]]
+            total = weight + new
+            share = torch.where(seen[i], new / total, 0.0)  # of the new observation
+            tsdf = torch.lerp(tsdf, sdf[i], share)
+            capped = total if self.max_weight is None else total.clamp_max(self.max_weight)
+            weight = torch.where(seen[i], capped, weight)
+            if color is not None:
+                color = torch.lerp(color, colors[i].reshape(-1, 3)[pixel[i]], share[:, None])
+        self._tsdf.view(-1)[voxel] = tsdf
+        self._weight.view(-1)[voxel] = weight
         if color is not None:
-            colors = self._color.view(-1, 3)
-            colors[voxel] = torch.lerp(colors[voxel], color, share[:, None])
+            self._color.view(-1, 3)[voxel] = color
 
     # ------------------------------------------------------------------------------- extraction
 
