@@ -516,16 +516,13 @@ class TSDFVolume:
                 self.free_space,
             )
             slots = self._slots_of(chunk)
-            if self.sparse:  # allocate the blocks these frames update for the first time; skip the others
-                touched = seen.reshape(n_frames, len(chunk), voxels).any(2).any(0)
-                fresh = touched & (slots < 0)
+            if self.sparse:  # allocate the blocks these frames update for the first time
+                fresh = seen.reshape(n_frames, len(chunk), voxels).any(2).any(0) & (slots < 0)
                 if fresh.any():
                     slots[fresh] = self._allocate(chunk[fresh])
-                keep = (slots >= 0).nonzero()[:, 0]
-                if len(keep) < len(chunk):
-                    pick = lambda t: t.reshape(n_frames, len(chunk), voxels)[:, keep].reshape(n_frames, -1)
-                    slots, seen, sdf, pixel = slots[keep], pick(seen), pick(sdf), pick(pixel)
-            voxel = (slots[:, None] * voxels + torch.arange(voxels, device=self.device)).reshape(-1)
+            updated = seen.any(0).nonzero()[:, 0]  # the voxels some frame of the pass observes
+            seen, sdf, pixel = seen[:, updated], sdf[:, updated], pixel[:, updated]
+            voxel = slots[updated // voxels] * voxels + updated % voxels
             self._update(voxel, seen, sdf, pixel, weights, colors)
 
     def _update(
