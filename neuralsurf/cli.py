@@ -130,13 +130,16 @@ def evaluate(cfg: DictConfig) -> list[dict]:
         return build
 
     configs = {name: OmegaConf.to_container(cfg.method[name], resolve=True) for name in methods}
+    started = time.perf_counter()
     rows = run_benchmark({name: scene_factory(name) for name in scenes},
                          {name: method_factory(name) for name in methods}, run_dir, seed=cfg.seed,
                          n_samples=cfg.n_samples, render=cfg.render, render_size=cfg.render_size,
                          save_meshes=cfg.save_meshes, configs=configs)
-    extra = {"environment": environment(), "scenes": scenes, "methods": methods,
+    seconds = time.perf_counter() - started
+    extra = {"environment": environment(), "scenes": scenes, "methods": methods, "total_seconds": seconds,
              "config": OmegaConf.to_container(cfg, resolve=True)}
     table = write_report(rows, run_dir, extra)
-    print(f"\nresults in {run_dir.resolve()} (report.html, results.csv, results.json)\n")
+    print(f"\n{len(rows)} rows in {seconds / 60:.1f} min; results in {run_dir.resolve()} (report.html, "
+          f"results.csv, results.json)\n")
     print(table)
     return rows

@@ -26,6 +26,21 @@ def sphere_cloud(n: int = 2000) -> PointCloud:
     return SPHERE.sample_surface(n, seed=0)
 
 
+def test_two_fits_on_a_cpu_are_bit_identical():
+    """Same seed, same result on 2 threads (evaluate.py's tables must repeat): the hash grid's backward
+    adds in a fixed order (indexing's backward did not: it differed in the 6th digit within 30 steps)."""
+    assert torch.get_num_threads() >= 2
+
+    def weights() -> torch.Tensor:
+        torch.manual_seed(0)
+        model = SDFMLP(width=64, depth=2, skip_layers=(), weight_norm=False,
+                       encoding=HashGrid(levels=8, log2_table_size=15, max_resolution=128))
+        fit(model, sphere_cloud(20000), steps=30, **{**TINY, "batch_size": 1024})
+        return torch.cat([p.detach().flatten() for p in model.parameters()])
+
+    assert torch.equal(weights(), weights())
+
+
 def test_fit_learns_a_sphere_in_the_world_frame():
     result = fit(tiny_model(), sphere_cloud(), steps=150, **TINY)
     # in world units, within 0.2 of the surface (the sphere's diameter is 4)

@@ -171,34 +171,38 @@ def bar_chart(title: str, groups: list[str], series: list[str], values: dict[tup
     return image
 
 
+def _decades(logs: list[float]) -> tuple[int, int]:
+    """The whole powers of ten around some log10 values (at least one decade apart)."""
+    lo, hi = math.floor(min(logs)), math.ceil(max(logs))
+    return lo, max(hi, lo + 1)
+
+
 def scatter_plot(title: str, x_label: str, y_label: str, points: list[tuple[float, float, str, str]],
-                 width: int = 720, height: int = 360) -> Image.Image:
-    """Scatter of (x, y, series, label) on log-x (time) and linear y axes; colour by series."""
+                 width: int = 720, height: int = 380) -> Image.Image:
+    """Scatter of (x, y, series, label) on log-x and log-y axes (decades); colour by series."""
     image = Image.new("RGB", (width, height), BACKGROUND)
     draw, font = ImageDraw.Draw(image), _font(12)
-    left, right, top, bottom = 70, 150, 30, 50
+    left, right, top, bottom = 70, 150, 50, 50
     plot_h, plot_w = height - top - bottom, width - left - right
-    draw.text((left, 8), title, fill=(0, 0, 0), font=_font(15))
-    points = [p for p in points if math.isfinite(p[0]) and math.isfinite(p[1]) and p[0] > 0]
+    draw.text((left, 6), title, fill=(0, 0, 0), font=_font(15))
+    points = [p for p in points if all(math.isfinite(v) and v > 0 for v in p[:2])]
     series = sorted({p[2] for p in points})
     draw.line([(left, top), (left, top + plot_h), (left + plot_w, top + plot_h)], fill=(0, 0, 0))
     draw.text((left + plot_w // 2 - 40, height - 20), x_label, fill=(0, 0, 0), font=font)
-    draw.text((4, top - 22), y_label, fill=(0, 0, 0), font=font)
+    draw.text((4, top - 20), y_label, fill=(0, 0, 0), font=font)
     if points:
-        lx = [math.log10(p[0]) for p in points]
-        x_lo, x_hi = math.floor(min(lx)), math.ceil(max(lx))
-        x_hi = max(x_hi, x_lo + 1)
-        y_hi = _nice_max(max(p[1] for p in points))
+        logs = [(math.log10(p[0]), math.log10(p[1])) for p in points]
+        (x_lo, x_hi), (y_lo, y_hi) = [_decades([xy[axis] for xy in logs]) for axis in (0, 1)]
+        to_x = lambda lx: left + plot_w * (lx - x_lo) / (x_hi - x_lo)
+        to_y = lambda ly: top + plot_h * (1 - (ly - y_lo) / (y_hi - y_lo))
         for e in range(x_lo, x_hi + 1):
-            x = left + plot_w * (e - x_lo) / (x_hi - x_lo)
-            draw.line([(x, top), (x, top + plot_h)], fill=(230, 230, 230))
-            draw.text((x - 10, top + plot_h + 4), f"{10.0**e:g}", fill=(60, 60, 60), font=font)
-        for k in range(5):
-            y = top + plot_h * (1 - k / 4)
-            draw.text((4, y - 7), f"{y_hi * k / 4:.3g}", fill=(60, 60, 60), font=font)
-        for (xv, yv, name, label), lxv in zip(points, lx):
-            x = left + plot_w * (lxv - x_lo) / (x_hi - x_lo)
-            y = top + plot_h * (1 - min(yv / y_hi, 1.0))
+            draw.line([(to_x(e), top), (to_x(e), top + plot_h)], fill=(230, 230, 230))
+            draw.text((to_x(e) - 10, top + plot_h + 4), f"{10.0**e:g}", fill=(60, 60, 60), font=font)
+        for e in range(y_lo, y_hi + 1):
+            draw.line([(left, to_y(e)), (left + plot_w, to_y(e))], fill=(230, 230, 230))
+            draw.text((4, to_y(e) - 7), f"{10.0**e:g}", fill=(60, 60, 60), font=font)
+        for (_, _, name, label), (lx, ly) in zip(points, logs):
+            x, y = to_x(lx), to_y(ly)
             color = PALETTE[series.index(name) % len(PALETTE)]
             draw.ellipse([x - 5, y - 5, x + 5, y + 5], fill=color)
             draw.text((x + 7, y - 7), label[:16], fill=(80, 80, 80), font=font)

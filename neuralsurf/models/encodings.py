@@ -92,7 +92,10 @@ class HashGrid(nn.Module):
         corner = cell.long()[:, :, None, :] + self.corners  # [n, L, 8, 3]
         w = torch.stack([1 - frac, frac], dim=-1)  # [n, L, 3, 2]: weights of the low and high corner
         weight = (w[:, :, 0, :, None, None] * w[:, :, 1, None, :, None] * w[:, :, 2, None, None, :]).flatten(2)
-        values = self.table[self._rows(corner)]  # one gather for all levels: [n, L, 8, F]
+        rows = self._rows(corner)
+        # one gather for all levels, [n, L, 8, F]; index_select's backward (index_add_) is deterministic
+        # on a CPU, where indexing's backward adds with atomics in thread order
+        values = self.table.index_select(0, rows.reshape(-1)).reshape(*rows.shape, -1)
         features = (weight[..., None] * values).sum(-2).flatten(1)  # [n, L * F]
         return torch.cat([flat, features], dim=-1).reshape(*x.shape[:-1], self.out_dim)
 
