@@ -2,11 +2,14 @@
 
 Three kinds of samples (DeepSDF, IGR): surface points (with normals when known), near-surface
 points (the surface jittered by Gaussian noise) and free-space points (uniform in the box). Near
-and free points get an approximate signed distance from their nearest cloud point and its normal.
+and free points get an approximate signed distance from their nearest cloud point and its normal;
+away from the cloud, free points take their sign from the cloud's generalised winding number
+instead, which a patch of wrongly oriented normals (noisy or thin parts) cannot flip.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -42,6 +45,52 @@ def cloud_spacing(points: Tensor) -> float:
     return float(distance[:, 1].median())
 
 
+def point_areas(points: Tensor, k: int = 8) -> Tensor:
+    """Surface area each point stands for, pi r_k^2 / k with r_k the distance to its k-th nearest
+    neighbour (k points per disc of that radius). points: Float[Tensor, "n 3"] -> Float[Tensor, "n"]."""
+    distance, _ = knn(points, points, min(k + 1, len(points)))
+    return math.pi * distance[:, -1] ** 2 / k
+
+
+def winding_number(query: Tensor, points: Tensor, normals: Tensor, areas: Tensor, chunk: int = 512) -> Tensor:
+    """Generalised winding number of an oriented point cloud (Barill et al. 2018, direct sum):
+    w(q) = sum_i a_i n_i . (p_i - q) / (4 pi |p_i - q|^3), about 1 inside a closed surface and 0 outside,
+    away from the points (closer than their spacing it is noisy).
+
+    Args:
+        query: Float[Tensor, "m 3"]; points, normals: Float[Tensor, "n 3"] (unit, outward);
+        areas: Float[Tensor, "n"] (`point_areas`); chunk: queries per step (memory chunk x n).
+    Returns:
+        Float[Tensor, "m"].
+    """
+    offset = (points * normals).sum(-1)  # n_i . p_i
+    squared = (points**2).sum(-1)
+    out = []
+    for part in query.split(chunk):
+        dot = torch.addmm(offset, part, normals.T, alpha=-1)  # n_i . (p_i - q), (chunk, n)
+        r2 = torch.addmm(squared + (part**2).sum(-1, keepdim=True), part, points.T, alpha=-2)
+        inverse = r2.clamp_min_(1e-12).rsqrt_()
+        out.append(dot.mul_(inverse).mul_(inverse).mul_(inverse) @ areas)
+    return torch.cat(out) / (4 * math.pi)
+
+
+def winding_signs(query: Tensor, points: Tensor, normals: Tensor, n_points: int, seed: int = 0) -> tuple[Tensor, float]:
+    """Inside / outside of query points by the winding number of a random subsample of the cloud.
+
+    Args:
+        query: Float[Tensor, "m 3"]; points, normals: Float[Tensor, "n 3"] (unit, outward);
+        n_points: size of the subsample (the cost is m x n_points); seed: its draw.
+    Returns:
+        sign Float[Tensor, "m"]: +1 outside (w < 1/2), -1 inside; reach: the distance from the cloud
+        beyond which the sign is reliable (3 subsample spacings).
+    """
+    pick = torch.randperm(len(points), generator=torch.Generator().manual_seed(seed))[:n_points]
+    subsample, sub_normals = points[pick], normals[pick]
+    reach = 3 * cloud_spacing(subsample) if len(subsample) > 1 else math.inf
+    winding = winding_number(query, subsample, sub_normals, point_areas(subsample))
+    return torch.where(winding < 0.5, 1.0, -1.0), reach
+
+
 @dataclass(frozen=True)
 class SDFSamples:
     """A pool of training samples in the unit frame, drawn once per fit."""
@@ -70,17 +119,24 @@ def make_sdf_samples(
     n_free: int = 250_000,
     near_sigmas: tuple[float, ...] = (0.0025, 0.025),
     box: float = 0.55,
+    winding_points: int = 5000,
     seed: int = 0,
 ) -> SDFSamples:
     """Build the sample pool of a unit-frame cloud (see `Normalization.cloud_to_unit`).
 
-    Near points are split evenly between the Gaussian standard deviations `near_sigmas`.
+    Near points are split evenly between the Gaussian standard deviations `near_sigmas`. Free points
+    far from the cloud take their sign from the winding number of `winding_points` cloud points
+    (`winding_signs`; 0 = always the nearest normal's sign): on the noisy bunny (20k points, 0.5 %
+    noise, estimated normals) the nearest normal gives 4.5 % of them the wrong sign, which the fit
+    turns into surfaces floating in free space; the winding number none.
     """
     if n_near < 1 or n_free < 1 or not near_sigmas or min(near_sigmas) <= 0:
         raise InputError(
             f"sampling needs n_near, n_free >= 1 and positive near_sigmas, got n_near={n_near}, "
             f"n_free={n_free}, near_sigmas={near_sigmas}"
         )
+    if not (isinstance(winding_points, int) and winding_points >= 0):
+        raise InputError(f"winding_points must be an integer >= 0 (0 = off), got {winding_points!r}")
     generator = torch.Generator().manual_seed(seed)
     points = cloud.points.detach().cpu().float()
     normals = None if cloud.normals is None else cloud.normals.detach().cpu().float()
@@ -93,6 +149,9 @@ def make_sdf_samples(
         spacing = cloud_spacing(points) if len(points) > 1 else 0.0
         near_sdf = approximate_sdf(near, points, normals, spacing)
         free_sdf = approximate_sdf(free, points, normals, spacing)
+        if winding_points > 0:  # beyond 2 spacings |free_sdf| is the distance to the cloud
+            sign, reach = winding_signs(free, points, normals, winding_points, seed)
+            free_sdf = torch.where(free_sdf.abs() > reach, sign * free_sdf.abs(), free_sdf)
     return SDFSamples(points, normals, near, free, near_sdf, free_sdf)
 
 

@@ -11,22 +11,23 @@ The volume
     and finds slots through a sorted tensor of block keys (`torch.searchsorted`), so memory follows
     the observed surfaces, not the box.
 
-Integration of one frame
-    1. Candidate blocks: a voxel updated through a pixel lies in the box (grid axes) of the pixel's
-       ray segment z in [d - truncation, d + truncation], grown by half the pixel's footprint; the
-       blocks overlapping those boxes (merged per 4 x 4 pixels where that stays tight) are the
-       candidates. Exact, not a heuristic: every voxel the frame updates lies in a candidate, and
-       no voxel in free space or behind the band is ever looked at.
-    2. For the candidates' voxels: pixel coordinates by one small matmul per block and one per
-       block-local offset (K [R | t] folded with the grid), nearest-pixel projection, projective
-       signed distance sdf = depth(pixel) - z (positive in front of the surface, i.e. outside),
-       then, only for the voxels where the depth is valid and -truncation <= sdf <= free_space,
-       the running weighted averages of min(sdf, truncation): tsdf <- (W tsdf + w sdf) / (W + w),
-       colour likewise, W <- min(W + w, max_weight). Unlike KinectFusion and Open3D, free space is
-       not carved over the whole frustum, only `free_space` (default 2 truncations) in front of
-       the surface: enough to observe voxels next to surfaces seen at grazing angles (which closes
-       the mesh there), at a fraction of the cost. Voxels never updated have weight 0 and count
-       as unobserved.
+Integration, a pass of `frames_per_pass` frames at a time (one on a CPU, 32 on a GPU)
+    1. Candidate blocks, the union over the pass's frames: a voxel updated through a pixel lies in
+       the box (grid axes) of the pixel's ray segment z in [d - truncation, d + truncation], grown
+       by half the pixel's footprint; the blocks overlapping those boxes (merged per 4 x 4 pixels
+       where that stays tight) are the candidates. Exact, not a heuristic: every voxel a frame
+       updates lies in a candidate, and no voxel in free space or behind the band is looked at.
+    2. For the candidates' voxels and each frame of the pass: pixel coordinates by one small
+       matmul per block and one per block-local offset (K [R | t] folded with the grid),
+       nearest-pixel projection, projective signed distance sdf = depth(pixel) - z (positive in
+       front of the surface, i.e. outside); then, frame after frame, for the voxels where the depth
+       is valid and -truncation <= sdf <= free_space, the running weighted averages of
+       min(sdf, truncation): tsdf <- (W tsdf + w sdf) / (W + w), colour likewise,
+       W <- min(W + w, max_weight), so a pass gives what one frame at a time gives. Unlike
+       KinectFusion and Open3D, free space is not carved over the whole frustum, only
+       `free_space` (default 2 truncations) in front of the surface: enough to observe voxels next
+       to surfaces seen at grazing angles (which closes the mesh there), at a fraction of the cost.
+       Voxels never updated have weight 0 and count as unobserved.
     Stored values are signed distances in metres (not normalised), in [-truncation, truncation].
 
 Extraction
@@ -174,8 +175,9 @@ def pixel_block_boxes(
     cols = torch.arange(width, dtype=depth.dtype, device=depth.device)
     y = ((rows - cy) / fy).expand_as(depth)
     x = (cols - cx - skew * y) / fx
+    # grid units per metre of z along each pixel's ray; the camera centre in grid units
     ray = torch.stack([x, y, torch.ones_like(x)], -1) @ rotation.to(depth)[:, None].transpose(-1, -2)
-    offset = translation.to(depth)[:, None, None]  # grid units per metre of z (ray), then origin
+    offset = translation.to(depth)[:, None, None]
     near = ray * (depth - free_space).clamp_min(1e-6)[..., None] + offset
     far = ray * (depth + truncation)[..., None] + offset
     half_pixel = 0.5 * torch.hypot((1 + skew.abs() / fy) / fx, 1 / fy)  # normalised half-diagonal of a pixel
