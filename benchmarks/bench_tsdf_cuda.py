@@ -82,7 +82,8 @@ def bench_bunny(args) -> None:
     gpu_frames = on(frames, "cuda")
     cpu_frames = frames[: args.cpu_views]
     print(f"\nBunny: {len(frames)} views 640x480, voxel {voxel * 1000:.3f} mm, truncation 3 voxels")
-    header = f"{'volume':8} {'grid':>12} {'per pass':>9} {'GPU frames/s':>13} {'CPU frames/s':>13} {'GPU/CPU':>8} {'mesh gap':>9}"
+    header = (f"{'volume':8} {'grid':>12} {'per pass':>9} {'GPU frames/s':>13} {'CPU frames/s':>13} "
+              f"{'GPU/CPU':>8} {'mesh gap':>9}")
     print(header + "\n" + "-" * len(header))
     for sparse in (False, True):
         make = lambda device, n=None: TSDFVolume(bounds, voxel, 3 * voxel, device=device, sparse=sparse,
@@ -92,12 +93,14 @@ def bench_bunny(args) -> None:
         cpu_fps = len(cpu_frames) / cpu_seconds
         for n in args.frames_per_pass:
             timed_integration(make("cuda", n), gpu_frames)  # warm-up: kernels, allocator
-            gpu_seconds = min(timed_integration(gpu := make("cuda", n), gpu_frames) for _ in range(args.repeats))
+            runs = [timed_integration(gpu := make("cuda", n), gpu_frames) for _ in range(args.repeats)]
+            gpu_seconds = min(runs)
             gpu_fps = len(frames) / gpu_seconds
             print(f"{'sparse' if sparse else 'dense':8} {'x'.join(map(str, gpu.grid_shape)):>12} {n:>9} "
                   f"{gpu_fps:>13.0f} {cpu_fps:>13.1f} {gpu_fps / cpu_fps:>7.0f}x {gap:>8.4f}v")
-    print(f"CPU: {args.cpu_views} views, one per pass, {torch.get_num_threads()} threads; mesh gap: GPU (default "
-          f"frames per pass) vs CPU mesh of the same {args.cpu_views} views, mean vertex distance in voxels")
+    print(f"CPU: {args.cpu_views} views, one per pass, {torch.get_num_threads()} threads; mesh gap: GPU "
+          f"(default frames per pass) vs CPU mesh of the same {args.cpu_views} views, mean vertex distance in "
+          f"voxels")
 
 
 def bench_kitchen(data: Path, frames_per_pass: list[int]) -> None:
@@ -111,8 +114,9 @@ def bench_kitchen(data: Path, frames_per_pass: list[int]) -> None:
         warnings.simplefilter("ignore")
         frames = read_rgbd_folder(folder, format="7scenes", with_color=False)
     bounds = depth_bounds(frames, margin=0.05)
-    print(f"\n7-Scenes redkitchen: {len(frames)} frames 640x480, sparse volume, truncation 4 voxels")
-    header = f"{'voxel':6} {'per pass':>9} {'GPU ms/frame':>13} {'CPU ms/frame':>13} {'GPU/CPU':>8} {'blocks':>8} {'GPU peak MB':>12} {'faces':>9}"
+    print(f"\n7-Scenes redkitchen: {len(frames)} frames 640x480, sparse, truncation 4 voxels")
+    header = (f"{'voxel':6} {'per pass':>9} {'GPU ms/frame':>13} {'CPU ms/frame':>13} {'GPU/CPU':>8} {'blocks':>8} "
+              f"{'GPU peak MB':>12} {'faces':>9}")
     print(header + "\n" + "-" * len(header))
     for voxel in (0.02, 0.01):
         make = lambda device, n=None: TSDFVolume(bounds, voxel, 4 * voxel, device=device, sparse=True,
@@ -125,12 +129,15 @@ def bench_kitchen(data: Path, frames_per_pass: list[int]) -> None:
             peak = torch.cuda.max_memory_allocated() / 2**20
             faces = len(gpu.extract_mesh().faces)
             print(f"{voxel * 100:.0f} cm {n:>9} {gpu_seconds / len(frames) * 1e3:>13.2f} "
-                  f"{cpu_seconds / len(frames) * 1e3:>13.1f} {cpu_seconds / gpu_seconds:>7.0f}x {gpu.n_blocks:>8} "
+                  f"{cpu_seconds / len(frames) * 1e3:>13.1f} {cpu_seconds / gpu_seconds:>7.0f}x "
+                  f"{gpu.n_blocks:>8} "
                   f"{peak:>12.0f} {faces:>9,}")
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--views", type=int, default=100, help="bunny views to render")
     parser.add_argument("--cpu-views", type=int, default=10, help="of those, fused on the CPU for the ratio")
     parser.add_argument("--repeats", type=int, default=5, help="GPU: best of this many integrations")

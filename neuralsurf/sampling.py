@@ -74,7 +74,9 @@ def winding_number(query: Tensor, points: Tensor, normals: Tensor, areas: Tensor
     return torch.cat(out) / (4 * math.pi)
 
 
-def winding_signs(query: Tensor, points: Tensor, normals: Tensor, n_points: int, seed: int = 0) -> tuple[Tensor, float]:
+def winding_signs(
+    query: Tensor, points: Tensor, normals: Tensor, n_points: int, seed: int = 0
+) -> tuple[Tensor, float]:
     """Inside / outside of query points by the winding number of a random subsample of the cloud.
 
     Args:

@@ -479,12 +479,17 @@ class TSDFVolume:
         for start in range(0, len(frames), self.frames_per_pass):
             part = slice(start, start + self.frames_per_pass)
             self._integrate_frames(
-                depth[part], frames.K[part].cpu(), frames.cam_to_world[part].cpu(), None if colors is None else colors[part]
+                depth[part],
+                frames.K[part].cpu(),
+                frames.cam_to_world[part].cpu(),
+                None if colors is None else colors[part],
             )
             self.frames_integrated += len(depth[part])
         return self
 
-    def _integrate_frames(self, depth: Tensor, K: Tensor, cam_to_world: Tensor, colors: Tensor | None) -> None:
+    def _integrate_frames(
+        self, depth: Tensor, K: Tensor, cam_to_world: Tensor, colors: Tensor | None
+    ) -> None:
         """Fuse depth images Float[Tensor, "f h w"] seen by K Float[Tensor, "f 3 3"] at cam_to_world
         Float[Tensor, "f 4 4"] (both on the CPU), colours Float[Tensor, "f h w 3"] | None, in order."""
         rotation, translation = world_to_camera(cam_to_world)
@@ -502,10 +507,14 @@ class TSDFVolume:
             self.block_counts,
         )
         # grid index -> homogeneous pixel: K (R (origin + v i) + t), relative to the origin for precision
-        projection = K.double() @ torch.cat([rotation * self.voxel_size, (rotation @ origin + translation)[..., None]], 2)
+        projection = K.double() @ torch.cat(
+            [rotation * self.voxel_size, (rotation @ origin + translation)[..., None]], 2
+        )
         projection = projection.float().to(self.device)
         n_frames, voxels = len(depth), self.block_size**3
-        weights = None if self.weighting == "constant" else pixel_weights(depth, self.weighting).reshape(n_frames, -1)
+        weights = (
+            None if self.weighting == "constant" else pixel_weights(depth, self.weighting).reshape(n_frames, -1)
+        )
         per_chunk = max(1, self._chunk_observations // (voxels * n_frames))
         for start in range(0, len(keys), per_chunk):
             chunk = keys[start : start + per_chunk]
@@ -528,7 +537,13 @@ class TSDFVolume:
             self._update(voxel, seen, sdf, pixel, weights, colors)
 
     def _update(
-        self, voxel: Tensor, seen: Tensor, sdf: Tensor, pixel: Tensor, weights: Tensor | None, colors: Tensor | None
+        self,
+        voxel: Tensor,
+        seen: Tensor,
+        sdf: Tensor,
+        pixel: Tensor,
+        weights: Tensor | None,
+        colors: Tensor | None,
     ) -> None:
         """Running weighted averages at Int64[Tensor, "n"] distinct flat voxel indices with the
         observations of f frames in order: seen Bool[Tensor, "f n"], sdf Float[Tensor, "f n"], pixel
