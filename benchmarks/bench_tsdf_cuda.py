@@ -130,8 +130,7 @@ def bench_kitchen(data: Path, frames_per_pass: list[int]) -> None:
             faces = len(gpu.extract_mesh().faces)
             print(f"{voxel * 100:.0f} cm {n:>9} {gpu_seconds / len(frames) * 1e3:>13.2f} "
                   f"{cpu_seconds / len(frames) * 1e3:>13.1f} {cpu_seconds / gpu_seconds:>7.0f}x "
-                  f"{gpu.n_blocks:>8} "
-                  f"{peak:>12.0f} {faces:>9,}")
+                  f"{gpu.n_blocks:>8} {peak:>12.0f} {faces:>9,}")
 
 
 def main() -> None:
@@ -145,7 +144,7 @@ def main() -> None:
     parser.add_argument("--save-frames", help="render the bunny views, save them here, and go on")
     parser.add_argument("--data", default=os.environ.get("NEURALSURF_DATA", ROOT.parent / "shared" / "data"))
     parser.add_argument("--threads", type=int, default=None, help="CPU threads of torch")
-    parser.add_argument("--frames-per-pass", type=int, nargs="+", default=[1, 8, 32, 100],
+    parser.add_argument("--frames-per-pass", type=int, nargs="+", default=[1, 8, 16, 32],
                         help="GPU: frames fused per pass (TSDFVolume.frames_per_pass), one row each")
     args = parser.parse_args()
     if args.threads:
