@@ -11,7 +11,13 @@ import torch
 from scipy.spatial import cKDTree
 
 from neuralsurf.baselines import TSDFVolume, depth_bounds, fuse_open3d
-from neuralsurf.baselines.tsdf import candidate_blocks, kinect_sigma, pixel_weights, world_to_camera
+from neuralsurf.baselines.tsdf import (
+    camera_to_grid,
+    candidate_blocks,
+    grid_to_pixel,
+    kinect_sigma,
+    pixel_weights,
+)
 from neuralsurf.errors import ConfigError, DeviceError, ExtractionError, InputError, NeuralsurfError
 from neuralsurf.geometry import backproject_depth, point_to_mesh_distance
 from neuralsurf.scenes import Sphere, scan_depth
@@ -221,14 +227,11 @@ def test_candidate_blocks_hold_every_updated_voxel(sphere_frames, free_space):
 
     volume = TSDFVolume(BOX, VOXEL, block_size=4, device="cpu", free_space=free_space)
     frame = sphere_frames[3]
-    rotation, translation = world_to_camera(frame.cam_to_world)
-    origin = torch.as_tensor(volume.origin)
-    to_grid = rotation.transpose(1, 2)
+    origin = torch.as_tensor(volume.origin, dtype=torch.float64)
     keys = candidate_blocks(
         frame.depth,
         frame.K,
-        to_grid / VOXEL,
-        ((-to_grid @ translation[..., None])[..., 0] - origin) / VOXEL,
+        *camera_to_grid(frame.cam_to_world, origin, VOXEL),
         VOXEL,
         volume.truncation,
         volume.free_space,
@@ -236,13 +239,10 @@ def test_candidate_blocks_hold_every_updated_voxel(sphere_frames, free_space):
         volume.block_counts,
     )
     every = torch.arange(int(volume.block_counts.prod()))
-    projection = frame.K.double() @ torch.cat(
-        [rotation * VOXEL, (rotation @ origin + translation)[..., None]], 2
-    )
     seen, _, _ = observe_blocks(
         volume._block_coords(every) * 4,
         volume._local,
-        projection.float(),
+        grid_to_pixel(frame.K, frame.cam_to_world, origin, VOXEL),
         frame.depth,
         volume.truncation,
         volume.free_space,

@@ -132,6 +132,22 @@ def world_to_camera(cam_to_world: Tensor) -> tuple[Tensor, Tensor]:
     return rotation, -(rotation @ pose[..., :3, 3:])[..., 0]
 
 
+def camera_to_grid(cam_to_world: Tensor, origin: Tensor, voxel_size: float) -> tuple[Tensor, Tensor]:
+    """Float[Tensor, "f 4 4"] poses -> rotations Float64[Tensor, "f 3 3"] and translations Float64[Tensor,
+    "f 3"] with x_grid = rotation @ x_camera + translation, grid coordinates being voxel indices from
+    `origin` Float64[Tensor, "3"]."""
+    pose = cam_to_world.double()
+    return pose[:, :3, :3] / voxel_size, (pose[:, :3, 3] - origin) / voxel_size
+
+
+def grid_to_pixel(K: Tensor, cam_to_world: Tensor, origin: Tensor, voxel_size: float) -> Tensor:
+    """Float[Tensor, "f 3 4"]: per frame, grid index (homogeneous) -> (z u, z v, z) with (u, v) pixel
+    coordinates, K [R | t] composed with the grid (relative to `origin` for precision)."""
+    rotation, translation = world_to_camera(cam_to_world)
+    extrinsic = torch.cat([rotation * voxel_size, (rotation @ origin + translation)[..., None]], 2)
+    return (K.double() @ extrinsic).float()
+
+
 def _unique_keys(keys: Tensor, total: int) -> Tensor:
     """Int64[Tensor, "n"] keys in [0, total) -> sorted unique keys; a bitmap (no sort) when it is small."""
     if total <= _BITMAP_LIMIT:
@@ -492,25 +508,20 @@ class TSDFVolume:
     ) -> None:
         """Fuse depth images Float[Tensor, "f h w"] seen by K Float[Tensor, "f 3 3"] at cam_to_world
         Float[Tensor, "f 4 4"] (both on the CPU), colours Float[Tensor, "f h w 3"] | None, in order."""
-        rotation, translation = world_to_camera(cam_to_world)
         origin = torch.as_tensor(self.origin, dtype=torch.float64)
-        to_grid = rotation.transpose(1, 2)  # camera -> world rotation
+        rotation, translation = camera_to_grid(cam_to_world, origin, self.voxel_size)
         keys = candidate_blocks(
             depth,
             K.to(self.device),
-            (to_grid / self.voxel_size).to(self.device),
-            ((-to_grid @ translation[..., None])[..., 0] - origin).div(self.voxel_size).to(self.device),
+            rotation.to(self.device),
+            translation.to(self.device),
             self.voxel_size,
             self.truncation,
             self.free_space,
             self.block_size,
             self.block_counts,
         )
-        # grid index -> homogeneous pixel: K (R (origin + v i) + t), relative to the origin for precision
-        projection = K.double() @ torch.cat(
-            [rotation * self.voxel_size, (rotation @ origin + translation)[..., None]], 2
-        )
-        projection = projection.float().to(self.device)
+        projection = grid_to_pixel(K, cam_to_world, origin, self.voxel_size).to(self.device)
         n_frames, voxels = len(depth), self.block_size**3
         weights = (
             None if self.weighting == "constant" else pixel_weights(depth, self.weighting).reshape(n_frames, -1)
@@ -527,11 +538,12 @@ class TSDFVolume:
                 self.free_space,
             )
             slots = self._slots_of(chunk)
+            observed = seen.any(0)  # the voxels some frame of the pass observes
             if self.sparse:  # allocate the blocks these frames update for the first time
-                fresh = seen.reshape(n_frames, len(chunk), voxels).any(2).any(0) & (slots < 0)
+                fresh = observed.reshape(len(chunk), voxels).any(1) & (slots < 0)
                 if fresh.any():
                     slots[fresh] = self._allocate(chunk[fresh])
-            updated = seen.any(0).nonzero()[:, 0]  # the voxels some frame of the pass observes
+            updated = observed.nonzero()[:, 0]
             seen, sdf, pixel = seen[:, updated], sdf[:, updated], pixel[:, updated]
             voxel = slots[updated // voxels] * voxels + updated % voxels
             self._update(voxel, seen, sdf, pixel, weights, colors)
@@ -825,9 +837,11 @@ __all__ = [
     "TSDFVolume",
     "available_memory",
     "box_keys",
+    "camera_to_grid",
     "candidate_blocks",
     "depth_bounds",
     "fuse_open3d",
+    "grid_to_pixel",
     "observe_blocks",
     "open3d_frame",
     "pixel_block_boxes",
