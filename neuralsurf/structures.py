@@ -378,3 +378,104 @@ class DepthFrames:
         index = [index] if isinstance(index, int) else index
         colors = None if self.colors is None else self.colors[index]
         return DepthFrames(self.depth[index], self.K[index], self.cam_to_world[index], colors)
+
+
+@dataclass(frozen=True)
+class PhotometricCapture:
+    """Images of one view under n distant lights, in the project's camera frame (OpenCV: x right,
+    y down, z forward; the viewer looks along +z, so normals facing the camera have z < 0).
+
+    Light directions point from the surface towards the light (a light behind the camera has
+    z < 0). Images are linear intensities already divided by each light's intensity.
+    """
+
+    images: Tensor
+    """Float[Tensor, "n h w 3"] or Float[Tensor, "n h w"]: linear intensities (float32), one per light."""
+    light_directions: Tensor
+    """Float[Tensor, "n 3"]: unit directions towards each light, camera frame."""
+    light_intensities: Tensor | None = None
+    """Float[Tensor, "n 3"] | None: the intensities the images were divided by (RGB); None = all 1."""
+    mask: Tensor | None = None
+    """Bool[Tensor, "h w"] | None: pixels of the object; None = every pixel."""
+    normals: Tensor | None = None
+    """Float[Tensor, "h w 3"] | None: ground-truth unit normals in the camera frame (0 outside the mask)."""
+    K: Tensor | None = None
+    """Float[Tensor, "3 3"] | None: pinhole intrinsics; None = orthographic (or unknown) camera."""
+    depth: Tensor | None = None
+    """Float[Tensor, "h w"] | None: ground-truth z-depth in metres, 0 outside the object (synthetic rigs)."""
+    cam_to_world: Tensor | None = None
+    """Float[Tensor, "4 4"] | None: OpenCV camera-to-world pose (synthetic rigs, multi-view captures)."""
+
+    def __post_init__(self) -> None:
+        images = torch.as_tensor(self.images).float()
+        if images.ndim not in (3, 4) or (images.ndim == 4 and images.shape[-1] != 3) or images.numel() == 0:
+            raise InputError(
+                f"PhotometricCapture.images must have shape (n, h, w) or (n, h, w, 3), got {tuple(images.shape)}"
+            )
+        if not torch.isfinite(images).all():
+            raise InputError("PhotometricCapture.images contain NaN or inf; repair or drop those images")
+        n, h, w = images.shape[:3]
+        lights = as_tensor(self.light_directions, torch.float32, "PhotometricCapture.light_directions")
+        if len(lights) != n:
+            raise InputError(
+                f"PhotometricCapture has {n} images but {len(lights)} light directions; give one direction per image"
+            )
+        norms = lights.norm(dim=-1)
+        if (norms < 1e-6).any():
+            raise InputError(
+                f"PhotometricCapture.light_directions[{int((norms < 1e-6).nonzero()[0])}] is zero; "
+                f"every light needs a direction"
+            )
+        object.__setattr__(self, "images", images)
+        object.__setattr__(self, "light_directions", (lights / norms[:, None]).to(images.device))
+        if self.light_intensities is not None:
+            intensities = torch.as_tensor(self.light_intensities).float()
+            intensities = intensities[:, None].expand(-1, 3) if intensities.ndim == 1 else intensities
+            if intensities.shape != (n, 3):
+                raise InputError(
+                    f"PhotometricCapture.light_intensities must be (n={n}, 3) or (n,), got {tuple(intensities.shape)}"
+                )
+            object.__setattr__(self, "light_intensities", intensities.to(images.device))
+        if self.mask is not None:
+            mask = torch.as_tensor(self.mask).bool()
+            if mask.shape != (h, w):
+                raise InputError(f"PhotometricCapture.mask must be (h, w) = {(h, w)}, got {tuple(mask.shape)}")
+            object.__setattr__(self, "mask", mask.to(images.device))
+        for name, shape in (("normals", (h, w, 3)), ("depth", (h, w)), ("K", (3, 3)), ("cam_to_world", (4, 4))):
+            value = getattr(self, name)
+            if value is None:
+                continue
+            value = torch.as_tensor(value).float()
+            if tuple(value.shape) != shape:
+                raise InputError(f"PhotometricCapture.{name} must have shape {shape}, got {tuple(value.shape)}")
+            object.__setattr__(self, name, value.to(images.device))
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    @property
+    def height(self) -> int:
+        return self.images.shape[1]
+
+    @property
+    def width(self) -> int:
+        return self.images.shape[2]
+
+    @property
+    def is_color(self) -> bool:
+        return self.images.ndim == 4
+
+    def gray(self) -> Tensor:
+        """Float[Tensor, "n h w"]: the mean of the colour channels (the images themselves when grey)."""
+        return self.images.mean(-1) if self.is_color else self.images
+
+    def pixel_mask(self) -> Tensor:
+        """Bool[Tensor, "h w"]: the mask, or every pixel when there is none."""
+        if self.mask is not None:
+            return self.mask
+        return torch.ones(self.height, self.width, dtype=torch.bool, device=self.images.device)
+
+    def to(self, device: torch.device | str) -> PhotometricCapture:
+        move = lambda t: None if t is None else t.to(device)  # noqa: E731
+        return PhotometricCapture(*(move(getattr(self, f)) for f in (
+            "images", "light_directions", "light_intensities", "mask", "normals", "K", "depth", "cam_to_world")))
