@@ -493,3 +493,53 @@ def depth_to_cloud(
         )
     normals = torch.cat(normals) if with_normals else None
     return PointCloud(points, normals, torch.cat(colors) if colors else None)
+
+
+# ---------------------------------------------------------------------------------------------
+# sensor geometry: depth cameras (used by the synthetic scanner, the range-scan loader and TSDF weights)
+
+
+def kinect_sigma(z: Tensor) -> Tensor:
+    """Axial noise of a Kinect v1 (Nguyen et al. 2012): z [...] metres -> standard deviation [...] metres."""
+    return 0.0012 + 0.0019 * (z - 0.4) ** 2
+
+
+def render_depth(
+    mesh: Mesh, K: Tensor, cam_to_world: Tensor, width: int, height: int
+) -> tuple[Tensor, Tensor]:
+    """Exact z-depth of `mesh` seen by pinhole cameras, by Open3D's ray casting.
+
+    Args:
+        mesh: non-empty Mesh (world frame); K: Float[Tensor, "n 3 3"]; cam_to_world: Float[Tensor, "n 4 4"].
+    Returns:
+        depth Float32[Tensor, "n h w"] (0 where the ray misses) and cos_incidence Float32[Tensor,
+        "n h w"]: |cos| of the angle between the ray and the hit triangle's normal (0 on misses).
+    """
+    import open3d as o3d
+
+    K, pose = K.double().cpu(), cam_to_world.double().cpu()
+    center = mesh.vertices.detach().double().cpu().mean(0)  # float32 ray casting, re-centred for precision
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor((mesh.vertices.detach().double().cpu() - center).float().numpy()),
+        o3d.core.Tensor(mesh.faces.cpu().numpy().astype(np.uint32)),
+    )
+    v, u = torch.meshgrid(
+        torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij"
+    )
+    depth, cosine = [], []
+    for k, p in zip(K, pose):  # one camera at a time bounds memory
+        x = (u - k[0, 2] - k[0, 1] * (v - k[1, 2]) / k[1, 1]) / k[0, 0]
+        y = (v - k[1, 2]) / k[1, 1]
+        direction = torch.nn.functional.normalize(
+            torch.stack([x, y, torch.ones_like(x)], -1), dim=-1
+        )  # (h, w, 3)
+        world = direction @ p[:3, :3].T
+        origin = (p[:3, 3] - center).expand_as(world)
+        hit = scene.cast_rays(o3d.core.Tensor(torch.cat([origin, world], -1).float().numpy()))
+        t = torch.from_numpy(hit["t_hit"].numpy()).double()
+        normal = torch.from_numpy(hit["primitive_normals"].numpy()).double()
+        found = torch.isfinite(t)
+        depth.append(torch.where(found, t * direction[..., 2], 0.0).float())
+        cosine.append(torch.where(found, (normal * world).sum(-1).abs(), 0.0).float())
+    return torch.stack(depth), torch.stack(cosine)

@@ -53,7 +53,7 @@ from torch import Tensor
 from neuralsurf.devices import resolve_device
 from neuralsurf.errors import ConfigError, ExtractionError, InputError
 from neuralsurf.extract import as_bounds
-from neuralsurf.scenes.scanner import kinect_sigma
+from neuralsurf.geometry import kinect_sigma
 from neuralsurf.structures import DepthFrames, Mesh
 
 WEIGHTINGS = ("constant", "depth")

@@ -188,7 +188,7 @@ def read_range_scan_frames(conf_path: PathLike, pixel_size: float = 2.5e-4, dist
         FileFormatError for a scan without triangles (no `face` or `range_grid` element);
         ConfigError for a non-positive pixel_size or distance.
     """
-    from neuralsurf.scenes.scanner import render_depth
+    from neuralsurf.geometry import render_depth
 
     for name, value in (("pixel_size", pixel_size), ("distance", distance)):
         if not (np.isfinite(value) and value > 0):
