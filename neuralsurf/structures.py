@@ -292,8 +292,26 @@ def _check_rigid(cam_to_world: Tensor, name: str, tolerance: float = 1e-3) -> No
 
 
 def check_intrinsics(K: Tensor, width: int, height: int, name: str = "K") -> None:
-    """Raise InputError when a principal point of K (n, 3, 3) lies outside its width x height image or a
-    focal length is not positive (intrinsics of another resolution or camera)."""
+    """Raise InputError when an entry of K (n, 3, 3) is NaN or inf, its bottom row is not [0 0 1], a
+    principal point lies outside its width x height image or a focal length is not positive
+    (intrinsics of another resolution or camera)."""
+    finite = torch.isfinite(K).all(dim=(1, 2))
+    if not finite.all():
+        i = int((~finite).nonzero()[0])
+        raise InputError(
+            f"{name}[{i}] holds NaN or inf (fx={float(K[i, 0, 0]):g}, fy={float(K[i, 1, 1]):g}, "
+            f"cx={float(K[i, 0, 2]):g}, cy={float(K[i, 1, 2]):g}; {int((~finite).sum())} bad matrices): "
+            f"focal lengths and principal points must be finite numbers in pixels; check the calibration file"
+        )
+    bottom = torch.tensor([0.0, 0.0, 1.0], dtype=K.dtype, device=K.device)
+    bad_row = (K[:, 2] - bottom).abs().amax(dim=1) > 1e-6
+    if bad_row.any():
+        i = int(bad_row.nonzero()[0])
+        raise InputError(
+            f"{name}[{i}] has bottom row {K[i, 2].tolist()}, not [0, 0, 1]: a pinhole K is "
+            f"[[fx, s, cx], [0, fy, cy], [0, 0, 1]]; divide K by K[2, 2] if it was scaled, or pass the "
+            f"3x3 intrinsics rather than a projection matrix"
+        )
     cx, cy = K[:, 0, 2], K[:, 1, 2]
     bad = (cx < 0) | (cx > width) | (cy < 0) | (cy > height) | (K[:, 0, 0] <= 0) | (K[:, 1, 1] <= 0)
     if bad.any():
@@ -303,6 +321,19 @@ def check_intrinsics(K: Tensor, width: int, height: int, name: str = "K") -> Non
             f"fx={float(K[i, 0, 0]):g}, fy={float(K[i, 1, 1]):g}, "
             f"principal point ({float(cx[i]):g}, {float(cy[i]):g}) must lie inside [0, {width}] x [0, {height}]; "
             f"intrinsics calibrated at another resolution must be scaled with the image (fx, fy, cx, cy by the same factor)"
+        )
+
+
+def _check_real(values, name: str) -> None:
+    """Raise InputError when `values` (a tensor or array) is complex: casting it to float would drop
+    the imaginary part with nothing more than a cast warning."""
+    if values is None:
+        return
+    is_complex = values.is_complex() if isinstance(values, Tensor) else np.iscomplexobj(values)
+    if is_complex:
+        raise InputError(
+            f"{name} is complex ({getattr(values, 'dtype', type(values).__name__)}); it must hold real numbers: "
+            f"pass its real part (values.real) if the imaginary part is zero, or its magnitude if that is the reading"
         )
 
 
@@ -320,6 +351,8 @@ class DepthFrames:
     """Float[Tensor, "n h w 3"] | None: RGB in [0, 1] registered to the depth."""
 
     def __post_init__(self) -> None:
+        for field in ("depth", "K", "cam_to_world", "colors"):
+            _check_real(getattr(self, field), f"DepthFrames.{field}")
         depth = torch.as_tensor(self.depth, dtype=torch.float32)
         if depth.ndim == 2:
             depth = depth[None]

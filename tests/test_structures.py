@@ -65,3 +65,55 @@ def test_normalization_round_trip_and_unit_box():
     assert torch.equal(restored.center, norm.center) and restored.scale == norm.scale
     with pytest.raises(InputError, match="scale"):
         Normalization.from_points(torch.ones(5, 3))
+
+
+def _depth_frame_inputs():
+    """A valid 8x6 depth frame at 1 m, its pinhole K and an identity pose."""
+    K = torch.tensor([[5.0, 0.0, 4.0], [0.0, 5.0, 3.0], [0.0, 0.0, 1.0]])
+    return torch.ones(1, 6, 8), K, torch.eye(4)
+
+
+@pytest.mark.parametrize("entry", [(0, 0), (1, 1), (0, 2), (1, 2)])
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_depth_frames_reject_non_finite_focal_lengths_and_principal_points(entry, value):
+    from neuralsurf.structures import DepthFrames
+
+    depth, K, pose = _depth_frame_inputs()
+    DepthFrames(depth, K, pose)  # the valid frame passes
+    K[entry] = value
+    with pytest.raises(InputError, match="NaN or inf.*focal lengths and principal points must be finite"):
+        DepthFrames(depth, K, pose)
+
+
+def test_check_intrinsics_rejects_nan_directly():
+    from neuralsurf.structures import check_intrinsics
+
+    K = torch.tensor([[[float("nan"), 0.0, 4.0], [0.0, 5.0, 3.0], [0.0, 0.0, 1.0]]])
+    with pytest.raises(InputError, match=r"K\[0\] holds NaN or inf"):
+        check_intrinsics(K, 8, 6)
+
+
+@pytest.mark.parametrize("bottom", [[5.0, 5.0, 0.0], [0.0, 0.0, 2.0], [0.0, 1.0, 1.0]])
+def test_depth_frames_reject_a_k_whose_bottom_row_is_not_0_0_1(bottom):
+    from neuralsurf.structures import DepthFrames
+
+    depth, K, pose = _depth_frame_inputs()
+    K[2] = torch.tensor(bottom)
+    with pytest.raises(InputError, match=r"bottom row .* not \[0, 0, 1\]"):
+        DepthFrames(depth, K, pose)
+
+
+@pytest.mark.parametrize("as_numpy", [False, True])
+def test_depth_frames_reject_complex_depth_without_a_cast_warning(as_numpy):
+    import warnings
+
+    from neuralsurf.structures import DepthFrames
+
+    depth, K, pose = _depth_frame_inputs()
+    complex_depth = depth.to(torch.complex64) + 0.5j
+    if as_numpy:
+        complex_depth = complex_depth.numpy()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # torch's "casting complex values discards the imaginary part" is not enough
+        with pytest.raises(InputError, match="DepthFrames.depth is complex.*real"):
+            DepthFrames(complex_depth, K, pose)
