@@ -95,3 +95,43 @@ def test_real_scans_merged_match_the_zipper_mesh(shared_data):
     )
     assert accuracy < 1e-3 and completeness < 1e-3
     assert 0.5 * (accuracy + completeness) < 0.5e-3
+
+
+@pytest.mark.parametrize("n", [3, 4, 31])
+def test_too_few_points_are_refused(n):
+    with pytest.raises(InputError, match=f"needs at least 32 points, got {n}"):
+        reconstruct_poisson(sphere_cloud(n), depth=6)
+
+
+def _flat_cloud(shape: str, n: int = 500) -> PointCloud:
+    g = torch.Generator().manual_seed(0)
+    t = torch.rand(n, 2, generator=g, dtype=torch.float64)
+    if shape == "line":
+        points = CENTER + t[:, :1] * torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    else:  # a tilted plane through CENTER
+        points = CENTER + t[:, :1] * torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64) + t[:, 1:] * torch.tensor(
+            [0.0, 1.0, 0.0], dtype=torch.float64
+        )
+    normal = torch.tensor([1.0, 0.0, -1.0], dtype=torch.float64) / 2**0.5
+    return PointCloud(points.float(), normal.expand(n, 3).float())  # float32, as clouds read from files are
+
+
+@pytest.mark.parametrize("shape, match", [("line", "lie on a line"), ("plane", "lie in a plane")])
+def test_degenerate_clouds_are_refused(shape, match):
+    with pytest.raises(InputError, match=f"Poisson reconstruction: the 500 points {match}.*zero-thickness"):
+        reconstruct_poisson(_flat_cloud(shape), depth=6)
+
+
+def test_identical_points_are_refused():
+    cloud = PointCloud(CENTER.expand(100, 3), torch.tensor([0.0, 0.0, 1.0]).expand(100, 3))
+    with pytest.raises(InputError, match="all 100 points lie at one location"):
+        reconstruct_poisson(cloud, depth=6)
+
+
+def test_a_thin_but_solid_slab_is_accepted():
+    """The check refuses exact degeneracy only: a box 1000 times thinner than wide still has a volume."""
+    cloud = _flat_cloud("plane")
+    offset = torch.zeros(len(cloud), 3)
+    offset[::2] = torch.tensor([1e-3, 0.0, -1e-3])  # along the plane's normal
+    mesh = reconstruct_poisson(PointCloud(cloud.points + offset, cloud.normals), depth=6)
+    assert len(mesh.faces) > 0
