@@ -417,3 +417,22 @@ def test_every_io_error_is_a_neuralsurf_error(tmp_path):
     for call in (read_mesh, read_point_cloud):
         with pytest.raises(NeuralsurfError):
             call(tmp_path / "missing.ply")
+
+
+@pytest.mark.parametrize("ext", POINT_CLOUD_EXTENSIONS)
+def test_writing_a_point_cloud_under_a_file_names_the_file(tmp_path, ext):
+    (tmp_path / "a_file").write_text("not a folder")
+    for target in (tmp_path / "a_file" / f"x{ext}", tmp_path / "a_file" / "deeper" / f"x{ext}"):
+        with pytest.raises(FileFormatError, match=r"a_file' is a file, not a folder"):
+            write_point_cloud(target, random_cloud())
+    assert (tmp_path / "a_file").read_text() == "not a folder"  # left as it was
+
+
+@pytest.mark.parametrize("ext", MESH_EXTENSIONS)
+def test_writing_a_mesh_under_a_file_or_onto_a_folder_is_a_file_format_error(tmp_path, ext):
+    (tmp_path / "a_file").write_text("not a folder")
+    with pytest.raises(FileFormatError, match=r"a_file' is a file, not a folder"):
+        write_mesh(tmp_path / "a_file" / f"m{ext}", icosphere())
+    (tmp_path / f"folder{ext}").mkdir()
+    with pytest.raises(FileFormatError, match=r"it is a folder; pass a file name inside it"):
+        write_mesh(tmp_path / f"folder{ext}", icosphere())

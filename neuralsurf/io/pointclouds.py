@@ -55,10 +55,29 @@ def readable_path(path: PathLike, supported: tuple[str, ...], kind: str) -> tupl
 
 
 def writable_path(path: PathLike, supported: tuple[str, ...], kind: str) -> tuple[Path, str]:
-    """`path` as a Path and its extension, with its parent folders created."""
+    """`path` as a Path and its extension, with its parent folders created.
+
+    Raises FileFormatError when `path` is a folder, when a file stands where a parent folder should
+    be, or when the folder cannot be created (permissions)."""
     ext = checked_extension(path, supported, kind)
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.is_dir():
+        raise FileFormatError(
+            f"cannot write {kind} file {str(path)!r}: it is a folder; pass a file name inside it"
+        )
+    blocking = next((parent for parent in path.parents if parent.exists() and not parent.is_dir()), None)
+    if blocking is not None:
+        raise FileFormatError(
+            f"cannot write {kind} file {str(path)!r}: {str(blocking)!r} is a file, not a folder; "
+            f"write somewhere else or move that file away"
+        )
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise FileFormatError(
+            f"cannot create the folder {str(path.parent)!r} for {kind} file {str(path)!r}: "
+            f"{error.strerror or error}; check the path and its permissions"
+        ) from error
     return path, ext
 
 
