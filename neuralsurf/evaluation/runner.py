@@ -28,17 +28,24 @@ SceneFactory = Callable[[], Scene]
 MethodFactory = Callable[[], Callable[..., Mesh]]
 
 
-def environment() -> dict[str, str]:
-    """Versions and machine, recorded with every row."""
+def environment(include_host: bool = False) -> dict[str, str]:
+    """Versions and machine, recorded with every row.
+
+    The machine is described by its platform, processor, CPU threads and GPU, never by its name:
+    results are shared, and a hostname says who ran them where. `include_host=True` adds a "host"
+    entry (the network name) for one's own records."""
     import open3d
 
     import neuralsurf
 
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none"
-    return {"neuralsurf": neuralsurf.__version__, "torch": torch.__version__, "open3d": open3d.__version__,
-            "numpy": np.__version__, "python": platform.python_version(),
-            "machine": f"{platform.node()} {platform.platform()} {platform.processor() or platform.machine()}",
-            "cpu_threads": str(torch.get_num_threads()), "gpu": gpu}
+    env = {"neuralsurf": neuralsurf.__version__, "torch": torch.__version__, "open3d": open3d.__version__,
+           "numpy": np.__version__, "python": platform.python_version(),
+           "machine": f"{platform.platform()} {platform.processor() or platform.machine()}",
+           "cpu_threads": str(torch.get_num_threads()), "gpu": gpu}
+    if include_host:
+        env["host"] = platform.node()
+    return env
 
 
 def reset_peak_memory() -> None:
