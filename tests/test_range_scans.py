@@ -240,3 +240,70 @@ def test_scan_frames_need_triangles_and_positive_sizes(tmp_path):
         read_range_scan_frames(tmp_path / "a.conf")
     with pytest.raises(NeuralsurfError, match="pixel_size"):
         read_range_scan_frames(tmp_path / "a.conf", pixel_size=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# .conf `mesh` lines (a reference mesh, optional) and quaternions
+
+
+def _tetrahedron():
+    from neuralsurf.structures import Mesh
+
+    vertices = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=torch.float64)
+    return Mesh(vertices, torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
+
+
+def test_conf_mesh_lines_are_read_into_the_common_frame(tmp_path):
+    from neuralsurf.io import read_range_scan_meshes, write_mesh
+
+    s = math.sqrt(0.5)
+    points, grid = tilted_grid_scan()
+    write_range_grid_ply(tmp_path / "scan.ply", points, grid)
+    write_mesh(tmp_path / "reference.ply", _tetrahedron())
+    conf = tmp_path / "scans.conf"
+    conf.write_text(f"camera 0 0 -1 0 0 0 1\nbmesh scan.ply 0 0 0 0 0 0 1\nmesh reference.ply 1 2 3 0 0 {s} {s}\n")
+    assert [name for name, _ in read_range_scan_conf(conf)] == ["scan.ply"]  # the mesh is not a scan
+    assert len(read_range_scans(conf)) == 1
+    (mesh,) = read_range_scan_meshes(conf)
+    # the bmesh convention: world = R(q)^T p + t, a quarter turn about z then (1, 2, 3)
+    expected = _tetrahedron().vertices @ torch.tensor([[0.0, 1, 0], [-1, 0, 0], [0, 0, 1]], dtype=torch.float64).T
+    assert torch.allclose(mesh.vertices.double(), expected + torch.tensor([1.0, 2, 3], dtype=torch.float64))
+    assert torch.equal(mesh.faces, _tetrahedron().faces)
+
+
+def test_an_absent_reference_mesh_warns_and_the_scans_still_load(tmp_path):
+    from neuralsurf.io import read_range_scan_meshes
+
+    points, grid = tilted_grid_scan()
+    write_range_grid_ply(tmp_path / "scan.ply", points, grid)
+    conf = tmp_path / "scans.conf"
+    conf.write_text("bmesh scan.ply 0 0 0 0 0 0 1\nmesh zipper.ply 0 0 0 0 0 0 1\n")
+    with pytest.warns(UserWarning, match=r"line 2 lists the reference mesh 'zipper.ply', which is not in"):
+        clouds = read_range_scans(conf)
+    assert len(clouds) == 1 and len(clouds[0]) == len(points)
+    with pytest.warns(UserWarning, match="zipper.ply"):
+        assert read_range_scan_meshes(conf) == []
+
+
+@pytest.mark.parametrize(
+    "line, match",
+    [("mesh 0 0 0 0 0 0 1", "line 2: cannot parse"), ("mesh m.ply 0 0 0 0 0 0 0", "line 2: the quaternion is zero")],
+)
+def test_malformed_conf_mesh_lines_name_the_line(tmp_path, line, match):
+    conf = tmp_path / "bad.conf"
+    conf.write_text(f"bmesh a.ply 0 0 0 0 0 0 1\n{line}\n")
+    with pytest.raises(FileFormatError, match=match):
+        read_range_scan_conf(conf)
+
+
+def test_quaternion_to_matrix_matches_the_hamilton_formula():
+    """scipy's Rotation against the textbook matrix of a unit (x, y, z, w) quaternion, and it normalises."""
+    rng = np.random.default_rng(0)
+    for q in rng.normal(size=(20, 4)) * rng.uniform(0.1, 10, size=(20, 1)):
+        x, y, z, w = q / np.linalg.norm(q)
+        reference = np.array([
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ])  # fmt: skip
+        assert np.allclose(quaternion_to_matrix(q), reference, atol=1e-12)

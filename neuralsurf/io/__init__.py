@@ -10,7 +10,13 @@ from neuralsurf.io.meshes import SUPPORTED as MESH_EXTENSIONS
 from neuralsurf.io.meshes import read_mesh, write_mesh
 from neuralsurf.io.pointclouds import SUPPORTED as POINT_CLOUD_EXTENSIONS
 from neuralsurf.io.pointclouds import read_point_cloud, write_point_cloud
-from neuralsurf.io.range_scans import read_range_scan, read_range_scan_conf, read_range_scan_frames, read_range_scans
+from neuralsurf.io.range_scans import (
+    read_range_scan,
+    read_range_scan_conf,
+    read_range_scan_frames,
+    read_range_scan_meshes,
+    read_range_scans,
+)
 from neuralsurf.io.rgbd import FORMATS as RGBD_FORMATS
 from neuralsurf.io.rgbd import read_rgbd_folder
 
@@ -23,6 +29,7 @@ __all__ = [
     "read_range_scan",
     "read_range_scan_conf",
     "read_range_scan_frames",
+    "read_range_scan_meshes",
     "read_range_scans",
     "read_rgbd_folder",
     "write_mesh",

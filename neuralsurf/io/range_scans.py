@@ -1,7 +1,10 @@
 """Range scans with a Stanford/Scanalyze `.conf` alignment (the Stanford 3D Scanning Repository).
 
 A `.conf` file lists one line per scan, `bmesh <file> tx ty tz qi qj qk qr`, plus optional
-`camera tx ty tz qi qj qk qr` lines (a viewer's camera, ignored here). Conventions, worked out
+`camera tx ty tz qi qj qk qr` lines (a viewer's camera, ignored here) and optional
+`mesh <file> tx ty tz qi qj qk qr` lines (a reference mesh in the same common frame, often not
+shipped with the scans: `read_range_scan_meshes` reads those present, and a warning names those
+absent). Conventions, worked out
 numerically on the Stanford bunny: only this reading makes the ten scans agree with
 `bun_zipper.ply` (median point-to-mesh distance 0.064 mm, 0.52 mm to the nearest mesh vertex);
 R(q) instead of R(q)^T, R^T (p - t), R (p + t) or a scalar-first quaternion leave 12-320 mm:
@@ -45,13 +48,11 @@ bridge depth discontinuities)."""
 
 
 def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(x, y, z, w) unit quaternion (4,) -> Hamilton rotation matrix (3, 3), float64."""
-    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])  # fmt: skip
+    """(x, y, z, w) quaternion (4,), normalised here -> Hamilton rotation matrix (3, 3), float64
+    (scipy's `Rotation.from_quat`, whose default order is the same scalar-last one)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_quat(np.asarray(q, dtype=np.float64)).as_matrix()
 
 
 def conf_transform(translation: np.ndarray, quaternion: np.ndarray) -> np.ndarray:
@@ -62,28 +63,22 @@ def conf_transform(translation: np.ndarray, quaternion: np.ndarray) -> np.ndarra
     return transform
 
 
-def read_range_scan_conf(path: PathLike) -> list[tuple[str, Tensor]]:
-    """Parse a Scanalyze `.conf` file.
+_CONF_KEYWORDS = ("bmesh", "mesh", "camera")
 
-    Returns:
-        one `(file name, transform)` per `bmesh` line, in file order; `transform` is a
-        Float64[Tensor, "4 4"] mapping the scan's points to the common frame (module docstring).
-        `camera` lines, blank lines and `#` comments are skipped.
-    Raises:
-        FileFormatError for a missing file, a line that does not parse (naming its number), a
-        zero quaternion, or a file without any `bmesh` line.
-    """
-    path = _existing_file(path, "range-scan .conf")
-    scans = []
+
+def _parse_conf(path: Path) -> tuple[list[tuple[str, Tensor]], list[tuple[int, str, Tensor]]]:
+    """The `bmesh` lines `(file, transform)` and the `mesh` lines `(line number, file, transform)`
+    of a `.conf` file, in file order (see `read_range_scan_conf`)."""
+    scans, meshes = [], []
     for number, line in enumerate(path.read_text(errors="replace").splitlines(), start=1):
         words = line.split()
         if not words or words[0].startswith("#"):
             continue
         keyword = words[0]
-        if keyword not in ("bmesh", "camera"):
+        if keyword not in _CONF_KEYWORDS:
             raise FileFormatError(
-                f"{str(path)!r} line {number}: unknown keyword {keyword!r} in {line.strip()!r}; "
-                f"expected 'bmesh <file> tx ty tz qi qj qk qr' or 'camera tx ty tz qi qj qk qr'"
+                f"{str(path)!r} line {number}: unknown keyword {keyword!r} in {line.strip()!r}; expected "
+                f"'bmesh <file> tx ty tz qi qj qk qr', 'mesh <file> tx ty tz qi qj qk qr' or 'camera tx ty tz qi qj qk qr'"
             )
         numbers = words[2:] if keyword != "camera" else words[1:]
         try:
@@ -97,13 +92,74 @@ def read_range_scan_conf(path: PathLike) -> list[tuple[str, Tensor]]:
             )
         if np.linalg.norm(values[3:]) < 1e-8:
             raise FileFormatError(f"{str(path)!r} line {number}: the quaternion is zero in {line.strip()!r}")
-        if keyword != "camera":
+        if keyword == "bmesh":
             scans.append((words[1], torch.from_numpy(conf_transform(values[:3], values[3:]))))
+        elif keyword == "mesh":
+            meshes.append((number, words[1], torch.from_numpy(conf_transform(values[:3], values[3:]))))
+    return scans, meshes
+
+
+def _warn_absent_meshes(path: Path, meshes: list[tuple[int, str, Tensor]]) -> None:
+    """Warn once per `mesh` line of `path` whose file is not in the `.conf`'s folder."""
+    for number, name, _ in meshes:
+        if not (path.parent / name).is_file():
+            warnings.warn(
+                f"{str(path)!r} line {number} lists the reference mesh {name!r}, which is not in "
+                f"{str(path.parent)!r}; the scans are read without it (put the file there to use it "
+                f"through read_range_scan_meshes)",
+                stacklevel=3,
+            )
+
+
+def read_range_scan_conf(path: PathLike) -> list[tuple[str, Tensor]]:
+    """Parse a Scanalyze `.conf` file.
+
+    Returns:
+        one `(file name, transform)` per `bmesh` line, in file order; `transform` is a
+        Float64[Tensor, "4 4"] mapping the scan's points to the common frame (module docstring).
+        `camera` lines, blank lines and `#` comments are skipped; `mesh` lines (reference meshes)
+        are checked like the others and left to `read_range_scan_meshes`, with a warning for each
+        listed file that is absent.
+    Raises:
+        FileFormatError for a missing file, a line that does not parse (naming its number), a
+        zero quaternion, or a file without any `bmesh` line.
+    """
+    path = _existing_file(path, "range-scan .conf")
+    scans, meshes = _parse_conf(path)
     if not scans:
         raise FileFormatError(
             f"{str(path)!r} has no 'bmesh <file> tx ty tz qi qj qk qr' line; it lists no scans"
         )
+    _warn_absent_meshes(path, meshes)
     return scans
+
+
+def read_range_scan_meshes(conf_path: PathLike) -> list[Mesh]:
+    """The reference meshes of a `.conf` file's `mesh <file> tx ty tz qi qj qk qr` lines, in the
+    common frame of its scans (same transform convention as `bmesh`, applied in float64).
+
+    Mesh files are looked up relative to the `.conf`'s folder. They are optional: a listed file that
+    is absent is skipped with a warning naming it, so the result may be empty.
+
+    Returns:
+        one Mesh per `mesh` line whose file exists, in file order (vertices in the file's dtype).
+    Raises:
+        FileFormatError as `read_range_scan_conf` for the `.conf` itself, or as `read_mesh` for a
+        mesh file that exists but cannot be read.
+    """
+    from neuralsurf.io.meshes import read_mesh
+
+    conf_path = _existing_file(conf_path, "range-scan .conf")
+    _, entries = _parse_conf(conf_path)
+    _warn_absent_meshes(conf_path, entries)
+    meshes = []
+    for _, name, transform in entries:
+        if (conf_path.parent / name).is_file():
+            mesh = read_mesh(conf_path.parent / name)
+            rotation, translation = transform[:3, :3], transform[:3, 3]
+            vertices = (mesh.vertices.double() @ rotation.T + translation).to(mesh.vertices.dtype)
+            meshes.append(Mesh(vertices, mesh.faces, mesh.vertex_colors))
+    return meshes
 
 
 # ---------------------------------------------------------------------------------------------
