@@ -421,3 +421,65 @@ def test_ten_real_range_scans_fuse_within_a_millimetre_of_the_zipper_mesh(shared
     record_property("stanford_tsdf_chamfer_mm", float(0.5 * (accuracy + completeness)) * 1e3)
     assert accuracy < 1e-3 and completeness < 1e-3
     assert 0.5 * (accuracy + completeness) < 0.2e-3
+
+
+# ------------------------------------------------------------------------------- save / load
+
+
+@pytest.mark.parametrize("sparse, colors", [(False, False), (True, False), (True, True)])
+def test_saved_volume_loads_to_the_same_mesh_and_keeps_integrating(tmp_path, sphere_frames, sparse, colors):
+    frames = sphere_frames
+    if colors:
+        rgb = torch.rand(*frames.depth.shape, 3, generator=torch.Generator().manual_seed(0))
+        frames = DepthFrames(frames.depth, frames.K, frames.cam_to_world, rgb)
+    settings = dict(device="cpu", sparse=sparse, with_color=colors, weighting="depth", max_weight=50.0)
+    half = TSDFVolume(BOX, VOXEL, **settings).integrate(frames[:12])
+    path = half.save(tmp_path / "volume.npz")
+    assert [p.name for p in tmp_path.iterdir()] == ["volume.npz"]  # no temporary left behind
+    loaded = TSDFVolume.load(path, device="cpu")
+    assert (loaded.frames_integrated, loaded.n_blocks, loaded.grid_shape) == (12, half.n_blocks, half.grid_shape)
+    before, after = half.extract_mesh(), loaded.extract_mesh()
+    assert torch.equal(before.vertices, after.vertices) and torch.equal(before.faces, after.faces)
+    if colors:
+        assert torch.equal(before.vertex_colors, after.vertex_colors)
+    # fusing the rest into the loaded volume = fusing everything in one volume
+    whole = TSDFVolume(BOX, VOXEL, **settings).integrate(frames).extract_mesh()
+    resumed = loaded.integrate(frames[12:]).extract_mesh()
+    assert torch.equal(whole.vertices, resumed.vertices) and torch.equal(whole.faces, resumed.faces)
+
+
+def test_loading_refuses_pickles_and_foreign_or_truncated_files(tmp_path, sphere_frames):
+    from neuralsurf.errors import FileFormatError
+
+    path = TSDFVolume(BOX, VOXEL, device="cpu", sparse=True).integrate(sphere_frames[:2]).save(tmp_path / "v.npz")
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(path.read_bytes()[: len(path.read_bytes()) // 2])
+    with pytest.raises(FileFormatError, match="truncated.npz.*truncated or not a file written by TSDFVolume.save"):
+        TSDFVolume.load(truncated)
+    pickled = tmp_path / "pickled.npz"
+    np.savez(pickled, format=np.array(["neuralsurf.TSDFVolume/1", {"a": 1}], dtype=object))
+    with pytest.raises(FileFormatError, match="pickled.npz"):  # numpy refuses the object array: no pickle runs
+        TSDFVolume.load(pickled)
+    foreign = tmp_path / "foreign.npz"
+    np.savez(foreign, x=np.zeros(3))
+    with pytest.raises(FileFormatError, match=r"foreign.npz' is not a TSDF volume written by TSDFVolume.save"):
+        TSDFVolume.load(foreign)
+    with pytest.raises(FileFormatError, match="not found"):
+        TSDFVolume.load(tmp_path / "absent.npz")
+
+
+def test_an_interrupted_save_leaves_the_earlier_file_intact(tmp_path, sphere_frames, monkeypatch):
+    from neuralsurf.errors import FileFormatError
+
+    volume = TSDFVolume(BOX, VOXEL, device="cpu", sparse=True).integrate(sphere_frames[:2])
+    path = volume.save(tmp_path / "v.npz")
+    saved = path.read_bytes()
+
+    def disk_full(file, **arrays):
+        file.write(b"PK\x03\x04 half a zip")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(np, "savez_compressed", disk_full)
+    with pytest.raises(FileFormatError, match="No space left on device"):
+        volume.integrate(sphere_frames[2:4]).save(path)
+    assert path.read_bytes() == saved and [p.name for p in tmp_path.iterdir()] == ["v.npz"]

@@ -45,13 +45,15 @@ import math
 import numbers
 import os
 import warnings
+import zipfile
+from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from neuralsurf.devices import resolve_device
-from neuralsurf.errors import ConfigError, ExtractionError, InputError
+from neuralsurf.errors import ConfigError, ExtractionError, FileFormatError, InputError
 from neuralsurf.extract import as_bounds
 from neuralsurf.geometry import kinect_sigma
 from neuralsurf.structures import DepthFrames, Mesh
@@ -76,6 +78,8 @@ _BITMAP_LIMIT = 1 << 27
 """Candidate blocks are deduplicated in a bitmap over all blocks up to this many blocks, else sorted."""
 _BYTES_PER_VOXEL = {False: 8, True: 20}
 """tsdf + weight (float32), plus three float32 colour channels."""
+TSDF_FORMAT = "neuralsurf.TSDFVolume/1"
+"""Tag of the .npz files written by `TSDFVolume.save` (bumped when their layout changes)."""
 
 
 def available_memory(device: torch.device) -> int:
@@ -576,6 +580,118 @@ class TSDFVolume:
         self._weight.view(-1)[voxel] = weight
         if color is not None:
             self._color.view(-1, 3)[voxel] = color
+
+    # ------------------------------------------------------------------------------ save / load
+
+    def save(self, path) -> Path:
+        """Write the volume (settings and fused voxels) to `path` as a compressed .npz, atomically (a
+        temporary file in the same folder, then a rename): an interrupted save leaves any earlier
+        file intact. Only numbers and strings are stored, so `load` needs no pickle.
+
+        Returns the Path written (`path` itself; an extension other than .npz is kept as given).
+        """
+        path = Path(path)
+        if path.is_dir():
+            raise FileFormatError(f"cannot save the TSDF volume to {str(path)!r}: it is a folder; pass a file name")
+        used = self._used
+        arrays = {
+            "format": np.array(TSDF_FORMAT),
+            "bounds": self.bounds.cpu().numpy().astype(np.float64),
+            "voxel_size": np.float64(self.voxel_size),
+            "truncation": np.float64(self.truncation),
+            "free_space": np.float64(self.free_space),
+            "weighting": np.array(self.weighting),
+            "max_weight": np.float64(np.nan if self.max_weight is None else self.max_weight),
+            "sparse": np.bool_(self.sparse),
+            "block_size": np.int64(self.block_size),
+            "with_color": np.bool_(self.with_color),
+            "frames_integrated": np.int64(self.frames_integrated),
+            "tsdf": self._tsdf[:used].cpu().numpy(),
+            "weight": self._weight[:used].cpu().numpy(),
+        }
+        if self._color is not None:
+            arrays["color"] = self._color[:used].cpu().numpy()
+        if self.sparse:
+            arrays["keys"], arrays["slots"] = self._keys.cpu().numpy(), self._slots.cpu().numpy()
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+            try:
+                with open(temporary, "wb") as file:
+                    np.savez_compressed(file, **arrays)
+                os.replace(temporary, path)
+            finally:
+                temporary.unlink(missing_ok=True)
+        except OSError as error:
+            raise FileFormatError(
+                f"cannot save the TSDF volume to {str(path)!r}: {error.strerror or error}; check the folder "
+                f"exists as a folder and is writable"
+            ) from error
+        return path
+
+    @classmethod
+    def load(cls, path, device="auto", frames_per_pass: int | None = None) -> TSDFVolume:
+        """A volume written by `save`, on `device`, ready to `integrate` more frames or `extract_mesh`.
+
+        Read with `numpy.load(allow_pickle=False)`: a file holding anything but plain arrays is refused.
+        Raises FileFormatError for a missing, truncated or foreign file (naming it).
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise FileFormatError(f"TSDF volume file not found: {str(path)!r}; check the path (written by TSDFVolume.save)")
+        try:
+            data = np.load(path, allow_pickle=False)
+            if not hasattr(data, "files"):  # a single .npy array, not an .npz archive
+                raise ValueError("it holds one array, not an .npz archive")
+            with data:
+                arrays = {key: data[key] for key in data.files}
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:  # pickled data is a ValueError
+            raise FileFormatError(
+                f"cannot read the TSDF volume {str(path)!r}: {type(error).__name__}: {error}; it is truncated or "
+                f"not a file written by TSDFVolume.save"
+            ) from error
+        required = {"format", "bounds", "voxel_size", "truncation", "free_space", "weighting", "max_weight",
+                    "sparse", "block_size", "with_color", "frames_integrated", "tsdf", "weight"}
+        missing = sorted(required - arrays.keys())
+        if missing or str(arrays["format"]) != TSDF_FORMAT:
+            found = str(arrays.get("format", "(none)"))
+            raise FileFormatError(
+                f"{str(path)!r} is not a TSDF volume written by TSDFVolume.save (format {found!r}, expected "
+                f"{TSDF_FORMAT!r}; missing {missing})"
+            )
+        max_weight = float(arrays["max_weight"])
+        volume = cls(
+            arrays["bounds"], float(arrays["voxel_size"]), float(arrays["truncation"]), device=device,
+            weighting=str(arrays["weighting"]), max_weight=None if math.isnan(max_weight) else max_weight,
+            sparse=bool(arrays["sparse"]), block_size=int(arrays["block_size"]),
+            with_color=bool(arrays["with_color"]), free_space=float(arrays["free_space"]),
+            frames_per_pass=frames_per_pass,
+        )
+        voxels = volume.block_size**3
+        used = len(arrays["tsdf"])
+        expected = {"tsdf": (used, voxels), "weight": (used, voxels)}
+        if volume.with_color:
+            expected["color"] = (used, voxels, 3)
+        if volume.sparse:
+            expected["keys"] = expected["slots"] = (used,)
+        else:
+            expected["tsdf"] = expected["weight"] = (len(volume._tsdf), voxels)
+            if volume.with_color:
+                expected["color"] = (len(volume._tsdf), voxels, 3)
+        for key, shape in expected.items():
+            if key not in arrays or arrays[key].shape != shape:
+                raise FileFormatError(
+                    f"{str(path)!r}: {key} has shape {None if key not in arrays else arrays[key].shape}, expected "
+                    f"{shape} for its settings; the file is damaged"
+                )
+        to = lambda key, dtype: torch.from_numpy(np.ascontiguousarray(arrays[key])).to(volume.device, dtype)
+        volume._tsdf, volume._weight = to("tsdf", torch.float32), to("weight", torch.float32)
+        volume._color = to("color", torch.float32) if volume.with_color else None
+        volume._used = used
+        if volume.sparse:
+            volume._keys, volume._slots = to("keys", torch.int64), to("slots", torch.int64)
+        volume.frames_integrated = int(arrays["frames_integrated"])
+        return volume
 
     # ------------------------------------------------------------------------------- extraction
 
