@@ -10,7 +10,7 @@ from neuralsurf.errors import (
     MissingDependencyError,
     NeuralsurfError,
 )
-from neuralsurf.extract import extract_mesh
+from neuralsurf.extract import GridSamples, extract_mesh, sample_grid
 from neuralsurf.structures import DepthFrames, Mesh, Normalization, PointCloud
 from neuralsurf.training import FitResult, fit
 

@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import itertools
 import math
+import os
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -112,14 +114,18 @@ def _field_device(field: Field, device: torch.device | str | None) -> torch.devi
 
 
 def evaluate_grid_points(field: Field, grid: Grid, index: np.ndarray, chunk_size: int,
-                         device: torch.device) -> np.ndarray:
-    """Int[ndarray, "n 3"] grid indices -> Float[ndarray, "n"] float32 field values (no grad).
+                         device: torch.device, progress: bool = False, desc: str = "field") -> np.ndarray:
+    """Int[ndarray, "n 3"] grid indices -> Float[ndarray, "n"] float32 field values (no grad), in
+    chunks of `chunk_size` points (a progress bar over them when `progress`).
 
     Raises ExtractionError on NaN, naming a point where it happened.
     """
+    from neuralsurf.progress import progress_bar
+
     values = np.empty(len(index), dtype=np.float32)
+    starts = range(0, len(index), chunk_size)
     with torch.no_grad():
-        for start in range(0, len(index), chunk_size):
+        for start in progress_bar(starts, desc=desc, unit="chunk", enabled=progress):
             points = torch.from_numpy(grid.world(index[start : start + chunk_size])).to(device)
             result = field(points)
             if result.shape != points.shape[:-1]:
@@ -164,7 +170,7 @@ def _level_shape(grid: Grid, stride: int) -> tuple[int, ...]:
 
 
 def _coarse_to_fine_values(field: Field, grid: Grid, level: float, margin: float, depth: int,
-                           chunk_size: int, device: torch.device) -> tuple[np.ndarray, int]:
+                           chunk_size: int, device: torch.device, progress: bool = False) -> tuple[np.ndarray, int]:
     """Float[ndarray, "X Y Z"] values on the whole grid, evaluating the field only near the surface.
 
     At stride s (grid points s cells apart) a cell of diagonal d = s * spacing * sqrt(3) is refined
@@ -175,7 +181,8 @@ def _coarse_to_fine_values(field: Field, grid: Grid, level: float, margin: float
     """
     stride = 2**depth
     index = _all_points(_level_shape(grid, stride)) * stride  # the last layer may overhang the grid
-    values = torch.from_numpy(evaluate_grid_points(field, grid, index, chunk_size, device))
+    values = torch.from_numpy(evaluate_grid_points(field, grid, index, chunk_size, device, progress,
+                                                   f"extract 1/{depth + 1}"))
     values = values.reshape(_level_shape(grid, stride))
     evaluations = len(index)
     active = cells_near_level(values, level, margin * stride * grid.spacing * math.sqrt(3))
@@ -189,7 +196,10 @@ def _coarse_to_fine_values(field: Field, grid: Grid, level: float, margin: float
         children = children[: shape[0] - 1, : shape[1] - 1, : shape[2] - 1]
         todo = _points_of_cells(children)
         todo_index = todo.nonzero().numpy()
-        values[todo] = torch.from_numpy(evaluate_grid_points(field, grid, todo_index * stride, chunk_size, device))
+        level_name = f"extract {depth + 1 - int(math.log2(stride))}/{depth + 1}"
+        values[todo] = torch.from_numpy(
+            evaluate_grid_points(field, grid, todo_index * stride, chunk_size, device, progress, level_name)
+        )
         evaluations += len(todo_index)
         active = children & cells_near_level(values, level, margin * stride * grid.spacing * math.sqrt(3))
     return values[: grid.shape[0], : grid.shape[1], : grid.shape[2]].contiguous().numpy(), evaluations
@@ -233,6 +243,7 @@ def extract_mesh(
     *,
     margin: float = 2.0,
     coarse_resolution: int = 64,
+    progress: bool = True,
 ) -> Mesh:
     """Marching cubes of the `level` set of `field` inside `bounds`, in the world frame.
 
@@ -247,6 +258,8 @@ def extract_mesh(
         margin * d of `level`; the default 2.0 allows gradients four times those of an exact SDF.
     coarse_resolution: cells along the longest side of the first coarse-to-fine level (the fine
         grid is a power-of-two refinement of it).
+    progress: a progress bar over the field's chunks when the evaluation lasts more than a few
+        seconds (neuralsurf.progress); False for none.
 
     Returns a Mesh (float32 vertices, outward faces), watertight unless the surface leaves the box,
     in which case a warning says so. Raises ExtractionError when the field has no sign change in the
@@ -267,9 +280,13 @@ def extract_mesh(
     device = _field_device(field, device)
     depth = max(0, math.floor(math.log2(resolution / coarse_resolution))) if coarse_to_fine else 0
     if depth:
-        values, _ = _coarse_to_fine_values(field, grid, float(level), float(margin), depth, chunk_size, device)
+        values, _ = _coarse_to_fine_values(
+            field, grid, float(level), float(margin), depth, chunk_size, device, progress
+        )
     else:
-        values = evaluate_grid_points(field, grid, _all_points(grid.shape), chunk_size, device).reshape(grid.shape)
+        values = evaluate_grid_points(
+            field, grid, _all_points(grid.shape), chunk_size, device, progress, "extract"
+        ).reshape(grid.shape)
     mesh = marching_cubes(values, grid, float(level))
     faces_out = [values[0], values[-1], values[:, 0], values[:, -1], values[:, :, 0], values[:, :, -1]]
     if any((side <= level).any() for side in faces_out):
@@ -279,6 +296,90 @@ def extract_mesh(
             stacklevel=2,
         )
     return mesh
+
+
+@dataclass(frozen=True)
+class GridSamples:
+    """A field sampled on a regular grid of cubic cells (`sample_grid`)."""
+
+    values: Tensor
+    """Float32[Tensor, "X Y Z"]: the field at grid point (i, j, k) = bounds[0] + (i, j, k) * spacing."""
+    bounds: Tensor
+    """Float64[Tensor, "2 3"]: world positions of the first and last grid points (the grid's box)."""
+    spacing: float
+    """World distance between neighbouring grid points, the same along every axis."""
+
+    def points(self) -> Tensor:
+        """Float64[Tensor, "X Y Z 3"]: the world position of every grid point."""
+        axes = [self.bounds[0, a] + torch.arange(n, dtype=torch.float64) * self.spacing
+                for a, n in enumerate(self.values.shape)]
+        return torch.stack(torch.meshgrid(*axes, indexing="ij"), -1)
+
+
+def sample_grid(
+    field: Field,
+    resolution: int,
+    bounds=None,
+    path=None,
+    *,
+    chunk_size: int = 262_144,
+    device: torch.device | str | None = None,
+    progress: bool = True,
+) -> GridSamples:
+    """Evaluate `field` on a regular grid, e.g. to export a fitted field to other tools.
+
+    The grid is extraction's (`make_grid`): `resolution` cells along the longest side of `bounds`,
+    cubic cells, centred on the box and covering it (so its own box, returned, may overhang `bounds`
+    by less than a cell). Values are float32, one field call per `chunk_size` points.
+
+    Args:
+        field: callable x[..., 3] float32 (world) -> f[...] (an nn.Module is evaluated where its
+            parameters are, a plain function on `device`).
+        resolution: cells along the longest side (>= 2); the grid has resolution + 1 points there.
+        bounds: (2, 3) world box; None uses `field.bounds`.
+        path: when given, also write a .npz holding `values` (X, Y, Z) float32, `bounds` (2, 3)
+            float64 and `spacing` () float64 (plain arrays: np.load(path) needs no pickle), atomically.
+    Returns:
+        GridSamples(values Float32[Tensor, "X Y Z"], bounds Float64[Tensor, "2 3"], spacing).
+    Raises:
+        InputError for a non-callable field, bad bounds or a field that does not return one value per
+        point; ConfigError for a bad resolution or chunk_size; ExtractionError if the field returns NaN;
+        FileFormatError when `path` cannot be written.
+    """
+    if not callable(field):
+        raise InputError(f"field must be callable x[..., 3] -> f[...], got {type(field).__name__}")
+    if not (isinstance(chunk_size, (int, np.integer)) and chunk_size >= 1):
+        raise ConfigError(f"chunk_size must be a positive integer (points per field call), got {chunk_size!r}")
+    grid = make_grid(_resolve_bounds(field, bounds), resolution)
+    values = evaluate_grid_points(
+        field, grid, _all_points(grid.shape), chunk_size, _field_device(field, device), progress, "sample_grid"
+    ).reshape(grid.shape)
+    corners = np.stack([grid.origin, grid.origin + np.array(grid.cells) * grid.spacing])
+    samples = GridSamples(torch.from_numpy(values), torch.from_numpy(corners), float(grid.spacing))
+    if path is not None:
+        _write_npz(Path(path), values=values, bounds=corners, spacing=np.float64(grid.spacing))
+    return samples
+
+
+def _write_npz(path: Path, **arrays: np.ndarray) -> None:
+    """Write plain arrays to `path` (.npz, uncompressed) through a temporary file and a rename."""
+    from neuralsurf.errors import FileFormatError
+
+    if path.is_dir():
+        raise FileFormatError(f"cannot write {str(path)!r}: it is a folder; pass a file name")
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            with open(temporary, "wb") as file:
+                np.savez(file, **arrays)
+            os.replace(temporary, path)
+        finally:
+            temporary.unlink(missing_ok=True)
+    except OSError as error:
+        raise FileFormatError(
+            f"cannot write {str(path)!r}: {error.strerror or error}; check that its folder is a writable folder"
+        ) from error
 
 
 # ----------------------------------------------------------------------------------- slices
@@ -361,4 +462,6 @@ def slice_image(values, max_abs: float | None = None, bands: int = 10) -> np.nda
     return np.round(np.clip(colour, 0, 1) * 255).astype(np.uint8)
 
 
-__all__ = ["Grid", "extract_mesh", "field_slice", "make_grid", "marching_cubes", "slice_image"]
+__all__ = [
+    "Grid", "GridSamples", "extract_mesh", "field_slice", "make_grid", "marching_cubes", "sample_grid", "slice_image",
+]
