@@ -6,6 +6,7 @@ import torch
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("NEURALSURF_DATA", REPO.parent / "shared" / "data"))
+os.environ.setdefault("NEURALSURF_PROGRESS", "0")  # no progress bars in test output (neuralsurf.progress)
 
 
 @pytest.fixture(autouse=True)

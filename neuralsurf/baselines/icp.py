@@ -27,6 +27,7 @@ from torch import Tensor
 
 from neuralsurf import geometry
 from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.progress import progress_bar
 from neuralsurf.structures import PointCloud
 
 __all__ = [
@@ -608,6 +609,7 @@ def register_multiway(
     min_overlap: float = 0.3,
     max_iterations: int = 50,
     edge_prune_threshold: float = 0.25,
+    progress: bool = True,
 ) -> list[Tensor]:
     """Poses bringing every scan into the reference scan's frame, by pose-graph optimisation.
 
@@ -625,6 +627,8 @@ def register_multiway(
         init_poses: optional scan-to-common-frame 4x4 poses, one per scan (identity: the scans are
             assumed roughly aligned already).
         reference: index of the scan whose frame the poses are expressed in.
+        progress: a progress bar over the n (n - 1) / 2 pairwise registrations when they last more
+            than a few seconds (neuralsurf.progress); False for none.
     Returns:
         one Float64[Tensor, "4 4"] per scan, mapping its points into the reference scan's frame
         (the reference's own pose is the identity).
@@ -661,29 +665,29 @@ def register_multiway(
     for pose in poses:
         graph.nodes.append(pipeline.PoseGraphNode(pose))
     edges = []
-    for i in range(len(scans)):
-        for j in range(i + 1, len(scans)):
-            relative = np.linalg.inv(poses[j]) @ poses[i]
-            try:
-                edge = register_icp(
-                    downsampled[i],
-                    downsampled[j],
-                    max_distance,
-                    relative,
-                    method,
-                    max_iterations=max_iterations,
-                    voxel_sizes=(4 * voxel_size, 2 * voxel_size, voxel_size),
-                )
-            except InputError:  # no overlap at all from this init
-                continue
-            if edge.fitness < min_overlap:
-                continue
-            transform = edge.transform.numpy()
-            information = pipeline.get_information_matrix_from_point_clouds(
-                downsampled[i].to_open3d(), downsampled[j].to_open3d(), max_distance, transform
+    pairs = [(i, j) for i in range(len(scans)) for j in range(i + 1, len(scans))]
+    for i, j in progress_bar(pairs, desc="multiway ICP", unit="pair", enabled=progress):
+        relative = np.linalg.inv(poses[j]) @ poses[i]
+        try:
+            edge = register_icp(
+                downsampled[i],
+                downsampled[j],
+                max_distance,
+                relative,
+                method,
+                max_iterations=max_iterations,
+                voxel_sizes=(4 * voxel_size, 2 * voxel_size, voxel_size),
             )
-            graph.edges.append(pipeline.PoseGraphEdge(i, j, transform, information, uncertain=j != i + 1))
-            edges.append((i, j))
+        except InputError:  # no overlap at all from this init
+            continue
+        if edge.fitness < min_overlap:
+            continue
+        transform = edge.transform.numpy()
+        information = pipeline.get_information_matrix_from_point_clouds(
+            downsampled[i].to_open3d(), downsampled[j].to_open3d(), max_distance, transform
+        )
+        graph.edges.append(pipeline.PoseGraphEdge(i, j, transform, information, uncertain=j != i + 1))
+        edges.append((i, j))
     _check_connected(len(scans), edges, min_overlap, max_distance)
     option = pipeline.GlobalOptimizationOption(
         max_correspondence_distance=max_distance,

@@ -481,8 +481,11 @@ class TSDFVolume:
 
     # ------------------------------------------------------------------------------ integration
 
-    def integrate(self, frames: DepthFrames) -> TSDFVolume:
-        """Fuse every frame of `frames` (any number, one after the other); returns the volume."""
+    def integrate(self, frames: DepthFrames, progress: bool = True) -> TSDFVolume:
+        """Fuse every frame of `frames` (any number, one after the other); returns the volume.
+        `progress`: a bar over the frames when fusion lasts more than a few seconds (False: none)."""
+        from neuralsurf.progress import progress_bar
+
         if not isinstance(frames, DepthFrames):
             raise InputError(
                 f"integrate needs a neuralsurf.structures.DepthFrames (depth, K, cam_to_world), got "
@@ -496,6 +499,7 @@ class TSDFVolume:
         # move the tensors, not the DepthFrames: no second validation, and any device works
         depth = frames.depth.to(self.device, non_blocking=True)
         colors = frames.colors.to(self.device, non_blocking=True) if self.with_color else None
+        bar = progress_bar(desc="TSDF fusion", total=len(frames), unit="frame", enabled=progress)
         for start in range(0, len(frames), self.frames_per_pass):
             part = slice(start, start + self.frames_per_pass)
             self._integrate_frames(
@@ -505,6 +509,8 @@ class TSDFVolume:
                 None if colors is None else colors[part],
             )
             self.frames_integrated += len(depth[part])
+            bar.update(len(depth[part]))
+        bar.close()
         return self
 
     def _integrate_frames(

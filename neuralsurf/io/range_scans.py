@@ -166,19 +166,23 @@ def read_range_scan_meshes(conf_path: PathLike) -> list[Mesh]:
 # scans
 
 
-def read_range_scans(conf_path: PathLike, with_normals: bool = True) -> list[PointCloud]:
+def read_range_scans(conf_path: PathLike, with_normals: bool = True, progress: bool = True) -> list[PointCloud]:
     """Read every scan of a `.conf` file, aligned into the `.conf`'s common frame.
 
     Scan files are looked up relative to the `.conf`'s folder. Normals (when asked for) are those of
-    `read_range_scan`, rotated with the points; the transform is applied in float64.
+    `read_range_scan`, rotated with the points; the transform is applied in float64. `progress`: a
+    bar over the scans when reading lasts more than a few seconds (neuralsurf.progress).
 
     Returns:
         one PointCloud per `bmesh` line, in file order: points (n_i, 3) in the file's dtype,
         normals (n_i, 3) unit, pointing towards the scanner, or None.
     """
+    from neuralsurf.progress import progress_bar
+
     conf_path = Path(conf_path)
     clouds = []
-    for name, transform in read_range_scan_conf(conf_path):
+    scans = read_range_scan_conf(conf_path)
+    for name, transform in progress_bar(scans, desc=f"range scans {conf_path.name}", unit="scan", enabled=progress):
         path = conf_path.parent / name
         points, normals = _read_scan_arrays(path, with_normals)
         rotation, translation = transform[:3, :3].numpy(), transform[:3, 3].numpy()
@@ -228,14 +232,17 @@ def _read_scan_geometry(path: Path, with_triangles: bool = True) -> tuple[np.nda
     return points, triangles
 
 
-def read_range_scan_frames(conf_path: PathLike, pixel_size: float = 2.5e-4, distance: float = 1.0) -> DepthFrames:
+def read_range_scan_frames(
+    conf_path: PathLike, pixel_size: float = 2.5e-4, distance: float = 1.0, progress: bool = True
+) -> DepthFrames:
     """Every scan of a `.conf` file as a depth image from its scanner's side, for TSDF fusion.
 
     A Cyberware scanner is not a pinhole camera, so each scan's triangles (module docstring) are
     ray cast by a pinhole camera placed `distance` beyond the scan on its scanner's side (+z of the
     scan frame), looking along -z, with a footprint of `pixel_size` per pixel at the scan: the rays
     are nearly parallel to the scanner's, and every depth is a point of the scan's own surface.
-    All frames share one image size (the largest scan's, centred on each scan's box).
+    All frames share one image size (the largest scan's, centred on each scan's box). `progress`:
+    a bar over reading and ray casting the scans when that lasts more than a few seconds.
 
     Returns:
         DepthFrames (n_scans, h, w), depth in the scans' units (0 where no triangle is hit),
@@ -245,14 +252,18 @@ def read_range_scan_frames(conf_path: PathLike, pixel_size: float = 2.5e-4, dist
         ConfigError for a non-positive pixel_size or distance.
     """
     from neuralsurf.geometry import render_depth
+    from neuralsurf.progress import progress_bar
 
     for name, value in (("pixel_size", pixel_size), ("distance", distance)):
         if not (np.isfinite(value) and value > 0):
             raise ConfigError(f"{name} must be a positive length in the scans' units, got {value}")
     conf_path = Path(conf_path)
     scans = []
-    for name, transform in read_range_scan_conf(conf_path):
+    entries = read_range_scan_conf(conf_path)
+    bar = progress_bar(desc=f"range scans {conf_path.name}", total=2 * len(entries), unit="step", enabled=progress)
+    for name, transform in entries:
         points, triangles = _read_scan_geometry(conf_path.parent / name)
+        bar.update()
         if triangles is None or len(triangles) == 0:
             raise FileFormatError(
                 f"{str(conf_path.parent / name)!r} has no triangles (ASCII 'face' or 'range_grid' element); "
@@ -274,6 +285,8 @@ def read_range_scan_frames(conf_path: PathLike, pixel_size: float = 2.5e-4, dist
         depths.append(depth[0])
         Ks.append(K)
         poses.append(transform @ camera)
+        bar.update()
+    bar.close()
     return DepthFrames(torch.stack(depths), torch.stack(Ks), torch.stack(poses))
 
 

@@ -89,6 +89,7 @@ def read_rgbd_folder(
     with_color: bool = True,
     K=None,
     tolerance: float = 0.02,
+    progress: bool = True,
 ) -> DepthFrames:
     """Read an RGB-D sequence folder into DepthFrames (layouts in the module docstring).
 
@@ -101,6 +102,8 @@ def read_rgbd_folder(
         K: 3x3 intrinsics overriding the folder's (or the format's default).
         tolerance: TUM only, the largest timestamp difference (s) between a depth image and the
             pose or colour image it is associated with.
+        progress: a progress bar over the images when decoding them lasts more than a few seconds
+            (neuralsurf.progress); False for none.
     Returns:
         DepthFrames: depth (n, h, w) float32 metres, K (n, 3, 3), cam_to_world (n, 4, 4),
         colors (n, h, w, 3) in [0, 1] or None.
@@ -128,7 +131,7 @@ def read_rgbd_folder(
     else:
         listing = _list_redwood(path, with_color, K)
     keep = np.arange(0, len(listing.depth_paths), stride)[:max_frames]
-    return _load(listing, keep, with_color, path)
+    return _load(listing, keep, with_color, path, progress)
 
 
 def detect_rgbd_format(path: PathLike) -> str:
@@ -362,8 +365,14 @@ def read_trajectory_log(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
 # loading
 
 
-def _load(listing: _Listing, keep: np.ndarray, with_color: bool, path: Path) -> DepthFrames:
+def _load(listing: _Listing, keep: np.ndarray, with_color: bool, path: Path, progress: bool = False) -> DepthFrames:
+    from neuralsurf.progress import progress_bar
+
+    with_color = with_color and listing.color_paths is not None
+    bar = progress_bar(desc=f"RGB-D {path.name}", total=len(keep) * (2 if with_color else 1), unit="image",
+                       enabled=progress)
     first = read_depth_png(listing.depth_paths[keep[0]], listing.depth_scale, listing.invalid)
+    bar.update()
     height, width = first.shape
     check_intrinsics(torch.from_numpy(listing.K)[None], width, height, f"the intrinsics of {str(path)!r}")  # before decoding the rest
     depth = np.empty((len(keep), height, width), dtype=np.float32)  # filled in place: no stacking copy
@@ -376,8 +385,9 @@ def _load(listing: _Listing, keep: np.ndarray, with_color: bool, path: Path) -> 
                 f"{image.shape[1]}x{image.shape[0]}, the first is {width}x{height}; a sequence needs one size"
             )
         depth[slot] = image
+        bar.update()
     colors = None
-    if with_color and listing.color_paths is not None:
+    if with_color:
         if not listing.registered:
             warnings.warn(
                 f"{str(path)!r}: colour and depth come from different, unregistered cameras (7-Scenes); "
@@ -394,7 +404,9 @@ def _load(listing: _Listing, keep: np.ndarray, with_color: bool, path: Path) -> 
                     f"registered colour must match the depth pixel for pixel"
                 )
             colors[slot] = image
+            bar.update()
         colors = torch.from_numpy(colors)
+    bar.close()
     poses = torch.from_numpy(listing.poses[keep])
     if not torch.isfinite(poses).all():
         bad = [str(listing.depth_paths[i]) for i, p in zip(keep, poses) if not torch.isfinite(p).all()]
