@@ -23,9 +23,14 @@ def _offset(p: Tensor, center: Sequence[float]) -> Tensor:
     return p - torch.as_tensor(center, dtype=p.dtype, device=p.device)
 
 
+def _length(v: Tensor) -> Tensor:
+    """|v| over the last axis, with a finite gradient at v = 0 (points exactly on a surface)."""
+    return (v.square().sum(-1) + torch.finfo(v.dtype).tiny).sqrt()
+
+
 def sphere(p: Tensor, center: Sequence[float], radius: float) -> Tensor:
     """Sphere of `radius` around `center`."""
-    return _offset(p, center).norm(dim=-1) - radius
+    return _length(_offset(p, center)) - radius
 
 
 def box(p: Tensor, center: Sequence[float], half: Sequence[float], rounding: float = 0.0) -> Tensor:
@@ -33,14 +38,14 @@ def box(p: Tensor, center: Sequence[float], half: Sequence[float], rounding: flo
     (the outer size stays `half`; rounding <= min(half))."""
     half = torch.as_tensor(half, dtype=p.dtype, device=p.device) - rounding
     q = _offset(p, center).abs() - half
-    return q.clamp_min(0).norm(dim=-1) + q.amax(-1).clamp_max(0) - rounding
+    return _length(q.clamp_min(0)) + q.amax(-1).clamp_max(0) - rounding
 
 
 def cylinder(p: Tensor, center: Sequence[float], radius: float, half_height: float) -> Tensor:
     """Capped cylinder with axis y: |x-z offset| <= radius, |y offset| <= half_height."""
     q = _offset(p, center)
-    d = torch.stack([q[..., [0, 2]].norm(dim=-1) - radius, q[..., 1].abs() - half_height], dim=-1)
-    return d.clamp_min(0).norm(dim=-1) + d.amax(-1).clamp_max(0)
+    d = torch.stack([_length(q[..., [0, 2]]) - radius, q[..., 1].abs() - half_height], dim=-1)
+    return _length(d.clamp_min(0)) + d.amax(-1).clamp_max(0)
 
 
 def capped_cone(p: Tensor, center: Sequence[float], half_height: float, bottom_radius: float,
@@ -48,7 +53,7 @@ def capped_cone(p: Tensor, center: Sequence[float], half_height: float, bottom_r
     """Truncated cone with axis y: radius `bottom_radius` at y = -half_height, `top_radius` at
     y = +half_height (relative to `center`)."""
     q = _offset(p, center)
-    r = q[..., [0, 2]].norm(dim=-1)
+    r = _length(q[..., [0, 2]])
     y = q[..., 1]
     h, r1, r2 = half_height, bottom_radius, top_radius
     k2x, k2y = r2 - r1, 2.0 * h
@@ -58,15 +63,15 @@ def capped_cone(p: Tensor, center: Sequence[float], half_height: float, bottom_r
     cb_x = r - r2 + k2x * t
     cb_y = y - h + k2y * t
     sign = torch.where((cb_x < 0) & (ca_y < 0), -1.0, 1.0).to(p)
-    return sign * torch.minimum(ca_x**2 + ca_y**2, cb_x**2 + cb_y**2).sqrt()
+    return sign * (torch.minimum(ca_x**2 + ca_y**2, cb_x**2 + cb_y**2) + torch.finfo(p.dtype).tiny).sqrt()
 
 
 def torus_z(p: Tensor, center: Sequence[float], major: float, minor: float) -> Tensor:
     """Torus around the z axis through `center` (its ring lies in the x-y plane): a tube of radius
     `minor` at distance `major` from the axis."""
     q = _offset(p, center)
-    ring = q[..., :2].norm(dim=-1) - major
-    return torch.stack([ring, q[..., 2]], dim=-1).norm(dim=-1) - minor
+    ring = _length(q[..., :2]) - major
+    return _length(torch.stack([ring, q[..., 2]], dim=-1)) - minor
 
 
 def union(*distances: Tensor) -> Tensor:

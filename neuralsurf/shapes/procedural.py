@@ -233,7 +233,11 @@ class Shape:
             value = self.sdf(x)
             (gradient,) = torch.autograd.grad(value.sum(), x)
             normal = torch.nn.functional.normalize(gradient, dim=-1)
-            x = (x - value[:, None] * gradient / gradient.square().sum(-1, keepdim=True).clamp_min(1e-12)).detach()
+            step = value[:, None] * gradient / gradient.square().sum(-1, keepdim=True).clamp_min(1e-12)
+            x = (x - step).detach()
+        if not (torch.isfinite(x).all() and torch.isfinite(normal).all()):
+            raise InputError(f"{self.name}: projecting points onto the surface gave NaN or inf; a bug in the "
+                             f"SDF of {self.parameters}")
         return x, normal.detach()
 
 

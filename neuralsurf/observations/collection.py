@@ -1,0 +1,398 @@
+"""Supervision from shape collections (`neuralsurf.shapes` caches) for learned priors.
+
+- `CollectionSDF`: the SDF samples of every shape of a split, for a DeepSDF auto-decoder
+  (`models.AutoDecoder`): clamped L1 (`sdf`, DeepSDF's delta 0.1) and the code prior (`code`,
+  mean squared norm of the batch's codes: DeepSDF's 1 / sigma^2 ||z||^2 up to the weight).
+- `CollectionOccupancy`: occupancy labels of every shape of a split with input clouds drawn from
+  its surface samples, for an Occupancy Network (`models.OccupancyNetwork`): binary cross-entropy
+  on the logits (`occupancy`).
+- `SDFSampleSet`: points with known signed distances of one shape (clamped L1), e.g. a cached
+  shape's own samples for a latent-code fit.
+- `LatentPrior`: the code prior of a `models.LatentConditioned` (`code`: ||z||^2), which DeepSDF's
+  reconstruction adds to whatever observation it fits (a cloud, depth rays, SDF samples).
+
+A collection lives in its own unit frame (each shape in [-0.5, 0.5]^3): fit with
+`normalization=Normalization()` (the identity); another normalisation maps the samples through it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.losses import clamped_l1
+from neuralsurf.observations.base import Observation, Sampler, check_weights
+from neuralsurf.structures import Normalization
+
+UNIT_BOUNDS = torch.tensor([[-0.5] * 3, [0.5] * 3], dtype=torch.float64)
+
+
+def split_paths(root: str | Path, split: str) -> list[Path]:
+    """Cache files of one split of a built collection, in the manifest's (latent-code) order."""
+    from neuralsurf.shapes.cache import cache_path, read_manifest
+
+    records, _ = read_manifest(root)
+    paths = [cache_path(Path(root), r) for r in records if r.split == split]
+    if not paths:
+        raise ConfigError(f"the collection in {root} has no {split!r} shapes; build it with --n-{split} > 0")
+    missing = [str(p) for p in paths if not p.is_file()]
+    if missing:
+        raise InputError(f"{len(missing)} caches of {root} are missing (e.g. {missing[0]}): the build was "
+                         f"interrupted; run the same `python -m neuralsurf.shapes build` command again to finish it")
+    return paths
+
+
+def _load(paths: list[Path], keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """Stack `keys` of every cache (same sizes in one collection) -> arrays [shapes, ...]."""
+    arrays: dict[str, list[np.ndarray]] = {key: [] for key in keys}
+    for path in paths:
+        with np.load(path, allow_pickle=False) as data:
+            for key in keys:
+                arrays[key].append(data[key])
+    return {key: np.stack(values) for key, values in arrays.items()}
+
+
+def _to_unit(points: np.ndarray, normalization: Normalization, device: torch.device) -> Tensor:
+    return normalization.to_unit(torch.from_numpy(points).double()).float().to(device)
+
+
+# ----------------------------------------------------------------------------- auto-decoder
+
+COLLECTION_SDF_TERMS = ("sdf", "code")
+
+
+@dataclass(frozen=True)
+class ShapeSDFBatch:
+    """SDF samples of a few shapes of a collection (unit frame)."""
+
+    shape_index: Tensor
+    """Int[Tensor, "b"]: row of each shape's latent code."""
+    points: Tensor
+    """Float[Tensor, "b s 3"]: sample positions."""
+    sdf: Tensor
+    """Float[Tensor, "b s"]: their signed distances."""
+
+
+def draw_shape_sdf(points: Tensor, values: Tensor, shapes: int, samples: int,
+                   generator: torch.Generator) -> ShapeSDFBatch:
+    """`shapes` distinct shapes at random (all when fewer), `samples` random samples of each.
+    points: Float[Tensor, "S N 3"], values: Float[Tensor, "S N"]."""
+    count, n = values.shape
+    shape_index = torch.randperm(count, generator=generator)[: min(shapes, count)]
+    sample_index = torch.randint(n, (len(shape_index), samples), generator=generator)
+    device = values.device
+    shape_index, sample_index = shape_index.to(device), sample_index.to(device)
+    return ShapeSDFBatch(shape_index, points[shape_index[:, None], sample_index], values[shape_index[:, None], sample_index])
+
+
+def auto_decoder_terms(model: nn.Module, batch: ShapeSDFBatch, weights: Mapping[str, float],
+                       clamp: float) -> dict[str, Tensor]:
+    """Unweighted terms of an auto-decoder on `batch`: `sdf` (clamped L1), `code` (mean ||z||^2)."""
+    codes = model.codes(batch.shape_index)
+    terms: dict[str, Tensor] = {}
+    if weights.get("sdf"):
+        pred = model.decoder(batch.points, codes[:, None, :].expand(*batch.points.shape[:-1], codes.shape[-1]))
+        terms["sdf"] = clamped_l1(pred.reshape(-1), batch.sdf.reshape(-1), clamp)
+    if weights.get("code"):
+        terms["code"] = codes.square().sum(-1).mean()
+    return terms
+
+
+@dataclass(frozen=True)
+class CollectionSDFSampler(Sampler):
+    points: Tensor
+    values: Tensor
+    weights: dict[str, float]
+    shapes_per_batch: int
+    samples_per_shape: int
+    clamp: float
+
+    def sample(self, generator: torch.Generator) -> ShapeSDFBatch:
+        return draw_shape_sdf(self.points, self.values, self.shapes_per_batch, self.samples_per_shape, generator)
+
+    def losses(self, model: nn.Module, batch: ShapeSDFBatch) -> dict[str, Tensor]:
+        codes = getattr(model, "codes", None)
+        if codes is None or len(codes) != len(self.values):
+            raise ConfigError(f"CollectionSDF trains an AutoDecoder with one code per shape ({len(self.values)}); "
+                              f"got a {type(model).__name__} with {len(codes) if codes is not None else 'no'} codes")
+        return auto_decoder_terms(model, batch, self.weights, self.clamp)
+
+
+@dataclass(frozen=True)
+class CollectionSDF(Observation):
+    """The SDF samples of a collection split, one latent code per shape (DeepSDF's training data)."""
+
+    root: str | Path
+    """Folder built by `python -m neuralsurf.shapes build`."""
+    split: str = "train"
+    weights: Mapping[str, float] = field(default_factory=lambda: {"sdf": 1.0, "code": 1e-4})
+    """Term weights: sdf (clamped L1), code (DeepSDF's code regularisation, 1e-4 there)."""
+    shapes_per_batch: int = 16
+    """Shapes per step (DeepSDF: 64 scenes)."""
+    samples_per_shape: int = 2048
+    """SDF samples per shape per step (DeepSDF: 16384)."""
+    clamp: float = 0.1
+    """DeepSDF's delta, unit frame."""
+    name: str = "shapes"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "weights", check_weights(self.weights, COLLECTION_SDF_TERMS, "CollectionSDF"))
+        if min(self.shapes_per_batch, self.samples_per_shape) < 1 or not self.clamp > 0:
+            raise ConfigError(f"CollectionSDF needs shapes_per_batch, samples_per_shape >= 1 and clamp > 0, got "
+                              f"{self.shapes_per_batch}, {self.samples_per_shape}, {self.clamp}")
+
+    @property
+    def paths(self) -> list[Path]:
+        """The caches in latent-code order: row i of the codes is shape `paths[i]`."""
+        return split_paths(self.root, self.split)
+
+    def bounds(self) -> Tensor:
+        return UNIT_BOUNDS.clone()
+
+    def prepare(self, normalization: Normalization, box: float, device: torch.device, seed: int) -> CollectionSDFSampler:
+        arrays = _load(self.paths, ("sdf_points", "sdf_values"))
+        points = _to_unit(arrays["sdf_points"], normalization, device)
+        values = torch.from_numpy(arrays["sdf_values"]).float().to(device) / normalization.scale
+        return CollectionSDFSampler(points, values, self.weights, self.shapes_per_batch, self.samples_per_shape,
+                                    self.clamp)
+
+
+# ----------------------------------------------------------------------------- occupancy network
+
+OCCUPANCY_TERMS = ("occupancy",)
+
+
+@dataclass(frozen=True)
+class OccupancyBatch:
+    """Input clouds and labelled query points of a few shapes (unit frame)."""
+
+    clouds: Tensor
+    """Float[Tensor, "b n 3"]: noisy surface points, the encoder's input."""
+    points: Tensor
+    """Float[Tensor, "b t 3"]: query points."""
+    inside: Tensor
+    """Float[Tensor, "b t"]: 1 inside, 0 outside."""
+
+
+def facing_mask(normals: Tensor, generator: torch.Generator) -> Tensor:
+    """Bool[Tensor, "b m"]: points whose normal faces a random view direction per row (n . d < 0):
+    one side of each shape, as a camera would see it without self-occlusion. normals: [b, m, 3]."""
+    direction = torch.nn.functional.normalize(torch.randn(normals.shape[0], 3, generator=generator), dim=-1)
+    return (normals * direction.to(normals)[:, None, :]).sum(-1) < 0
+
+
+def draw_occupancy(surface: Tensor, normals: Tensor, points: Tensor, inside: Tensor, shapes: int, cloud_points: int,
+                   cloud_noise: float, partial: float, query_points: int,
+                   generator: torch.Generator) -> OccupancyBatch:
+    """Shapes at random; for each, a cloud of `cloud_points` surface samples plus N(0, cloud_noise^2)
+    (a `partial` share of clouds from one side only, see `facing_mask`) and `query_points` labelled
+    points. surface, normals: [S, M, 3]; points: [S, P, 3]; inside: Bool[S, P]."""
+    count, m = surface.shape[:2]
+    device = surface.device
+    shape_index = torch.randperm(count, generator=generator)[: min(shapes, count)]
+    b = len(shape_index)
+    candidates = torch.randint(m, (b, 4 * cloud_points), generator=generator)
+    rows = shape_index[:, None].to(device)
+    keep = torch.ones(b, 4 * cloud_points, dtype=torch.bool)
+    one_sided = torch.rand(b, generator=generator) < partial
+    if one_sided.any():
+        facing = facing_mask(normals[rows, candidates.to(device)].cpu(), generator)
+        keep = torch.where(one_sided[:, None] & facing.any(1, keepdim=True), facing, keep)
+    pick = torch.multinomial(keep.double(), cloud_points, replacement=True, generator=generator)
+    cloud_index = candidates.gather(1, pick).to(device)
+    noise = cloud_noise * torch.randn(b, cloud_points, 3, generator=generator)
+    query = torch.randint(points.shape[1], (b, query_points), generator=generator).to(device)
+    return OccupancyBatch(surface[rows, cloud_index] + noise.to(device), points[rows, query],
+                          inside[rows, query].float())
+
+
+@dataclass(frozen=True)
+class CollectionOccupancySampler(Sampler):
+    surface: Tensor
+    normals: Tensor
+    points: Tensor
+    inside: Tensor
+    weights: dict[str, float]
+    shapes_per_batch: int
+    cloud_points: int
+    cloud_noise: float
+    partial: float
+    query_points: int
+
+    def sample(self, generator: torch.Generator) -> OccupancyBatch:
+        return draw_occupancy(self.surface, self.normals, self.points, self.inside, self.shapes_per_batch,
+                              self.cloud_points, self.cloud_noise, self.partial, self.query_points, generator)
+
+    def losses(self, model: nn.Module, batch: OccupancyBatch) -> dict[str, Tensor]:
+        logits = model.logits(batch.points, model.encode(batch.clouds))
+        return {"occupancy": nn.functional.binary_cross_entropy_with_logits(logits, batch.inside)}
+
+
+@dataclass(frozen=True)
+class CollectionOccupancy(Observation):
+    """Occupancy labels of a collection split, with input clouds from each shape's surface
+    (the training data of an Occupancy Network)."""
+
+    root: str | Path
+    """Folder built by `python -m neuralsurf.shapes build`."""
+    split: str = "train"
+    weights: Mapping[str, float] = field(default_factory=lambda: {"occupancy": 1.0})
+    shapes_per_batch: int = 32
+    """Shapes per step (OccNet: 64)."""
+    query_points: int = 2048
+    """Labelled points per shape per step (OccNet: 2048)."""
+    cloud_points: int = 300
+    """Input points per cloud (OccNet: 300)."""
+    cloud_noise: float = 0.005
+    """Gaussian noise of the input points, unit frame (OccNet's configs: 0.005)."""
+    partial: float = 0.0
+    """Share of input clouds seen from one side only (for completion from one view)."""
+    near_fraction: float = 0.5
+    """Share of query points drawn from the near-surface pool (the rest: uniform in the box)."""
+    name: str = "occupancy"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "weights", check_weights(self.weights, OCCUPANCY_TERMS, "CollectionOccupancy"))
+        counts = (self.shapes_per_batch, self.query_points, self.cloud_points)
+        if min(counts) < 1 or not (0 <= self.partial <= 1 and 0 <= self.near_fraction <= 1 and self.cloud_noise >= 0):
+            raise ConfigError(f"CollectionOccupancy needs shapes_per_batch, query_points, cloud_points >= 1, "
+                              f"partial and near_fraction in [0, 1] and cloud_noise >= 0, got {self}")
+
+    def bounds(self) -> Tensor:
+        return UNIT_BOUNDS.clone()
+
+    def prepare(self, normalization: Normalization, box: float, device: torch.device,
+                seed: int) -> CollectionOccupancySampler:
+        arrays = _load(split_paths(self.root, self.split), ("surface_points", "surface_normals", "occ_uniform_points",
+                                                             "occ_uniform_inside", "occ_near_points", "occ_near_inside"))
+        n = arrays["occ_uniform_points"].shape[1]
+        n_near = round(n * self.near_fraction)
+        # a fixed pool with the asked mix: the first n - n_near uniform points and n_near near ones
+        points = np.concatenate([arrays["occ_uniform_points"][:, : n - n_near],
+                                 arrays["occ_near_points"][:, :n_near]], axis=1)
+        inside = np.concatenate([arrays["occ_uniform_inside"][:, : n - n_near],
+                                 arrays["occ_near_inside"][:, :n_near]], axis=1)
+        return CollectionOccupancySampler(
+            _to_unit(arrays["surface_points"], normalization, device),
+            torch.from_numpy(arrays["surface_normals"]).float().to(device),
+            _to_unit(points, normalization, device), torch.from_numpy(inside).to(device), self.weights,
+            self.shapes_per_batch, self.cloud_points, self.cloud_noise / normalization.scale, self.partial,
+            self.query_points)
+
+
+# ----------------------------------------------------------------------------- one shape
+
+SDF_SAMPLE_TERMS = ("sdf",)
+
+
+@dataclass(frozen=True)
+class SDFSampleBatch:
+    """Points with known signed distances (unit frame)."""
+
+    points: Tensor
+    """Float[Tensor, "n 3"]."""
+    sdf: Tensor
+    """Float[Tensor, "n"]."""
+
+
+@dataclass(frozen=True)
+class SDFSampleSampler(Sampler):
+    points: Tensor
+    values: Tensor
+    weights: dict[str, float]
+    batch_size: int
+    clamp: float
+
+    def sample(self, generator: torch.Generator) -> SDFSampleBatch:
+        index = torch.randint(len(self.values), (self.batch_size,), generator=generator).to(self.values.device)
+        return SDFSampleBatch(self.points[index], self.values[index])
+
+    def losses(self, model: nn.Module, batch: SDFSampleBatch) -> dict[str, Tensor]:
+        return {"sdf": clamped_l1(model(batch.points), batch.sdf, self.clamp)}
+
+
+@dataclass(frozen=True)
+class SDFSampleSet(Observation):
+    """Points of one shape with their signed distances (world frame), fitted by clamped L1."""
+
+    points: Tensor
+    """Float[Tensor, "n 3"]."""
+    sdf: Tensor
+    """Float[Tensor, "n"]: signed distances, negative inside."""
+    weights: Mapping[str, float] = field(default_factory=lambda: {"sdf": 1.0})
+    batch_size: int = 8192
+    clamp: float = 0.1
+    """DeepSDF's delta, unit frame."""
+    name: str = "sdf_samples"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "weights", check_weights(self.weights, SDF_SAMPLE_TERMS, "SDFSampleSet"))
+        points, sdf = torch.as_tensor(self.points), torch.as_tensor(self.sdf)
+        if points.ndim != 2 or points.shape[1] != 3 or sdf.shape != points.shape[:1] or not len(sdf):
+            raise InputError(f"SDFSampleSet needs points (n, 3) and sdf (n,) with n >= 1, got "
+                             f"{tuple(points.shape)} and {tuple(sdf.shape)}")
+        if not (torch.isfinite(points).all() and torch.isfinite(sdf).all()):
+            raise InputError("SDFSampleSet: points or sdf hold NaN or inf; drop those samples")
+        object.__setattr__(self, "points", points)
+        object.__setattr__(self, "sdf", sdf)
+
+    @classmethod
+    def from_cache(cls, path: str | Path, **options) -> SDFSampleSet:
+        """The SDF samples of one cached shape (`neuralsurf.shapes` npz)."""
+        from neuralsurf.shapes.cache import load_cache
+
+        arrays = load_cache(path)
+        return cls(torch.from_numpy(arrays["sdf_points"]), torch.from_numpy(arrays["sdf_values"]), **options)
+
+    def bounds(self) -> Tensor:
+        points = self.points.double()
+        return torch.stack([points.min(0).values, points.max(0).values])
+
+    def prepare(self, normalization: Normalization, box: float, device: torch.device, seed: int) -> SDFSampleSampler:
+        points = normalization.to_unit(self.points.double()).float().to(device)
+        values = (self.sdf.double() / normalization.scale).float().to(device)
+        return SDFSampleSampler(points, values, self.weights, self.batch_size, self.clamp)
+
+
+@dataclass(frozen=True)
+class NoBatch:
+    """The latent prior draws nothing."""
+
+
+@dataclass(frozen=True)
+class LatentPriorSampler(Sampler):
+    weights: dict[str, float]
+
+    def sample(self, generator: torch.Generator) -> NoBatch:
+        return NoBatch()
+
+    def losses(self, model: nn.Module, batch: NoBatch) -> dict[str, Tensor]:
+        code = getattr(model, "code", None)
+        if not isinstance(code, Tensor):
+            raise ConfigError(f"LatentPrior regularises the code of a LatentConditioned model, got a "
+                              f"{type(model).__name__} without one")
+        return {"code": code.square().sum()}
+
+
+@dataclass(frozen=True)
+class LatentPrior(Observation):
+    """DeepSDF's prior on a reconstructed shape's code: ||z||^2 (a zero-mean Gaussian, up to the weight).
+    It observes no data: its bounds are the prior's unit cube."""
+
+    weights: Mapping[str, float] = field(default_factory=lambda: {"code": 1e-4})
+    name: str = "prior"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "weights", check_weights(self.weights, ("code",), "LatentPrior"))
+
+    def bounds(self) -> Tensor:
+        return UNIT_BOUNDS.clone()
+
+    def prepare(self, normalization: Normalization, box: float, device: torch.device, seed: int) -> LatentPriorSampler:
+        return LatentPriorSampler(self.weights)
