@@ -1,0 +1,298 @@
+"""A synthetic photometric-stereo rig: a mesh seen by pinhole cameras under distant lights.
+
+Everything is ray cast with Open3D (no rasteriser): the camera rays find the visible surface, and one
+shadow ray per pixel and light finds cast shadows. Lights are fixed to the camera (as on a
+DiLiGenT-style rig): their directions are given in each camera's frame (OpenCV: x right, y down,
+z forward), pointing from the surface towards the light, so a light beside the camera has z < 0.
+
+The image of a pixel under light l (unit intensity `intensity`) is
+
+    I = intensity * (albedo * max(0, n . l) + specular(n, l, v)) * visible(l)
+
+with n the shading normal (vertex normals interpolated across each triangle when `smooth`, else the
+face normal), v the direction to the camera, `visible` 0 in a cast shadow, and an optional white
+specular lobe (`SpecularLobe`: Blinn-Phong or Cook-Torrance with GGX, Schlick and Smith terms).
+Sensor effects, in order: Gaussian noise of `noise_sigma`, clipping to [0, 1] (saturation), and
+rounding to `bits`-bit levels. The ground-truth normal map is the shading normal in the camera frame.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.scenes.scanner import intrinsics_from_fov, orbit_cameras
+from neuralsurf.structures import Mesh, PhotometricCapture, check_intrinsics
+
+SPECULAR_MODELS = ("blinn_phong", "cook_torrance")
+
+
+@dataclass(frozen=True)
+class SpecularLobe:
+    """A white specular lobe added to the Lambertian term."""
+
+    model: str = "blinn_phong"
+    """"blinn_phong" (strength * (n . h)^shininess) or "cook_torrance" (strength * D F G / (4 n . v))."""
+    strength: float = 0.5
+    """Peak-scale factor of the lobe (the image of a white Lambertian surface facing the light is 1)."""
+    shininess: float = 50.0
+    """Blinn-Phong exponent."""
+    roughness: float = 0.25
+    """Cook-Torrance GGX roughness (alpha = roughness^2)."""
+    f0: float = 0.04
+    """Cook-Torrance Fresnel reflectance at normal incidence (Schlick)."""
+
+    def __post_init__(self) -> None:
+        if self.model not in SPECULAR_MODELS:
+            raise ConfigError(f"specular model must be one of {SPECULAR_MODELS}, got {self.model!r}")
+        if not (self.strength >= 0 and self.shininess > 0 and 0 < self.roughness <= 1 and 0 <= self.f0 <= 1):
+            raise ConfigError(
+                f"SpecularLobe needs strength >= 0, shininess > 0, roughness in (0, 1], f0 in [0, 1]; got {self}"
+            )
+
+    def __call__(self, n_dot_l: Tensor, n_dot_v: Tensor, n_dot_h: Tensor, v_dot_h: Tensor) -> Tensor:
+        """Specular radiance [...] (times the light's intensity) from the cosines [...]; 0 where n . l <= 0."""
+        lit = (n_dot_l > 0) & (n_dot_v > 0)
+        if self.model == "blinn_phong":
+            value = self.strength * n_dot_h.clamp_min(0) ** self.shininess
+        else:
+            alpha2 = self.roughness**4
+            d = alpha2 / (math.pi * ((n_dot_h**2) * (alpha2 - 1) + 1) ** 2)
+            f = self.f0 + (1 - self.f0) * (1 - v_dot_h.clamp(0, 1)) ** 5
+            kk = self.roughness**2 / 2
+            g = (n_dot_l / (n_dot_l * (1 - kk) + kk)) * (n_dot_v / (n_dot_v * (1 - kk) + kk))
+            value = self.strength * d * f * g / (4 * n_dot_v.clamp_min(1e-6))
+        return torch.where(lit, value, 0.0)
+
+
+def cap_lights(n: int = 96, max_angle_deg: float = 40.0) -> Tensor:
+    """Float64[Tensor, "n 3"]: DiLiGenT-like lights: n directions spread evenly (a golden-angle spiral)
+    over the cap within `max_angle_deg` of the viewing axis, on the camera's side (z < 0)."""
+    if not (isinstance(n, int) and n >= 3):
+        raise ConfigError(f"n must be an integer >= 3 lights, got {n!r}")
+    if not 0 < max_angle_deg < 90:
+        raise ConfigError(f"max_angle_deg must lie in (0, 90), got {max_angle_deg}")
+    i = torch.arange(n, dtype=torch.float64)
+    cos_max = math.cos(math.radians(max_angle_deg))
+    z = 1 - (i + 0.5) / n * (1 - cos_max)  # uniform in area over the cap
+    radius = torch.sqrt(1 - z**2)
+    phi = i * math.pi * (3 - math.sqrt(5))
+    return torch.stack([radius * torch.cos(phi), radius * torch.sin(phi), -z], -1)
+
+
+def ring_lights(n: int = 12, slant_deg: float = 45.0) -> Tensor:
+    """Float64[Tensor, "n 3"]: n lights evenly around the viewing axis, `slant_deg` away from it (z < 0)."""
+    if not (isinstance(n, int) and n >= 3):
+        raise ConfigError(f"n must be an integer >= 3 lights, got {n!r}")
+    if not 0 < slant_deg < 90:
+        raise ConfigError(f"slant_deg must lie in (0, 90), got {slant_deg}")
+    phi = torch.arange(n, dtype=torch.float64) * 2 * math.pi / n
+    s, c = math.sin(math.radians(slant_deg)), math.cos(math.radians(slant_deg))
+    return torch.stack([s * torch.cos(phi), s * torch.sin(phi), torch.full_like(phi, -c)], -1)
+
+
+def checker_albedo(period: float, low: float = 0.3, high: float = 0.9) -> Callable[[Tensor], Tensor]:
+    """A 3D checkerboard texture: world points [m, 3] -> albedo [m], `low` or `high` in cubes of side `period`."""
+    if not period > 0:
+        raise ConfigError(f"period must be positive (world units), got {period}")
+
+    def albedo(points: Tensor) -> Tensor:
+        parity = torch.floor(points / period).long().sum(-1) % 2
+        return torch.where(parity == 0, low, high).to(points.dtype)
+
+    return albedo
+
+
+def vertex_normals(mesh: Mesh) -> Tensor:
+    """Float64[Tensor, "v 3"]: unit vertex normals, the area-weighted mean of the adjacent face normals."""
+    vertices = mesh.vertices.detach().double().cpu()
+    faces = mesh.faces.cpu()
+    a, b, c = vertices[faces].unbind(1)
+    weighted = torch.linalg.cross(b - a, c - a)  # length = twice the area
+    normals = torch.zeros_like(vertices).index_add_(0, faces.reshape(-1), weighted.repeat_interleave(3, 0))
+    return torch.nn.functional.normalize(normals, dim=-1)
+
+
+def _albedo_values(albedo, points: Tensor, faces: Tensor, bary: Tensor, mesh: Mesh) -> Tensor:
+    """Albedo [m] or [m, 3] at the hit points."""
+    if callable(albedo):
+        values = torch.as_tensor(albedo(points)).to(points)
+    elif isinstance(albedo, str):
+        if albedo != "vertex" or mesh.vertex_colors is None:
+            raise ConfigError(
+                f"albedo={albedo!r}: the only named albedo is 'vertex' (the mesh's vertex colours), "
+                f"and it needs a mesh with vertex_colors"
+            )
+        colors = mesh.vertex_colors.detach().double().cpu()[mesh.faces.cpu()[faces]]  # (m, 3 corners, 3)
+        values = (bary[:, :, None] * colors).sum(1).to(points)
+    else:
+        values = torch.as_tensor(albedo, dtype=points.dtype)
+        if values.ndim == 0:
+            values = values.expand(len(points))
+        elif values.shape == (3,):
+            values = values.expand(len(points), 3)
+        else:
+            raise ConfigError(f"albedo must be a number, an RGB triple, 'vertex' or a callable, got shape "
+                              f"{tuple(values.shape)}")
+    if values.shape not in ((len(points),), (len(points), 3)) or (values < 0).any():
+        raise InputError(f"albedo values must be non-negative with shape (m,) or (m, 3), got {tuple(values.shape)}")
+    return values
+
+
+def render_photometric(
+    mesh: Mesh,
+    lights: Tensor | None = None,
+    cam_to_world: Tensor | None = None,
+    K: Tensor | None = None,
+    *,
+    n_views: int = 1,
+    width: int = 256,
+    height: int = 256,
+    fov_deg: float = 30.0,
+    albedo=0.8,
+    specular: SpecularLobe | None = None,
+    shadows: bool = True,
+    smooth: bool = True,
+    intensity: float = 1.0,
+    noise_sigma: float = 0.0,
+    bits: int | None = None,
+    seed: int = 0,
+) -> list[PhotometricCapture]:
+    """Render `mesh` under directional lights from one or several pinhole cameras.
+
+    Args:
+        mesh: the object (world frame), non-empty.
+        lights: Float[Tensor, "n 3"] unit directions towards the lights in each camera's frame
+            (default `cap_lights(96)`, DiLiGenT-like).
+        cam_to_world: Float[Tensor, "v 4 4"] (or 4x4) OpenCV poses; default `orbit_cameras` of
+            `n_views` views around the mesh (the object fills the narrower field of view).
+        K: Float[Tensor, "3 3"] (or "v 3 3") intrinsics; default from `fov_deg` (vertical, centred).
+        width, height: image size in pixels.
+        albedo: a number (grey images), an RGB triple, "vertex" (the mesh's vertex colours,
+            interpolated) or a callable world points [m, 3] -> [m] or [m, 3] (e.g. `checker_albedo`).
+        specular: a `SpecularLobe`, or None for a Lambertian surface.
+        shadows: cast shadows by ray casting towards each light (attached shadows are always there).
+        smooth: shade with interpolated vertex normals (else face normals).
+        intensity: radiance scale of every light.
+        noise_sigma: standard deviation of additive Gaussian sensor noise (image units, 1 = white).
+        bits: quantise to this many bits (8 or 16) after clipping to [0, 1]; None: no quantisation
+            (and no clipping unless there is noise).
+        seed: seed of the noise.
+    Returns:
+        One PhotometricCapture per view: images Float[n, h, w] (grey albedo) or [n, h, w, 3], the
+        lights, mask (pixels that see the mesh), ground-truth normals [h, w, 3] in the camera frame,
+        z-depth [h, w] in world units (0 off the object), K and cam_to_world.
+    """
+    import open3d as o3d
+
+    if not isinstance(mesh, Mesh) or mesh.is_empty:
+        raise InputError(f"render_photometric needs a non-empty neuralsurf Mesh, got {type(mesh).__name__}")
+    lights = cap_lights() if lights is None else torch.as_tensor(lights, dtype=torch.float64)
+    if lights.ndim != 2 or lights.shape[1] != 3 or len(lights) == 0:
+        raise InputError(f"lights must be (n, 3) directions, got {tuple(lights.shape)}")
+    lights = torch.nn.functional.normalize(lights, dim=-1)
+    if bits is not None and bits not in (8, 16):
+        raise ConfigError(f"bits must be 8, 16 or None, got {bits!r}")
+    if not noise_sigma >= 0:
+        raise ConfigError(f"noise_sigma must be >= 0, got {noise_sigma}")
+    for name, value in (("width", width), ("height", height)):
+        if not (isinstance(value, (int, np.integer)) and value >= 2):
+            raise ConfigError(f"{name} must be an integer number of pixels >= 2, got {value!r}")
+    vertices = mesh.vertices.detach().double().cpu()
+    faces = mesh.faces.cpu()
+    center = vertices.mean(0)  # float32 ray casting, re-centred for precision
+    if cam_to_world is None:
+        lo, hi = vertices.min(0).values, vertices.max(0).values
+        box_center = (lo + hi) / 2
+        radius = float((vertices - box_center).norm(dim=-1).max())
+        cam_to_world = orbit_cameras(box_center, radius, int(n_views), fov_deg, width / height)
+    pose = torch.as_tensor(cam_to_world, dtype=torch.float64)
+    pose = pose[None] if pose.shape == (4, 4) else pose
+    if pose.ndim != 3 or pose.shape[1:] != (4, 4):
+        raise InputError(f"cam_to_world must be 4x4 or (v, 4, 4), got {tuple(pose.shape)}")
+    K = intrinsics_from_fov(width, height, fov_deg) if K is None else torch.as_tensor(K, dtype=torch.float64)
+    K = K.expand(len(pose), 3, 3) if K.shape == (3, 3) else K
+    if K.shape != (len(pose), 3, 3):
+        raise InputError(f"K must be 3x3 or (v={len(pose)}, 3, 3), got {tuple(K.shape)}")
+    check_intrinsics(K, width, height)
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor((vertices - center).float().numpy()), o3d.core.Tensor(faces.numpy().astype(np.uint32))
+    )
+    face_normals = mesh.face_normals().detach().double().cpu()
+    corner_normals = vertex_normals(mesh)[faces] if smooth else None  # (f, 3, 3)
+    size = float((vertices.max(0).values - vertices.min(0).values).norm())
+    generator = torch.Generator().manual_seed(int(seed))
+    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64),
+                          indexing="ij")
+    captures = []
+    for k, p in zip(K, pose):
+        y = (v - k[1, 2]) / k[1, 1]
+        x = (u - k[0, 2] - k[0, 1] * y) / k[0, 0]
+        ray = torch.nn.functional.normalize(torch.stack([x, y, torch.ones_like(x)], -1), dim=-1)  # camera frame
+        world_ray = ray @ p[:3, :3].T
+        origin = (p[:3, 3] - center).expand_as(world_ray)
+        hit = scene.cast_rays(o3d.core.Tensor(torch.cat([origin, world_ray], -1).float().numpy()))
+        t = torch.from_numpy(hit["t_hit"].numpy()).double()
+        mask = torch.isfinite(t)
+        face = torch.from_numpy(hit["primitive_ids"].numpy().astype(np.int64))[mask]
+        uv = torch.from_numpy(hit["primitive_uvs"].numpy()).double()[mask]
+        bary = torch.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], -1)  # weights of the 3 corners
+        geometric = face_normals[face]
+        normal = (bary[:, :, None] * corner_normals[face]).sum(1) if smooth else geometric.clone()
+        normal = torch.nn.functional.normalize(normal, dim=-1)
+        to_camera = -world_ray[mask]
+        facing = torch.where((geometric * to_camera).sum(-1, keepdim=True) < 0, -1.0, 1.0)  # seen from behind
+        geometric, normal = geometric * facing, normal * facing
+        points = origin[mask] + t[mask, None] * world_ray[mask]  # re-centred world frame
+        values = _albedo_values(albedo, points + center, face, bary, mesh)
+        world_lights = lights @ p[:3, :3].T  # (n, 3)
+        offset = points + 1e-4 * size * geometric
+        images = torch.zeros(len(lights), height, width, *values.shape[1:], dtype=torch.float64)
+        for i, light in enumerate(world_lights):
+            n_dot_l = normal @ light
+            radiance = values * (n_dot_l.clamp_min(0)[:, None] if values.ndim == 2 else n_dot_l.clamp_min(0))
+            if specular is not None:
+                half = torch.nn.functional.normalize(light + to_camera, dim=-1)
+                lobe = specular(n_dot_l, (normal * to_camera).sum(-1), (normal * half).sum(-1),
+                                (to_camera * half).sum(-1))
+                radiance = radiance + (lobe[:, None] if values.ndim == 2 else lobe)
+            if shadows:
+                rays = torch.cat([offset, light.expand_as(offset)], -1).float().numpy()
+                occluded = torch.from_numpy(scene.test_occlusions(o3d.core.Tensor(rays)).numpy())
+                # a shadow ray leaving a surface that faces away from the light is in attached shadow anyway
+                radiance = torch.where(occluded.reshape(-1, *([1] * (radiance.ndim - 1))), 0.0, radiance)
+            images[i][mask] = intensity * radiance
+        if noise_sigma > 0:
+            images = images + noise_sigma * torch.randn(images.shape, generator=generator, dtype=torch.float64)
+        if noise_sigma > 0 or bits is not None:
+            images = images.clamp(0, 1)
+        if bits is not None:
+            levels = 2**bits - 1
+            images = torch.round(images * levels) / levels
+        normal_map = torch.zeros(height, width, 3, dtype=torch.float64)
+        normal_map[mask] = normal @ p[:3, :3]  # world -> camera: R^T n
+        depth = torch.where(mask, t * ray[..., 2], 0.0)
+        captures.append(PhotometricCapture(
+            images=images.float(), light_directions=lights.float(), mask=mask, normals=normal_map.float(),
+            K=k.float(), depth=depth.float(), cam_to_world=p.float(),
+        ))
+    return captures
+
+
+__all__ = [
+    "SPECULAR_MODELS",
+    "SpecularLobe",
+    "cap_lights",
+    "checker_albedo",
+    "render_photometric",
+    "ring_lights",
+    "vertex_normals",
+]
