@@ -1,6 +1,6 @@
 """neuralsurf: neural implicit surfaces and classical baselines for 3D surface reconstruction."""
 
-from neuralsurf import baselines, geometry, io, losses, metrics, models, scenes
+from neuralsurf import baselines, geometry, io, losses, metrics, models, photometric, scenes
 from neuralsurf.errors import (
     ConfigError,
     DeviceError,

@@ -19,6 +19,7 @@ from neuralsurf.io.range_scans import (
 )
 from neuralsurf.io.rgbd import FORMATS as RGBD_FORMATS
 from neuralsurf.io.rgbd import read_rgbd_folder
+from neuralsurf.io.photometric import read_image_list, read_photometric, write_photometric  # noqa: F401
 
 __all__ = [
     "MESH_EXTENSIONS",
