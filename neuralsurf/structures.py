@@ -351,8 +351,8 @@ class DepthFrames:
     """Float[Tensor, "n h w 3"] | None: RGB in [0, 1] registered to the depth."""
 
     def __post_init__(self) -> None:
-        for field in ("depth", "K", "cam_to_world", "colors"):
-            _check_real(getattr(self, field), f"DepthFrames.{field}")
+        for name in ("depth", "K", "cam_to_world", "colors"):
+            _check_real(getattr(self, name), f"DepthFrames.{name}")
         depth = torch.as_tensor(self.depth, dtype=torch.float32)
         if depth.ndim == 2:
             depth = depth[None]

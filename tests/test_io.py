@@ -436,3 +436,65 @@ def test_writing_a_mesh_under_a_file_or_onto_a_folder_is_a_file_format_error(tmp
     (tmp_path / f"folder{ext}").mkdir()
     with pytest.raises(FileFormatError, match=r"it is a folder; pass a file name inside it"):
         write_mesh(tmp_path / f"folder{ext}", icosphere())
+
+
+# ---------------------------------------------------------------------------------------------
+# PLY through plyfile: any element order, list properties before the vertices
+
+
+def _faces_first_ply(fmt: str) -> bytes:
+    """A quad and a triangle (face element first), then 4 float vertices with a uchar colour."""
+    header = (
+        f"ply\nformat {fmt} 1.0\ncomment faces come first\nelement face 2\n"
+        "property list uchar int vertex_indices\nelement vertex 4\nproperty float x\nproperty float y\n"
+        "property float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+    ).encode()
+    points = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.5]], dtype=np.float32)
+    if fmt == "ascii":
+        body = "4 0 1 2 3\n3 0 1 3\n" + "".join(" ".join(f"{v:g}" for v in p) + " 255 0 51\n" for p in points)
+        return header + body.encode()
+    faces = np.array([4, 0, 0, 0, 0, 1, 0, 0, 0, 2, 0, 0, 0, 3, 0, 0, 0], dtype=np.uint8).tobytes()
+    faces += np.array([3], np.uint8).tobytes() + np.array([0, 1, 3], "<i4").tobytes()
+    vertex = np.empty(4, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "u1", (3,))])
+    vertex["x"], vertex["y"], vertex["z"] = points.T
+    vertex["rgb"] = [255, 0, 51]
+    return header + faces + vertex.tobytes()
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian"])
+def test_ply_with_a_list_element_before_the_vertices_is_read(tmp_path, fmt):
+    (tmp_path / "f.ply").write_bytes(_faces_first_ply(fmt))
+    with pytest.warns(UserWarning, match=r"PLY elements \['face'\] are not kept"):
+        cloud = read_point_cloud(tmp_path / "f.ply")
+    assert cloud.points.tolist() == [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.5]]
+    torch.testing.assert_close(cloud.colors, torch.tensor([[1.0, 0.0, 0.2]]).expand(4, 3))
+
+
+def test_written_ply_is_read_by_plyfile_itself(tmp_path):
+    plyfile = pytest.importorskip("plyfile")
+    mesh = icosphere(colors=True)
+    write_mesh(tmp_path / "m.ply", mesh)
+    ply = plyfile.PlyData.read(str(tmp_path / "m.ply"))
+    assert [e.name for e in ply.elements] == ["vertex", "face"] and not ply.text
+    assert np.array_equal(np.stack([ply["vertex"][a] for a in "xyz"], 1), mesh.vertices.numpy())
+    assert np.array_equal(np.stack(list(ply["face"]["vertex_indices"])), mesh.faces.numpy())
+
+
+def test_ply_header_declaring_more_vertices_than_the_file_holds_is_refused_quickly(tmp_path):
+    header = ply_header("binary_little_endian", [f"property float {a}" for a in "xyz"], 10**11)
+    (tmp_path / "huge.ply").write_bytes(header + bytes(120))
+    with pytest.raises(FileFormatError, match=r"huge\.ply.*fewer than the 100000000000 rows of 'vertex'.*truncated"):
+        read_point_cloud(tmp_path / "huge.ply")
+
+
+@pytest.mark.parametrize(
+    ("header", "reason"),
+    [
+        (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty floot x\nend_header\n", "field type 'floot'"),
+        (b"ply\nformat fancy 1.0\nelement vertex 1\nproperty float x\nend_header\n", "format 'fancy'"),
+    ],
+)
+def test_malformed_ply_headers_name_the_file_and_the_line(tmp_path, header, reason):
+    (tmp_path / "bad.ply").write_bytes(header + b"0\n")
+    with pytest.raises(FileFormatError, match=rf"bad\.ply.*PLY header does not parse: line \d: .*{reason}"):
+        read_point_cloud(tmp_path / "bad.ply")

@@ -1,6 +1,7 @@
 """Stanford range scans: .conf alignment, range-grid triangulation, scanner-facing normals."""
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -307,3 +308,25 @@ def test_quaternion_to_matrix_matches_the_hamilton_formula():
             [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
         ])  # fmt: skip
         assert np.allclose(quaternion_to_matrix(q), reference, atol=1e-12)
+
+
+def test_binary_range_grid_scans_are_triangulated_like_ascii_ones(tmp_path):
+    """plyfile reads the range_grid lists of binary scans, which were skipped (PCA normals) before."""
+    points, grid = tilted_grid_scan()
+    write_range_grid_ply(tmp_path / "ascii.ply", points, grid)
+    rows, cols = grid.shape
+    header = (
+        f"ply\nformat binary_little_endian 1.0\nobj_info num_cols {cols}\nobj_info num_rows {rows}\n"
+        f"element vertex {len(points)}\nproperty float x\nproperty float y\nproperty float z\n"
+        f"element range_grid {rows * cols}\nproperty list uchar int vertex_indices\nend_header\n"
+    ).encode()
+    cells = b"".join(b"\x00" if i < 0 else b"\x01" + np.array([i], "<i4").tobytes() for i in grid.ravel())
+    (tmp_path / "binary.ply").write_bytes(header + points.astype("<f4").tobytes() + cells)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "binary range_grid not read" warning any more
+        binary = read_range_scan(tmp_path / "binary.ply")
+    ascii_ = read_range_scan(tmp_path / "ascii.ply")
+    assert torch.equal(binary.points, ascii_.points)
+    torch.testing.assert_close(binary.normals, ascii_.normals)
+    expected = torch.tensor([-0.5, 0.0, 1.0]) / math.sqrt(1.25)  # the plane z = 0.5 x, facing +z
+    torch.testing.assert_close(binary.normals, expected.expand_as(binary.normals), atol=1e-5, rtol=0)

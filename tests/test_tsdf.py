@@ -432,7 +432,7 @@ def test_saved_volume_loads_to_the_same_mesh_and_keeps_integrating(tmp_path, sph
     if colors:
         rgb = torch.rand(*frames.depth.shape, 3, generator=torch.Generator().manual_seed(0))
         frames = DepthFrames(frames.depth, frames.K, frames.cam_to_world, rgb)
-    settings = dict(device="cpu", sparse=sparse, with_color=colors, weighting="depth", max_weight=50.0)
+    settings = {"device": "cpu", "sparse": sparse, "with_color": colors, "weighting": "depth", "max_weight": 50.0}
     half = TSDFVolume(BOX, VOXEL, **settings).integrate(frames[:12])
     path = half.save(tmp_path / "volume.npz")
     assert [p.name for p in tmp_path.iterdir()] == ["volume.npz"]  # no temporary left behind

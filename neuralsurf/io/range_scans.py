@@ -32,7 +32,15 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError, FileFormatError, InputError
-from neuralsurf.io.pointclouds import PathLike, build_cloud, named, parse_ply_header, read_ply_vertices
+from neuralsurf.io.pointclouds import (
+    PathLike,
+    _ascii_rows,
+    build_cloud,
+    named,
+    ply_header,
+    read_ply_binary,
+    read_ply_vertices,
+)
 from neuralsurf.structures import DepthFrames, Mesh, PointCloud
 
 SCANNER_DIRECTION = (0.0, 0.0, 1.0)
@@ -218,13 +226,13 @@ def _read_scan_geometry(path: Path, with_triangles: bool = True) -> tuple[np.nda
     path = _existing_file(path, "range scan")
     data = path.read_bytes()
     try:
-        columns, _ = read_ply_vertices(data)
+        columns, _ = read_ply_vertices(path, data)
         if not {"x", "y", "z"} <= columns.keys():
             raise FileFormatError(
                 f"no x, y, z vertex properties (found {sorted(columns)}); it is not a range scan"
             )
         points = np.stack([columns[k] for k in "xyz"], axis=1)
-        triangles = _ply_triangles(data, points) if with_triangles else None
+        triangles = _ply_triangles(path, data, points) if with_triangles else None
     except FileFormatError as error:
         raise named(path, error) from error
     if len(points) == 0:
@@ -361,26 +369,23 @@ def triangulate_range_grid(
     return triangles[edges <= max_edge_factor * np.median(edges)]
 
 
-def _ply_triangles(data: bytes, points: np.ndarray) -> np.ndarray | None:
-    """Triangles of a PLY's `face` element or triangulated `range_grid`, or None when it has
-    neither. Only ASCII files are parsed for these; binary ones warn and return None."""
-    fmt, elements, offset = parse_ply_header(data)
-    names = [name for name, _, _ in elements]
+def _ply_triangles(path: Path, data: bytes, points: np.ndarray) -> np.ndarray | None:
+    """Triangles of a PLY's `face` element or triangulated `range_grid` (ASCII or binary, in any
+    element order), or None when it has neither."""
+    header, offset = ply_header(data)
+    names = [element.name for element in header.elements]
     wanted = next((name for name in ("face", "range_grid") if name in names), None)
     if wanted is None:
         return None
-    if fmt != "ascii":
-        warnings.warn(
-            f"the {wanted!r} element of binary PLY range scans is not read; normals are estimated instead",
-            stacklevel=4,
-        )
-        return None
-    lines = data[offset:].decode("ascii", errors="replace").splitlines()
-    start = sum(count for name, count, _ in elements[: names.index(wanted)])
-    count = elements[names.index(wanted)][1]
-    if len(lines) < start + count:
-        raise FileFormatError("ASCII PLY holds fewer lines than its header declares; the file is truncated")
-    counts, flat, starts = _ascii_lists(lines[start : start + count], wanted, len(points))
+    count = header[wanted].count
+    if header.text:
+        counts, flat, starts = _ascii_lists(_ascii_rows(data, offset, header, wanted), wanted, len(points))
+    else:
+        element = read_ply_binary(path)[wanted]
+        lists = [prop.name for prop in element.properties if isinstance(prop, _ListProperty())]
+        if not lists:
+            raise FileFormatError(f"PLY {wanted!r} element has no list of vertex indices")
+        counts, flat, starts = _binary_lists(element.data[lists[0]], wanted, len(points))
     if wanted == "face":
         return _fan_triangles(counts, flat, starts)
     rows, cols = _grid_shape(data[:offset])
@@ -391,6 +396,29 @@ def _ply_triangles(data: bytes, points: np.ndarray) -> np.ndarray | None:
         )
     first = np.where(counts > 0, flat[np.minimum(starts + 1, len(flat) - 1)], -1)  # first vertex per cell
     return triangulate_range_grid(first.reshape(rows, cols), points)
+
+
+def _ListProperty():
+    import plyfile
+
+    return plyfile.PlyListProperty
+
+
+def _binary_lists(rows: np.ndarray, what: str, n_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The list rows plyfile read (an object array of index arrays, or an (m, k) array when all
+    rows have k entries) in `_ascii_lists`' layout (counts, flat tokens, row starts)."""
+    rows = [np.asarray(row, dtype=np.int64).reshape(-1) for row in rows]
+    counts = np.array([len(row) for row in rows], dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(counts + 2)[:-1]]).astype(np.int64)
+    flat = np.full(int((counts + 2).sum()), -1, dtype=np.int64)
+    flat[starts] = counts
+    if len(rows):
+        indices = np.concatenate(rows)
+        if len(indices) and (indices.min() < 0 or indices.max() >= n_vertices):
+            raise FileFormatError(f"PLY {what!r} indexes vertices outside [0, {n_vertices}); the file is corrupt")
+        positions = np.repeat(starts + 1, counts) + (np.arange(len(indices)) - np.repeat(np.cumsum(counts) - counts, counts))
+        flat[positions] = indices
+    return counts, flat, starts
 
 
 def _ascii_lists(lines: list[str], what: str, n_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
