@@ -13,6 +13,10 @@ class FileFormatError(InputError):
     """A file is missing, unreadable or has an extension neuralsurf cannot handle."""
 
 
+class DownloadError(NeuralsurfError, OSError):
+    """A data set could not be downloaded, or what arrived does not match its checksum."""
+
+
 class ConfigError(NeuralsurfError, ValueError):
     """A configuration value is unknown or out of range."""
 

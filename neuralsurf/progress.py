@@ -20,9 +20,10 @@ def progress_enabled(enabled: bool = True) -> bool:
 
 
 def progress_bar(iterable: Iterable | None = None, *, desc: str, total: int | None = None, unit: str = "it",
-                 enabled: bool = True):
-    """A tqdm bar over `iterable` (or a manual one of `total` steps: call `.update(n)`), on stderr."""
+                 enabled: bool = True, initial: int = 0, unit_scale: bool = False):
+    """A tqdm bar over `iterable` (or a manual one of `total` steps: call `.update(n)`), on stderr;
+    `initial` steps already done (a resumed download), `unit_scale` for bytes (k, M, G)."""
     from tqdm.auto import tqdm
 
     return tqdm(iterable, desc=desc, total=total, unit=unit, disable=not progress_enabled(enabled),
-                delay=DELAY_S, leave=False, dynamic_ncols=True)
+                delay=DELAY_S, leave=False, dynamic_ncols=True, initial=initial, unit_scale=unit_scale)
