@@ -8,7 +8,7 @@ l of unit intensity reads I = rho max(0, n . l). With every light lit, g = rho n
 least squares L g = I (`least_squares_stereo`, the DiLiGenT baseline). Shadows (I = 0 where n . l > 0 for
 a cast shadow, or the clamp for an attached one) and highlights (I above the Lambertian value) break
 it; `trimmed_stereo` drops the darkest and brightest observations of each pixel, `robust_stereo`
-starts there and iterates reweighted least squares (Cauchy weights on the residual relative to the
+starts there and iterates reweighted least squares (Tukey weights on the residual relative to the
 albedo, zero weight where the current normal faces away from the light).
 
 Normal integration: `integrate_least_squares` (the gradient field's least-squares surface, centred
@@ -164,9 +164,9 @@ def least_squares_stereo(images: Tensor, lights: Tensor, mask: Tensor | None = N
     images, lights, mask = _check_inputs(images, lights, mask)
     gray, color = _gather(images, mask)
     lights64 = lights.double()
-    solve = torch.linalg.solve(lights64.T @ lights64, lights64.T).to(gray.dtype)  # (3, n) pseudo-inverse
     if torch.linalg.matrix_rank(lights64) < 3:
         raise InputError("the light directions are coplanar (rank < 3); photometric stereo needs 3 independent lights")
+    solve = torch.linalg.solve(lights64.T @ lights64, lights64.T).to(gray.dtype)  # (3, n) pseudo-inverse
     g = (solve @ gray).T  # (p, 3)
     ok = torch.ones(g.shape[0], dtype=torch.bool, device=g.device)
     return _result(g, ok, gray, color, lights, None, mask)
@@ -221,7 +221,7 @@ def robust_stereo(
     lights: Tensor,
     mask: Tensor | None = None,
     iterations: int = 10,
-    scale: float = 0.05,
+    scale: float = 0.1,
     dark_fraction: float = 0.3,
     bright_fraction: float = 0.1,
     shadow_threshold: float = 0.02,
@@ -229,15 +229,16 @@ def robust_stereo(
     """Photometric stereo robust to shadows and highlights: trimmed least squares, then iteratively
     reweighted least squares.
 
-    Each iteration weighs an observation by the Cauchy weight 1 / (1 + (r / (scale rho))^2) of its
-    residual r = I - rho n . l relative to the pixel's albedo rho, and by 0 where the current normal
-    faces away from the light (n . l <= 0: an attached shadow, which the linear model cannot fit) or
-    where the pixel is darker than `shadow_threshold` times its brightest observation (a shadow).
+    Each iteration weighs an observation by Tukey's biweight (1 - (r / (scale rho))^2)^2 of its residual
+    r = I - rho n . l relative to the pixel's albedo rho (0 beyond `scale` rho: highlights and cast
+    shadows drop out), and by 0 where the current normal faces away from the light (n . l <= 0: an
+    attached shadow, which the linear model cannot fit) or where the pixel is darker than
+    `shadow_threshold` times its brightest observation (a shadow).
 
     Args:
         images, lights, mask: as `least_squares_stereo`.
         iterations: reweighting steps after the trimmed start.
-        scale: residual, as a fraction of the albedo, at which an observation's weight halves.
+        scale: residual, as a fraction of the albedo, beyond which an observation gets no weight.
         dark_fraction, bright_fraction: the trimmed start (`trimmed_stereo`).
         shadow_threshold: observations below this fraction of the pixel's brightest are shadows.
     Returns:
@@ -257,7 +258,7 @@ def robust_stereo(
         predicted = lights @ g.T  # (n, p) = rho n . l
         rho = g.norm(dim=-1).clamp_min(1e-12)
         residual = (gray - predicted) / (scale * rho[None])
-        weights = lit * (predicted > 0).to(gray.dtype) / (1 + residual**2)
+        weights = lit * (predicted > 0).to(gray.dtype) * (1 - residual**2).clamp_min(0) ** 2  # Tukey
         g_new, ok_new = _weighted_fit(gray, lights, weights)
         g = torch.where(ok_new[:, None], g_new, g)  # a pixel whose reweighted fit degenerates keeps its last g
     usable = (lit * (lights @ g.T > 0).to(gray.dtype)).sum(0)
@@ -358,14 +359,13 @@ def reflect_view(normals: Tensor) -> Tensor:
     return 2 * (normals * view).sum(-1, keepdim=True) * normals - view
 
 
-def calibrate_chrome_ball(
-    images: Tensor, mask: Tensor, threshold: float = 0.9
-) -> ChromeBallCalibration:
+def calibrate_chrome_ball(images: Tensor, mask: Tensor, threshold: float = 0.5) -> ChromeBallCalibration:
     """Light directions from images of a mirror sphere, one light each.
 
     The sphere is the disc of `mask` (`sphere_from_mask`). In each image the highlight is the
     connected blob of pixels inside the disc at least `threshold` times as bright as the brightest one
-    (the blob holding that pixel); its intensity-weighted centroid (u, v) gives the sphere normal
+    (the blob holding that pixel); its centroid (u, v), weighted by the intensity above the threshold
+    (uniform over a saturated blob), gives the sphere normal
     n = ((u - cu) / r, (v - cv) / r, -sqrt(1 - ...)) and the light is the view direction reflected
     about it (`reflect_view`; the viewer is orthographic, along +z).
 
@@ -398,7 +398,7 @@ def calibrate_chrome_ball(
         labels, _ = ndimage.label((values >= threshold * peak).numpy())
         brightest = np.unravel_index(int(values.argmax()), values.shape)
         blob = torch.from_numpy(labels == labels[brightest])
-        weight = torch.where(blob, values, 0.0).double()
+        weight = torch.where(blob, values - threshold * peak, 0.0).double() + 1e-12 * blob  # saturated: uniform
         highlights.append(torch.stack([(weight * u).sum(), (weight * v).sum()]) / weight.sum())
     highlights = torch.stack(highlights)
     xy = (highlights - center) / radius
@@ -480,17 +480,20 @@ def _pairs(mask: np.ndarray, index: np.ndarray, axis: int) -> tuple[np.ndarray, 
     return a, b, index.ravel()[a], index.ravel()[b]
 
 
-def _solve(matrix, rhs: np.ndarray) -> np.ndarray:
-    """Solve the normal equations of a difference system (symmetric, positive semi-definite: the depth
-    of each connected region is free up to a constant) by a sparse direct solve, after a tiny
-    Tikhonov term (1e-9 of the mean diagonal) that fixes those constants without measurably moving the
-    solution."""
+def _solve(matrix, rhs: np.ndarray, refinements: int = 3) -> np.ndarray:
+    """Solve the normal equations of a difference system (symmetric, positive semi-definite: each
+    connected region's depth is free up to a constant) by a sparse LU factorisation after a tiny
+    Tikhonov term (1e-9 of the mean diagonal) that fixes those constants, then remove the term's bias by
+    iterative refinement against the unregularised system."""
     from scipy.sparse import identity
-    from scipy.sparse.linalg import spsolve
+    from scipy.sparse.linalg import splu
 
     epsilon = 1e-9 * float(matrix.diagonal().mean())
-    regularised = (matrix + epsilon * identity(matrix.shape[0], format="csr")).tocsc()
-    return spsolve(regularised, rhs, permc_spec="MMD_AT_PLUS_A")
+    factor = splu((matrix + epsilon * identity(matrix.shape[0], format="csr")).tocsc(), permc_spec="MMD_AT_PLUS_A")
+    solution = factor.solve(rhs)
+    for _ in range(refinements):
+        solution = solution + factor.solve(rhs - matrix @ solution)
+    return solution
 
 
 def _finish(t: np.ndarray, mask: Tensor, K, iterations: int, dtype) -> NormalIntegration:
