@@ -1,0 +1,250 @@
+"""Learned shape priors: DeepSDF auto-decoder and latent reconstruction, Occupancy Network, and
+their observations over a shape collection."""
+
+import functools
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.losses import clamped_l1
+from neuralsurf.models import (
+    SDFMLP,
+    AutoDecoder,
+    CBNDecoder,
+    ConditionalBatchNorm,
+    LatentCodes,
+    LatentConditioned,
+    OccupancyNetwork,
+    PointNetEncoder,
+)
+from neuralsurf.models.spec import build_model, model_spec
+from neuralsurf.observations.collection import (
+    CollectionOccupancy,
+    CollectionSDF,
+    LatentPrior,
+    SDFSampleSet,
+    draw_shape_sdf,
+)
+from neuralsurf.shapes import ShapeRecord
+from neuralsurf.shapes.cache import CacheRecipe, build_collection, cache_path, load_cache
+from neuralsurf.shapes.completion import reconstruct_latent
+from neuralsurf.structures import Normalization
+from neuralsurf.training import default_optimizer, fit
+
+RECORDS = [ShapeRecord("lamp", "train", 0), ShapeRecord("chair", "train", 0)]
+RECIPE = CacheRecipe(n_sdf=20_000, n_occ=4000, n_surface=2000, mesh_resolution=48)
+
+
+@pytest.fixture(scope="module")
+def collection(tmp_path_factory):
+    root = tmp_path_factory.mktemp("shapes")
+    build_collection(root, RECORDS, RECIPE, progress=False)
+    return root
+
+
+def _label_iou(field_values: torch.Tensor, inside: torch.Tensor) -> float:
+    pred = field_values < 0
+    return float((pred & inside).sum() / (pred | inside).sum())
+
+
+def _uniform_labels(root, record):
+    arrays = load_cache(cache_path(root, record))
+    return torch.from_numpy(arrays["occ_uniform_points"]), torch.from_numpy(arrays["occ_uniform_inside"])
+
+
+@pytest.fixture(scope="module")
+def auto_decoder(collection):
+    """A small DeepSDF auto-decoder trained on two shapes (a lamp and a chair) through `fit`."""
+    torch.manual_seed(0)
+    decoder = SDFMLP(width=48, depth=4, skip_layers=(2,), latent_dim=8, init_radius=0.3)
+    model = AutoDecoder(decoder, LatentCodes(len(RECORDS), 8))
+    result = fit(model, CollectionSDF(collection, shapes_per_batch=2, samples_per_shape=1024), steps=250,
+                 normalization=Normalization(), encoding_lr=None, progress=False, log_every=50,
+                 optimizer=functools.partial(default_optimizer, lr=5e-3))
+    return result
+
+
+def test_latent_codes_start_as_deepsdf_says_and_reject_foreign_indices():
+    torch.manual_seed(0)
+    codes = LatentCodes(400, 64)
+    assert codes.weight.std().item() == pytest.approx(0.01, rel=0.05)
+    assert codes.weight.mean().abs().item() < 1e-3
+    assert codes(torch.tensor([[1, 2], [3, 4]])).shape == (2, 2, 64)
+    with pytest.raises(InputError, match="outside the training collection"):
+        codes(torch.tensor([400]))
+    with pytest.raises(ConfigError, match="latent_dim=8"):
+        AutoDecoder(SDFMLP(width=32, depth=2, skip_layers=(), latent_dim=4), LatentCodes(2, 8))
+
+
+def test_prior_models_rebuild_from_plain_specs():
+    torch.manual_seed(0)
+    decoder = SDFMLP(width=32, depth=3, skip_layers=(1,), latent_dim=4)
+    for model in (AutoDecoder(decoder, LatentCodes(3, 4)), LatentConditioned.from_code(decoder, torch.ones(4)),
+                  OccupancyNetwork(PointNetEncoder(16, 16), CBNDecoder(16, 32), threshold=0.2)):
+        rebuilt = build_model(model_spec(model))
+        rebuilt.load_state_dict(model.state_dict())
+        x = torch.rand(50, 3) - 0.5
+        model.eval(), rebuilt.eval()
+        latent = torch.randn(16) if isinstance(model, OccupancyNetwork) else None
+        assert torch.equal(model(x, latent), rebuilt(x, latent))
+
+
+def test_conditional_batch_norm_with_a_constant_code_is_batch_norm_with_those_affine_parameters():
+    torch.manual_seed(0)
+    cbn = ConditionalBatchNorm(c_dim=6, features=5)
+    nn.init.normal_(cbn.gamma.weight), nn.init.normal_(cbn.beta.weight)
+    nn.init.normal_(cbn.gamma.bias), nn.init.normal_(cbn.beta.bias)
+    code = torch.randn(6)
+    bn = nn.BatchNorm1d(5, affine=True)
+    with torch.no_grad():
+        bn.weight.copy_(cbn.gamma(code))
+        bn.bias.copy_(cbn.beta(code))
+    x = torch.randn(3, 40, 5)
+    for _ in range(3):  # train mode: batch statistics, and the same running averages
+        ours = cbn(x, code.expand(3, 6))
+        reference = bn(x.reshape(-1, 5)).reshape(3, 40, 5)
+        assert torch.allclose(ours, reference, atol=1e-5)
+        x = 2 * x + 1
+    assert torch.allclose(cbn.bn.running_mean, bn.running_mean) and torch.allclose(cbn.bn.running_var, bn.running_var)
+    cbn.eval(), bn.eval()
+    assert torch.allclose(cbn(x, code.expand(3, 6)), bn(x.reshape(-1, 5)).reshape(3, 40, 5), atol=1e-5)
+
+
+def test_occupancy_network_is_permutation_invariant_and_its_field_is_minus_the_shifted_logit():
+    torch.manual_seed(0)
+    net = OccupancyNetwork(PointNetEncoder(16, 16), CBNDecoder(16, 32)).eval()
+    cloud = torch.rand(2, 100, 3) - 0.5
+    code = net.encode(cloud)
+    assert code.shape == (2, 16)
+    assert torch.allclose(net.encode(cloud[:, torch.randperm(100)]), code, atol=1e-6)
+    x = torch.rand(7, 5, 3) - 0.5
+    logits = net.logits(x.reshape(1, -1, 3), code[:1]).reshape(7, 5)
+    assert torch.allclose(net(x, code[0]), -logits, atol=1e-6)
+    shifted = OccupancyNetwork(net.encoder, net.decoder, threshold=0.2).eval()
+    assert torch.allclose(shifted(x, code[0]), np.log(0.25) - logits, atol=1e-5)
+    # in eval mode the field of a point does not depend on the other points evaluated with it
+    assert torch.allclose(net(x[:2], code[0]), net(x, code[0])[:2], atol=1e-6)
+    with pytest.raises(InputError, match="encode a cloud"):
+        net(x)
+
+
+def test_collection_sdf_batches_and_terms(collection):
+    observation = CollectionSDF(collection, shapes_per_batch=5, samples_per_shape=64)
+    assert [p.name for p in observation.paths] == [f"{r.name}.npz" for r in RECORDS]
+    sampler = observation.prepare(Normalization(), 0.55, torch.device("cpu"), 0)
+    batch = sampler.sample(torch.Generator().manual_seed(0))
+    assert batch.points.shape == (2, 64, 3) and batch.sdf.shape == (2, 64)
+    assert sorted(batch.shape_index.tolist()) == [0, 1]  # distinct shapes, all of them when fewer than asked
+    for row, index in enumerate(batch.shape_index.tolist()):  # each sample with its own shape's distance
+        arrays = load_cache(cache_path(collection, RECORDS[index]))
+        pool = {tuple(p) for p in arrays["sdf_points"].tolist()}
+        assert all(tuple(p) in pool for p in batch.points[row].tolist())
+    torch.manual_seed(0)
+    model = AutoDecoder(SDFMLP(width=32, depth=2, skip_layers=(), latent_dim=4), LatentCodes(2, 4))
+    terms = sampler.losses(model, batch)
+    codes = model.codes.weight[batch.shape_index]
+    expected = clamped_l1(model.decoder(batch.points, codes[:, None].expand(2, 64, 4)).reshape(-1),
+                          batch.sdf.reshape(-1), 0.1)
+    assert torch.allclose(terms["sdf"], expected)
+    assert torch.allclose(terms["code"], codes.square().sum(-1).mean())
+    with pytest.raises(ConfigError, match="one code per shape"):
+        sampler.losses(AutoDecoder(model.decoder, LatentCodes(3, 4)), batch)
+
+
+def test_draw_shape_sdf_is_repeatable_and_keeps_points_with_their_values():
+    points = torch.rand(4, 100, 3)
+    values = points.sum(-1) + 10 * torch.arange(4)[:, None]  # a value that names its shape and point
+    a = draw_shape_sdf(points, values, 3, 10, torch.Generator().manual_seed(1))
+    b = draw_shape_sdf(points, values, 3, 10, torch.Generator().manual_seed(1))
+    assert torch.equal(a.points, b.points) and torch.equal(a.shape_index, b.shape_index)
+    assert len(set(a.shape_index.tolist())) == 3
+    assert torch.allclose(a.sdf, a.points.sum(-1) + 10 * a.shape_index[:, None])
+
+
+def test_collection_occupancy_batches_carry_the_cached_labels(collection):
+    observation = CollectionOccupancy(collection, shapes_per_batch=2, query_points=200, cloud_points=50,
+                                      cloud_noise=0.0, partial=1.0)
+    sampler = observation.prepare(Normalization(), 0.55, torch.device("cpu"), 0)
+    batch = sampler.sample(torch.Generator().manual_seed(0))
+    assert batch.clouds.shape == (2, 50, 3) and batch.points.shape == (2, 200, 3) and batch.inside.shape == (2, 200)
+    # labels are the cache's: look each query point up in its shape's pools
+    labelled = {}
+    for record in RECORDS:
+        arrays = load_cache(cache_path(collection, record))
+        for kind in ("uniform", "near"):
+            labelled.update(zip(map(tuple, arrays[f"occ_{kind}_points"].tolist()),
+                                arrays[f"occ_{kind}_inside"].tolist()))
+    for points, inside in zip(batch.points, batch.inside):
+        assert [labelled[tuple(p)] for p in points.tolist()] == inside.bool().tolist()
+    # one-sided clouds: without noise, every point is a surface sample seen from one side
+    assert sampler.losses(OccupancyNetwork(PointNetEncoder(8, 8), CBNDecoder(8, 16)), batch)["occupancy"] > 0
+
+
+def test_one_shape_code_recovers_each_training_shape(collection, auto_decoder):
+    """Each training code gives back its own shape (IoU on the cached uniform labels), and not the
+    other one's: the decoder learned a prior over the collection, not one shape."""
+    model = auto_decoder.model
+    history = auto_decoder.history["shapes/sdf"]
+    assert history[-1] < 0.6 * history[0]
+    with torch.no_grad():
+        for index, record in enumerate(RECORDS):
+            points, inside = _uniform_labels(collection, record)
+            own = _label_iou(model(points, model.codes.weight[index]), inside)
+            other = _label_iou(model(points, model.codes.weight[1 - index]), inside)
+            assert own > 0.7, (record.name, own)
+            assert other < 0.3, (record.name, other)
+
+
+def test_latent_fit_from_a_shapes_own_samples_returns_to_the_trained_codes_quality(collection, auto_decoder):
+    model = auto_decoder.model
+    decoder_state = {k: v.clone() for k, v in model.decoder.state_dict().items()}
+    record, index = RECORDS[0], 0
+    observation = SDFSampleSet.from_cache(cache_path(collection, record), batch_size=2048)
+    result = reconstruct_latent(model.decoder, [observation], steps=120, lr=2e-2, seed=0)
+    assert all(torch.equal(v, model.decoder.state_dict()[k]) for k, v in decoder_state.items())  # frozen
+    fitted = result.model.code.detach()
+    points, values = observation.points, observation.sdf
+    points_u, inside = _uniform_labels(collection, record)
+    with torch.no_grad():
+        trained_code = model.codes.weight[index]
+        loss = {name: clamped_l1(model.decoder(points, code), values, 0.1).item()
+                for name, code in (("fitted", fitted), ("trained", trained_code), ("other", model.codes.weight[1]),
+                                   ("zero", torch.zeros(8)))}
+        iou_fitted = _label_iou(model.decoder(points_u, fitted), inside)
+        iou_trained = _label_iou(model.decoder(points_u, trained_code), inside)
+    assert loss["fitted"] <= 1.15 * loss["trained"], loss
+    assert loss["fitted"] < 0.5 * min(loss["other"], loss["zero"]), loss
+    assert iou_fitted > iou_trained - 0.05, (iou_fitted, iou_trained)
+
+
+def test_latent_prior_pulls_the_code_to_zero_and_needs_a_code():
+    torch.manual_seed(0)
+    decoder = SDFMLP(width=16, depth=2, skip_layers=(), latent_dim=3)
+    model = LatentConditioned.from_code(decoder, torch.tensor([1.0, -2.0, 0.5]))
+    result = fit(model, [LatentPrior({"code": 1.0})], steps=200, trainable=[model.code], encoding_lr=None,
+                 normalization=Normalization(), progress=False,
+                 optimizer=functools.partial(default_optimizer, lr=5e-2))
+    assert result.model.code.norm() < 0.05
+    with pytest.raises(ConfigError, match="LatentConditioned"):
+        LatentPrior().prepare(Normalization(), 0.55, torch.device("cpu"), 0).losses(decoder, None)
+    with pytest.raises(InputError, match="own code"):
+        model(torch.zeros(2, 3), torch.zeros(3))
+
+
+@pytest.mark.slow
+def test_occupancy_network_trained_on_two_shapes_recovers_them_from_their_clouds(collection):
+    torch.manual_seed(0)
+    net = OccupancyNetwork(PointNetEncoder(32, 32), CBNDecoder(32, 64, blocks=3))
+    observation = CollectionOccupancy(collection, shapes_per_batch=2, query_points=1024, cloud_points=300)
+    result = fit(net, observation, steps=300, normalization=Normalization(), encoding_lr=None, progress=False,
+                 optimizer=functools.partial(default_optimizer, lr=1e-3), log_every=50)
+    assert result.history["occupancy/occupancy"][-1] < 0.5 * result.history["occupancy/occupancy"][0]
+    for record in RECORDS:
+        arrays = load_cache(cache_path(collection, record))
+        field = net.field_from_cloud(torch.from_numpy(arrays["surface_points"][:300]))
+        points, inside = _uniform_labels(collection, record)
+        with torch.no_grad():
+            assert _label_iou(field(points.double()), inside) > 0.6
