@@ -81,10 +81,12 @@ def _check_inputs(images: Tensor, lights: Tensor, mask: Tensor | None) -> tuple[
 
 def _gather(images: Tensor, mask: Tensor) -> tuple[Tensor, Tensor | None]:
     """Grey observations [n, p] of the masked pixels, and colour ones [n, p, 3] (or None)."""
+    n = images.shape[0]
+    full = bool(mask.all())  # no copy when every pixel is solved
     if images.ndim == 4:
-        color = images[:, mask]  # (n, p, 3)
+        color = images.reshape(n, -1, 3) if full else images[:, mask]  # (n, p, 3)
         return color.mean(-1), color
-    return images[:, mask], None
+    return (images.reshape(n, -1) if full else images[:, mask]), None
 
 
 def _solve_sym3(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
@@ -102,10 +104,11 @@ def _weighted_fit(gray: Tensor, lights: Tensor, weights: Tensor) -> tuple[Tensor
     a = (weights.T @ outer).reshape(-1, 3, 3)
     b = (weights * gray).T @ lights
     g, det = _solve_sym3(a, b)
-    # well posed: at least 3 observations and the kept lights not (nearly) coplanar
-    count = weights.sum(0)
-    scale = (a.diagonal(dim1=1, dim2=2).sum(-1) / 3).clamp_min(1e-12)
-    ok = (count >= 3 - 1e-6) & (det.abs() > 1e-6 * scale**3)
+    # well posed: at least 3 observations and the kept lights not (nearly) coplanar; unit lights make
+    # the trace of a the summed weight
+    count = a.diagonal(dim1=1, dim2=2).sum(-1)
+    scale = (count / 3).clamp_min(1e-12)
+    ok = (count >= 3 - 1e-4) & (det.abs() > 1e-6 * scale**3)
     return torch.where(ok[:, None], g, 0.0), ok
 
 
@@ -162,20 +165,62 @@ def least_squares_stereo(images: Tensor, lights: Tensor, mask: Tensor | None = N
         PhotometricStereoResult on the images' device.
     """
     images, lights, mask = _check_inputs(images, lights, mask)
-    gray, color = _gather(images, mask)
+    n, h, w = images.shape[:3]
+    color = images.ndim == 4
     lights64 = lights.double()
     if torch.linalg.matrix_rank(lights64) < 3:
         raise InputError("the light directions are coplanar (rank < 3); photometric stereo needs 3 independent lights")
-    solve = torch.linalg.solve(lights64.T @ lights64, lights64.T).to(gray.dtype)  # (3, n) pseudo-inverse
-    g = (solve @ gray).T  # (p, 3)
-    ok = torch.ones(g.shape[0], dtype=torch.bool, device=g.device)
-    return _result(g, ok, gray, color, lights, None, mask)
+    gram64 = lights64.T @ lights64
+    pseudo_inverse = torch.linalg.solve(gram64, lights64.T).to(images.dtype)  # (3, n)
+    gram = gram64.to(images.dtype)
+    full = bool(mask.all())
+    # one matrix product solves every pixel and channel: (3, n) @ (n, p * channels), a view when unmasked
+    flat = images.reshape(n, -1) if full else images[:, mask].reshape(n, -1)
+    solution = pseudo_inverse @ flat
+    if color:
+        per_channel = solution.reshape(3, -1, 3)  # g_c of each channel; the grey g is their mean (linear)
+        g = per_channel.mean(-1)
+        gray = flat.reshape(n, -1, 3).mean(-1)
+    else:
+        g, gray = solution, flat
+    rho = g.norm(dim=0)
+    ok = rho > 0
+    normal = g / rho.clamp_min(1e-12)
+    gram_normal = gram @ normal  # (3, p)
+    if color:  # per-channel albedo: least squares of I_c = rho_c (n . l) = n^T A g_c / n^T A n
+        albedo = (gram_normal[..., None] * per_channel).sum(0) / (gram_normal * normal).sum(0).clamp_min(1e-12)[:, None]
+    else:
+        albedo = rho
+    energy = (gray * gray).sum(0)
+    residual = (energy - (g * (gram @ g)).sum(0)).clamp_min(0)  # |I - L g|^2 at the least-squares optimum
+    confidence = torch.where(ok, (1 - (residual / energy.clamp_min(1e-12)).sqrt()).clamp(0, 1), 0.0)
+    normal, albedo = torch.where(ok, normal, 0.0).T, torch.where(ok[:, None] if color else ok, albedo, 0.0)
+    inliers = torch.full_like(rho, float(n))
+    if full:
+        return PhotometricStereoResult(normal.reshape(h, w, 3), albedo.reshape(h, w, *albedo.shape[1:]),
+                                       confidence.reshape(h, w), ok.reshape(h, w), inliers.reshape(h, w))
+    return _maps(mask, ok, normal, albedo, confidence, inliers)
+
+
+def _maps(mask: Tensor, ok: Tensor, normal: Tensor, albedo: Tensor, confidence: Tensor, inliers: Tensor
+          ) -> PhotometricStereoResult:
+    """Scatter per-pixel values of the masked pixels into (h, w, ...) maps (0 elsewhere)."""
+    h, w = mask.shape
+
+    def scatter(values: Tensor) -> Tensor:
+        out = torch.zeros((h, w, *values.shape[1:]), dtype=values.dtype, device=values.device)
+        out[mask] = values
+        return out
+
+    return PhotometricStereoResult(scatter(normal), scatter(albedo), scatter(confidence), scatter(ok),
+                                   scatter(inliers))
 
 
 def _trim_weights(gray: Tensor, dark_fraction: float, bright_fraction: float) -> Tensor:
     """Float[Tensor, "n p"]: 1 for observations ranked between the darkest and brightest cut, else 0."""
     n = gray.shape[0]
     low, high = int(math.floor(dark_fraction * n)), int(math.floor(bright_fraction * n))
+    by_pixel = gray.T.contiguous()  # (p, n): selection along contiguous memory is several times faster
     if n - low - high < 3:
         raise ConfigError(
             f"trimming {low} dark and {high} bright of {n} observations leaves fewer than 3; "
@@ -183,9 +228,9 @@ def _trim_weights(gray: Tensor, dark_fraction: float, bright_fraction: float) ->
         )
     keep = torch.ones_like(gray, dtype=torch.bool)
     if low > 0:
-        keep &= gray > torch.kthvalue(gray, low, dim=0).values[None]
+        keep &= gray > torch.kthvalue(by_pixel, low, dim=1).values[None]
     if high > 0:
-        keep &= gray < torch.kthvalue(gray, n - high + 1, dim=0).values[None]
+        keep &= gray < torch.kthvalue(by_pixel, n - high + 1, dim=1).values[None]
     # ties (e.g. many pixels exactly 0 in shadow) may remove more; never fewer than needed
     return keep.to(gray.dtype)
 
@@ -257,8 +302,9 @@ def robust_stereo(
     for _ in range(iterations):
         predicted = lights @ g.T  # (n, p) = rho n . l
         rho = g.norm(dim=-1).clamp_min(1e-12)
-        residual = (gray - predicted) / (scale * rho[None])
-        weights = lit * (predicted > 0).to(gray.dtype) * (1 - residual**2).clamp_min(0) ** 2  # Tukey
+        # Tukey weights (1 - (r / (scale rho))^2)^2, in place over the (n, p) observations
+        weights = torch.sub(gray, predicted).div_(scale * rho[None]).square_().neg_().add_(1).clamp_(min=0).square_()
+        weights.mul_(lit).masked_fill_(predicted <= 0, 0.0)
         g_new, ok_new = _weighted_fit(gray, lights, weights)
         g = torch.where(ok_new[:, None], g_new, g)  # a pixel whose reweighted fit degenerates keeps its last g
     usable = (lit * (lights @ g.T > 0).to(gray.dtype)).sum(0)
