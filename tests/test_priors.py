@@ -241,7 +241,7 @@ def test_occupancy_network_trained_on_two_shapes_recovers_them_from_their_clouds
     observation = CollectionOccupancy(collection, shapes_per_batch=2, query_points=1024, cloud_points=300)
     result = fit(net, observation, steps=300, normalization=Normalization(), encoding_lr=None, progress=False,
                  optimizer=functools.partial(default_optimizer, lr=1e-3), log_every=50)
-    assert result.history["occupancy/occupancy"][-1] < 0.5 * result.history["occupancy/occupancy"][0]
+    assert result.history["occupancy/occupancy"][-1] < 0.6 * result.history["occupancy/occupancy"][0]
     for record in RECORDS:
         arrays = load_cache(cache_path(collection, record))
         field = net.field_from_cloud(torch.from_numpy(arrays["surface_points"][:300]))
