@@ -126,6 +126,12 @@ def accuracy(args) -> None:
                       lambertian.normals, lit)
     print(f"  {'rig_lambertian, pixels lit by all':36s} least_squares_stereo   mean {e.mean_deg:7.3f} deg  "
           f"({int(lit.sum())} of {int(lambertian.mask.sum())} pixels)")
+    linear = render_photometric(mesh, lights, cam_to_world=pose, width=size, height=size, fov_deg=30,
+                                shadows=False, attached_shadows=False)[0]
+    e = angular_error(least_squares_stereo(linear.images, linear.light_directions, linear.mask).normals,
+                      linear.normals, linear.mask)
+    print(f"  {'rig_lambertian, no attached shadows':36s} least_squares_stereo   mean {e.mean_deg:7.3f} deg  "
+          f"median {e.median_deg:7.3f} deg (unclamped n . l: no shadow of any kind)")
     specular = render_photometric(mesh, lights, cam_to_world=pose, width=size, height=size, fov_deg=30,
                                   specular=SpecularLobe("blinn_phong", strength=0.6, shininess=40.0), shadows=True)[0]
     report_stereo("rig_specular (Blinn-Phong, shadows)", specular.images, specular.light_directions,

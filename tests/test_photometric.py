@@ -349,6 +349,12 @@ def test_rig_lambertian_least_squares_is_exact_where_every_light_is_on(sphere_ca
     lit = capture.mask & (capture.images > 0).all(0)
     result = least_squares_stereo(capture.images, capture.light_directions, capture.mask)
     assert angular_error(result.normals, capture.normals, lit).mean_deg < 0.01
+    # without the clamp of attached shadows (an idealised linear sensor) it is exact everywhere
+    linear = render_photometric(SPHERE.mesh(5), ring_lights(8, 35.0), cam_to_world=torch.eye(4), width=64,
+                                height=64, fov_deg=30, shadows=False, attached_shadows=False)[0]
+    assert (linear.images < 0).any()
+    result = least_squares_stereo(linear.images, linear.light_directions, linear.mask)
+    assert angular_error(result.normals, linear.normals, linear.mask).mean_deg < 0.01
 
 
 def test_rig_cast_shadows_specular_noise_and_quantisation():

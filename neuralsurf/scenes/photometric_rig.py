@@ -158,6 +158,7 @@ def render_photometric(
     albedo=0.8,
     specular: SpecularLobe | None = None,
     shadows: bool = True,
+    attached_shadows: bool = True,
     smooth: bool = True,
     intensity: float = 1.0,
     noise_sigma: float = 0.0,
@@ -177,7 +178,10 @@ def render_photometric(
         albedo: a number (grey images), an RGB triple, "vertex" (the mesh's vertex colours,
             interpolated) or a callable world points [m, 3] -> [m] or [m, 3] (e.g. `checker_albedo`).
         specular: a `SpecularLobe`, or None for a Lambertian surface.
-        shadows: cast shadows by ray casting towards each light (attached shadows are always there).
+        shadows: cast shadows by ray casting towards each light.
+        attached_shadows: clamp the Lambertian term at 0 where the surface faces away from the light
+            (physical). False renders albedo * n . l unclamped, negative values included: an idealised
+            shadow-free sensor for testing solvers (clipping by noise or `bits` brings the clamp back).
         smooth: shade with interpolated vertex normals (else face normals).
         intensity: radiance scale of every light.
         noise_sigma: standard deviation of additive Gaussian sensor noise (image units, 1 = white).
@@ -258,7 +262,8 @@ def render_photometric(
         images = torch.zeros(len(lights), height, width, *values.shape[1:], dtype=torch.float64)
         for i, light in enumerate(world_lights):
             n_dot_l = normal @ light
-            radiance = values * (n_dot_l.clamp_min(0)[:, None] if values.ndim == 2 else n_dot_l.clamp_min(0))
+            shading = n_dot_l.clamp_min(0) if attached_shadows else n_dot_l
+            radiance = values * (shading[:, None] if values.ndim == 2 else shading)
             if specular is not None:
                 half = torch.nn.functional.normalize(light + to_camera, dim=-1)
                 lobe = specular(n_dot_l, (normal * to_camera).sum(-1), (normal * half).sum(-1),
