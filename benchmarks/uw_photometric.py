@@ -61,10 +61,18 @@ def depth_picture(depth: torch.Tensor, mask: torch.Tensor) -> np.ndarray:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=os.environ.get("NEURALSURF_DATA",
-                                                         str(Path(__file__).resolve().parents[2] / "shared" / "data")))
-    parser.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "images" / "photometric"))
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--data",
+        default=os.environ.get(
+            "NEURALSURF_DATA", str(Path(__file__).resolve().parents[2] / "shared" / "data")
+        ),
+    )
+    parser.add_argument(
+        "--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "images" / "photometric")
+    )
     parser.add_argument("--method", choices=("robust", "least_squares"), default="robust")
     parser.add_argument("--scale", type=float, default=0.5, help="size of the saved pictures")
     parser.add_argument("--threads", type=int, default=2)
@@ -79,23 +87,31 @@ def main() -> None:
     chrome, chrome_mask = read_image_list(root / "chrome.txt")
     calibration = calibrate_chrome_ball(chrome, chrome_mask)
     lights = calibration.directions
-    print(f"chrome ball: centre (u, v) = ({float(calibration.center[0]):.1f}, {float(calibration.center[1]):.1f}), "
-          f"radius {calibration.radius:.1f} px")
+    print(
+        f"chrome ball: centre (u, v) = ({float(calibration.center[0]):.1f}, {float(calibration.center[1]):.1f}), "
+        f"radius {calibration.radius:.1f} px"
+    )
     print("calibrated lights (towards the light; camera frame x right, y down, z forward | DiLiGenT axes):")
     for i, (light, spot) in enumerate(zip(lights, calibration.highlights)):
         d = camera_to_diligent(light)
-        print(f"  {i:2d}: highlight ({float(spot[0]):6.1f}, {float(spot[1]):6.1f})  "
-              f"camera ({float(light[0]):+.4f}, {float(light[1]):+.4f}, {float(light[2]):+.4f})  "
-              f"diligent ({float(d[0]):+.4f}, {float(d[1]):+.4f}, {float(d[2]):+.4f})")
+        print(
+            f"  {i:2d}: highlight ({float(spot[0]):6.1f}, {float(spot[1]):6.1f})  "
+            f"camera ({float(light[0]):+.4f}, {float(light[1]):+.4f}, {float(light[2]):+.4f})  "
+            f"diligent ({float(d[0]):+.4f}, {float(d[1]):+.4f}, {float(d[2]):+.4f})"
+        )
 
-    solve = robust_stereo if args.method == "robust" else least_squares_stereo
-    print(f"\n{'object':8s} {'pixels':>7s} {'LS |I - I_hat|':>15s} {'robust |I - I_hat|':>19s} "
-          f"{'relative (robust)':>18s} {'seconds':>8s}")
+    print(
+        f"\n{'object':8s} {'pixels':>7s} {'LS |I - I_hat|':>15s} {'robust |I - I_hat|':>19s} "
+        f"{'relative (robust)':>18s} {'seconds':>8s}"
+    )
     total_bytes = 0
     for name in OBJECTS:
         images, mask = read_image_list(root / f"{name}.txt")
         start = time.perf_counter()
-        results = {"least_squares": least_squares_stereo(images, lights, mask), "robust": robust_stereo(images, lights, mask)}
+        results = {
+            "least_squares": least_squares_stereo(images, lights, mask),
+            "robust": robust_stereo(images, lights, mask),
+        }
         errors = {}
         for key, result in results.items():
             rerendered = render_lambertian(result.normals, result.albedo, lights)
@@ -104,20 +120,33 @@ def main() -> None:
         result = results[args.method]
         depth = integrate_least_squares(result.normals, result.mask).depth
         seconds = time.perf_counter() - start
-        print(f"{name:8s} {int(mask.sum()):7d} {255 * errors['least_squares'][0]:12.2f} /255 "
-              f"{255 * errors['robust'][0]:15.2f} /255 {100 * errors['robust'][1]:16.1f} % {seconds:8.1f}")
+        print(
+            f"{name:8s} {int(mask.sum()):7d} {255 * errors['least_squares'][0]:12.2f} /255 "
+            f"{255 * errors['robust'][0]:15.2f} /255 {100 * errors['robust'][1]:16.1f} % {seconds:8.1f}"
+        )
         rows, cols = np.nonzero(mask.numpy())
         crop = (slice(max(rows.min() - 4, 0), rows.max() + 5), slice(max(cols.min() - 4, 0), cols.max() + 5))
-        panel = np.concatenate([picture[crop] for picture in (
-            normal_picture(result.normals, result.mask), albedo_picture(result.albedo, result.mask),
-            depth_picture(depth, result.mask))], axis=1)
+        panel = np.concatenate(
+            [
+                picture[crop]
+                for picture in (
+                    normal_picture(result.normals, result.mask),
+                    albedo_picture(result.albedo, result.mask),
+                    depth_picture(depth, result.mask),
+                )
+            ],
+            axis=1,
+        )
         image = Image.fromarray(np.round(panel * 255).astype(np.uint8))
-        image = image.resize((max(1, round(image.width * args.scale)), max(1, round(image.height * args.scale))),
-                             Image.LANCZOS)
+        image = image.resize(
+            (max(1, round(image.width * args.scale)), max(1, round(image.height * args.scale))), Image.LANCZOS
+        )
         path = out / f"uw_{name}.png"
         image.save(path, optimize=True)
         total_bytes += path.stat().st_size
-    print(f"\nsaved {len(OBJECTS)} pictures (normal map | albedo | depth) under {out}: {total_bytes / 1024:.0f} KiB")
+    print(
+        f"\nsaved {len(OBJECTS)} pictures (normal map | albedo | depth) under {out}: {total_bytes / 1024:.0f} KiB"
+    )
 
 
 if __name__ == "__main__":

@@ -113,8 +113,14 @@ def _weighted_fit(gray: Tensor, lights: Tensor, weights: Tensor) -> tuple[Tensor
 
 
 def _result(
-    g: Tensor, ok: Tensor, gray: Tensor, color: Tensor | None, lights: Tensor, weights: Tensor | None,
-    mask: Tensor, usable: Tensor | None = None,
+    g: Tensor,
+    ok: Tensor,
+    gray: Tensor,
+    color: Tensor | None,
+    lights: Tensor,
+    weights: Tensor | None,
+    mask: Tensor,
+    usable: Tensor | None = None,
 ) -> PhotometricStereoResult:
     """Assemble the per-pixel solution g [p, 3] into maps: normals, albedo (per channel), confidence."""
     h, w = mask.shape
@@ -141,7 +147,7 @@ def _result(
         out[mask] = values
         return out
 
-    zero = lambda t: torch.where(ok.reshape(-1, *([1] * (t.ndim - 1))), t, 0.0)  # noqa: E731
+    zero = lambda t: torch.where(ok.reshape(-1, *([1] * (t.ndim - 1))), t, 0.0)
     solved = torch.zeros(h, w, dtype=torch.bool, device=mask.device)
     solved[mask] = ok
     return PhotometricStereoResult(
@@ -153,7 +159,9 @@ def _result(
     )
 
 
-def least_squares_stereo(images: Tensor, lights: Tensor, mask: Tensor | None = None) -> PhotometricStereoResult:
+def least_squares_stereo(
+    images: Tensor, lights: Tensor, mask: Tensor | None = None
+) -> PhotometricStereoResult:
     """Lambertian photometric stereo by linear least squares over every light (Woodham 1980).
 
     Args:
@@ -169,7 +177,9 @@ def least_squares_stereo(images: Tensor, lights: Tensor, mask: Tensor | None = N
     color = images.ndim == 4
     lights64 = lights.double()
     if torch.linalg.matrix_rank(lights64) < 3:
-        raise InputError("the light directions are coplanar (rank < 3); photometric stereo needs 3 independent lights")
+        raise InputError(
+            "the light directions are coplanar (rank < 3); photometric stereo needs 3 independent lights"
+        )
     gram64 = lights64.T @ lights64
     pseudo_inverse = torch.linalg.solve(gram64, lights64.T).to(images.dtype)  # (3, n)
     gram = gram64.to(images.dtype)
@@ -188,7 +198,9 @@ def least_squares_stereo(images: Tensor, lights: Tensor, mask: Tensor | None = N
     normal = g / rho.clamp_min(1e-12)
     gram_normal = gram @ normal  # (3, p)
     if color:  # per-channel albedo: least squares of I_c = rho_c (n . l) = n^T A g_c / n^T A n
-        albedo = (gram_normal[..., None] * per_channel).sum(0) / (gram_normal * normal).sum(0).clamp_min(1e-12)[:, None]
+        albedo = (gram_normal[..., None] * per_channel).sum(0) / (gram_normal * normal).sum(0).clamp_min(
+            1e-12
+        )[:, None]
     else:
         albedo = rho
     energy = (gray * gray).sum(0)
@@ -197,13 +209,19 @@ def least_squares_stereo(images: Tensor, lights: Tensor, mask: Tensor | None = N
     normal, albedo = torch.where(ok, normal, 0.0).T, torch.where(ok[:, None] if color else ok, albedo, 0.0)
     inliers = torch.full_like(rho, float(n))
     if full:
-        return PhotometricStereoResult(normal.reshape(h, w, 3), albedo.reshape(h, w, *albedo.shape[1:]),
-                                       confidence.reshape(h, w), ok.reshape(h, w), inliers.reshape(h, w))
+        return PhotometricStereoResult(
+            normal.reshape(h, w, 3),
+            albedo.reshape(h, w, *albedo.shape[1:]),
+            confidence.reshape(h, w),
+            ok.reshape(h, w),
+            inliers.reshape(h, w),
+        )
     return _maps(mask, ok, normal, albedo, confidence, inliers)
 
 
-def _maps(mask: Tensor, ok: Tensor, normal: Tensor, albedo: Tensor, confidence: Tensor, inliers: Tensor
-          ) -> PhotometricStereoResult:
+def _maps(
+    mask: Tensor, ok: Tensor, normal: Tensor, albedo: Tensor, confidence: Tensor, inliers: Tensor
+) -> PhotometricStereoResult:
     """Scatter per-pixel values of the masked pixels into (h, w, ...) maps (0 elsewhere)."""
     h, w = mask.shape
 
@@ -212,14 +230,15 @@ def _maps(mask: Tensor, ok: Tensor, normal: Tensor, albedo: Tensor, confidence: 
         out[mask] = values
         return out
 
-    return PhotometricStereoResult(scatter(normal), scatter(albedo), scatter(confidence), scatter(ok),
-                                   scatter(inliers))
+    return PhotometricStereoResult(
+        scatter(normal), scatter(albedo), scatter(confidence), scatter(ok), scatter(inliers)
+    )
 
 
 def _trim_weights(gray: Tensor, dark_fraction: float, bright_fraction: float) -> Tensor:
     """Float[Tensor, "n p"]: 1 for observations ranked between the darkest and brightest cut, else 0."""
     n = gray.shape[0]
-    low, high = int(math.floor(dark_fraction * n)), int(math.floor(bright_fraction * n))
+    low, high = math.floor(dark_fraction * n), math.floor(bright_fraction * n)
     by_pixel = gray.T.contiguous()  # (p, n): selection along contiguous memory is several times faster
     if n - low - high < 3:
         raise ConfigError(
@@ -303,10 +322,20 @@ def robust_stereo(
         predicted = lights @ g.T  # (n, p) = rho n . l
         rho = g.norm(dim=-1).clamp_min(1e-12)
         # Tukey weights (1 - (r / (scale rho))^2)^2, in place over the (n, p) observations
-        weights = torch.sub(gray, predicted).div_(scale * rho[None]).square_().neg_().add_(1).clamp_(min=0).square_()
+        weights = (
+            torch.sub(gray, predicted)
+            .div_(scale * rho[None])
+            .square_()
+            .neg_()
+            .add_(1)
+            .clamp_(min=0)
+            .square_()
+        )
         weights.mul_(lit).masked_fill_(predicted <= 0, 0.0)
         g_new, ok_new = _weighted_fit(gray, lights, weights)
-        g = torch.where(ok_new[:, None], g_new, g)  # a pixel whose reweighted fit degenerates keeps its last g
+        g = torch.where(
+            ok_new[:, None], g_new, g
+        )  # a pixel whose reweighted fit degenerates keeps its last g
     usable = (lit * (lights @ g.T > 0).to(gray.dtype)).sum(0)
     return _result(g, ok, gray, color, lights, weights, mask, usable=usable)
 
@@ -315,7 +344,9 @@ METHODS = {"least_squares": least_squares_stereo, "trimmed": trimmed_stereo, "ro
 """Photometric-stereo methods by name (for configs): each `(images, lights, mask, **options)`."""
 
 
-def photometric_stereo(capture: PhotometricCapture, method: str = "robust", **options) -> PhotometricStereoResult:
+def photometric_stereo(
+    capture: PhotometricCapture, method: str = "robust", **options
+) -> PhotometricStereoResult:
     """Run one of `METHODS` on a capture's images, lights and mask (on the capture's device)."""
     if method not in METHODS:
         raise ConfigError(f"unknown photometric-stereo method {method!r}; choose one of {sorted(METHODS)}")
@@ -352,7 +383,9 @@ def angular_error(estimate: Tensor, truth: Tensor, mask: Tensor | None = None) -
     """Mean and median angle in degrees between normal maps estimate, truth [h, w, 3], over `mask`
     (default: where both are non-zero). Pixels where the estimate is zero (unsolved) count as 90 deg."""
     if estimate.shape != truth.shape or estimate.shape[-1] != 3:
-        raise InputError(f"normal maps must both be (h, w, 3), got {tuple(estimate.shape)} and {tuple(truth.shape)}")
+        raise InputError(
+            f"normal maps must both be (h, w, 3), got {tuple(estimate.shape)} and {tuple(truth.shape)}"
+        )
     truth = truth.to(estimate)
     if mask is None:
         mask = truth.norm(dim=-1) > 0
@@ -444,7 +477,9 @@ def calibrate_chrome_ball(images: Tensor, mask: Tensor, threshold: float = 0.5) 
         labels, _ = ndimage.label((values >= threshold * peak).numpy())
         brightest = np.unravel_index(int(values.argmax()), values.shape)
         blob = torch.from_numpy(labels == labels[brightest])
-        weight = torch.where(blob, values - threshold * peak, 0.0).double() + 1e-12 * blob  # saturated: uniform
+        weight = (
+            torch.where(blob, values - threshold * peak, 0.0).double() + 1e-12 * blob
+        )  # saturated: uniform
         highlights.append(torch.stack([(weight * u).sum(), (weight * v).sum()]) / weight.sum())
     highlights = torch.stack(highlights)
     xy = (highlights - center) / radius
@@ -512,7 +547,9 @@ def _check_integration_inputs(normals: Tensor, mask: Tensor | None, K) -> tuple[
     return normals, mask
 
 
-def _pairs(mask: np.ndarray, index: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _pairs(
+    mask: np.ndarray, index: np.ndarray, axis: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Pixel pairs (a, b) with b the next pixel along `axis` (1: u, 0: v), both in the mask: flat
     positions in the image and unknown indices."""
     if axis == 1:
@@ -535,7 +572,9 @@ def _solve(matrix, rhs: np.ndarray, refinements: int = 3) -> np.ndarray:
     from scipy.sparse.linalg import splu
 
     epsilon = 1e-9 * float(matrix.diagonal().mean())
-    factor = splu((matrix + epsilon * identity(matrix.shape[0], format="csr")).tocsc(), permc_spec="MMD_AT_PLUS_A")
+    factor = splu(
+        (matrix + epsilon * identity(matrix.shape[0], format="csr")).tocsc(), permc_spec="MMD_AT_PLUS_A"
+    )
     solution = factor.solve(rhs)
     for _ in range(refinements):
         solution = solution + factor.solve(rhs - matrix @ solution)
@@ -587,8 +626,9 @@ def integrate_least_squares(
         vals += [np.ones(len(a)), -np.ones(len(a))]
         rhs.append((target[a] + target[b]) / 2)
         count += len(a)
-    A = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                   shape=(count, int(m.sum()))).tocsr()
+    A = coo_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(count, int(m.sum()))
+    ).tocsr()
     b = np.concatenate(rhs)
     t = _solve((A.T @ A).tocsr(), A.T @ b)
     return _finish(t, mask, K, 0, normals.dtype if normals.is_floating_point() else torch.float32)
@@ -635,8 +675,10 @@ def integrate_bilateral(
     for axis, target in ((1, p.ravel()), (0, q.ravel())):
         a, b, ia, ib = _pairs(m, index, axis)
         e = np.arange(len(a))
-        D = coo_matrix((np.r_[np.ones(len(a)), -np.ones(len(a))], (np.r_[e, e], np.r_[ib, ia])),
-                       shape=(len(a), n_unknowns)).tocsr()
+        D = coo_matrix(
+            (np.r_[np.ones(len(a)), -np.ones(len(a))], (np.r_[e, e], np.r_[ib, ia])),
+            shape=(len(a), n_unknowns),
+        ).tocsr()
         blocks.append((D, ia, ib, target[a], target[b], footprint[a]))
     t = np.zeros(n_unknowns)
     done, energy_before = 0, None
@@ -668,7 +710,9 @@ def integrate_bilateral(
             rhs += D.T @ (weight * target)
             terms.append((D, wf, wb, target_a, target_b))
         t = _solve(system.tocsr(), rhs)
-        energy = sum(float((wf * (D @ t - ta) ** 2 + wb * (D @ t - tb) ** 2).sum()) for D, wf, wb, ta, tb in terms)
+        energy = sum(
+            float((wf * (D @ t - ta) ** 2 + wb * (D @ t - tb) ** 2).sum()) for D, wf, wb, ta, tb in terms
+        )
         if energy_before is not None and abs(energy - energy_before) <= tolerance * abs(energy_before):
             break
         energy_before = energy
@@ -687,12 +731,16 @@ class DepthError:
     offset: float
 
 
-def depth_error(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, align: str = "scale") -> DepthError:
+def depth_error(
+    estimate: Tensor, truth: Tensor, mask: Tensor | None = None, align: str = "scale"
+) -> DepthError:
     """Mean absolute error of depth estimate [h, w] against truth [h, w] over `mask` (default: truth > 0)
     after the least-squares alignment `align`: "scale" (s * estimate; perspective integration),
     "offset" (estimate + o; orthographic integration), "scale_offset" (s * estimate + o) or "none"."""
     if estimate.shape != truth.shape or estimate.ndim != 2:
-        raise InputError(f"depth maps must both be (h, w), got {tuple(estimate.shape)} and {tuple(truth.shape)}")
+        raise InputError(
+            f"depth maps must both be (h, w), got {tuple(estimate.shape)} and {tuple(truth.shape)}"
+        )
     if align not in ("scale", "offset", "scale_offset", "none"):
         raise ConfigError(f"align must be 'scale', 'offset', 'scale_offset' or 'none', got {align!r}")
     truth = truth.to(estimate.device)
@@ -710,8 +758,9 @@ def depth_error(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, ali
         solution = torch.linalg.lstsq(design, t[:, None]).solution[:, 0]
         scale, offset = float(solution[0]), float(solution[1])
     aligned = torch.where(mask, estimate.double() * scale + offset, 0.0)
-    return DepthError(float((aligned[mask] - truth[mask].double()).abs().mean()), aligned.to(estimate.dtype),
-                      scale, offset)
+    return DepthError(
+        float((aligned[mask] - truth[mask].double()).abs().mean()), aligned.to(estimate.dtype), scale, offset
+    )
 
 
 __all__ = [

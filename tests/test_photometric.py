@@ -41,8 +41,9 @@ from neuralsurf.structures import Mesh, PhotometricCapture
 
 def sphere_normals(size: int = 64, radius: float = 0.45) -> tuple[torch.Tensor, torch.Tensor]:
     """Analytic normals of an orthographic sphere filling the image: normals (h, w, 3), mask (h, w)."""
-    v, u = torch.meshgrid(torch.arange(size, dtype=torch.float64), torch.arange(size, dtype=torch.float64),
-                          indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(size, dtype=torch.float64), torch.arange(size, dtype=torch.float64), indexing="ij"
+    )
     centre = (size - 1) / 2
     x, y = (u - centre) / (radius * size), (v - centre) / (radius * size)
     mask = x**2 + y**2 < 0.98
@@ -54,8 +55,18 @@ def tilted(directions) -> torch.Tensor:
     return torch.nn.functional.normalize(torch.tensor(directions, dtype=torch.float64), dim=-1)
 
 
-LIGHTS = tilted([[0.3, 0.2, -1], [-0.4, 0.1, -1], [0.1, -0.5, -1], [0.5, 0.5, -1], [-0.3, -0.3, -1],
-                 [0.0, 0.6, -1], [-0.6, 0.0, -1], [0.2, -0.1, -1]])
+LIGHTS = tilted(
+    [
+        [0.3, 0.2, -1],
+        [-0.4, 0.1, -1],
+        [0.1, -0.5, -1],
+        [0.5, 0.5, -1],
+        [-0.3, -0.3, -1],
+        [0.0, 0.6, -1],
+        [-0.6, 0.0, -1],
+        [0.2, -0.1, -1],
+    ]
+)
 
 
 # ---------------------------------------------------------------------------------------------- stereo
@@ -116,7 +127,9 @@ def test_robust_beats_least_squares_under_shadows_and_highlights():
     ls = angular_error(least_squares_stereo(images, lights.float(), mask).normals, normals.float(), mask)
     robust = angular_error(robust_stereo(images, lights.float(), mask).normals, normals.float(), mask)
     assert robust.mean_deg <= 0.7 * ls.mean_deg
-    assert robust.median_deg < 0.5  # the mean carries pixels facing the camera, where most lights give highlights
+    assert (
+        robust.median_deg < 0.5
+    )  # the mean carries pixels facing the camera, where most lights give highlights
 
 
 def test_colour_albedo_and_photometric_stereo_on_a_capture():
@@ -135,7 +148,9 @@ def test_colour_albedo_and_photometric_stereo_on_a_capture():
 def test_angular_error_of_a_known_tilt():
     normals, mask = sphere_normals(32)
     tangent = torch.nn.functional.normalize(
-        torch.linalg.cross(normals, torch.tensor([0.3, 0.5, 0.8], dtype=torch.float64).expand_as(normals)), dim=-1)
+        torch.linalg.cross(normals, torch.tensor([0.3, 0.5, 0.8], dtype=torch.float64).expand_as(normals)),
+        dim=-1,
+    )
     tilted_normals = normals + math.tan(math.radians(10.0)) * tangent  # 10 degrees away from every normal
     error = angular_error(tilted_normals * mask[..., None], normals, mask)
     assert abs(error.mean_deg - 10.0) < 1e-6 and abs(error.median_deg - 10.0) < 1e-6
@@ -164,7 +179,9 @@ def test_stereo_input_errors():
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 def test_stereo_runs_on_cuda_and_agrees_with_the_cpu():
     normals, mask = sphere_normals(64)
-    images = render_lambertian(normals, torch.full(mask.shape, 0.5, dtype=torch.float64), cap_lights(20)).float()
+    images = render_lambertian(
+        normals, torch.full(mask.shape, 0.5, dtype=torch.float64), cap_lights(20)
+    ).float()
     lights = cap_lights(20).float()
     for method in (least_squares_stereo, robust_stereo):
         cpu = method(images, lights, mask)
@@ -176,18 +193,21 @@ def test_stereo_runs_on_cuda_and_agrees_with_the_cpu():
 # ---------------------------------------------------------------------------------------------- chrome ball
 
 
-def render_chrome_ball(lights: torch.Tensor, size: int = 96, radius_px: float = 30.0, spread_deg: float = 3.0):
+def render_chrome_ball(
+    lights: torch.Tensor, size: int = 96, radius_px: float = 30.0, spread_deg: float = 3.0
+):
     """Orthographic images of a mirror sphere under distant lights: each pixel reflects the view
     direction about its normal, and a light shows where the reflection points at it (a Gaussian lobe)."""
-    v, u = torch.meshgrid(torch.arange(size, dtype=torch.float64), torch.arange(size, dtype=torch.float64),
-                          indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(size, dtype=torch.float64), torch.arange(size, dtype=torch.float64), indexing="ij"
+    )
     cu, cv = 0.52 * size, 0.47 * size
     x, y = (u - cu) / radius_px, (v - cv) / radius_px
     mask = x**2 + y**2 <= 1
     normals = torch.stack([x, y, -torch.sqrt((1 - x**2 - y**2).clamp_min(0))], -1)
     reflected = reflect_view(normals)
     cosine = torch.einsum("nk,hwk->nhw", lights, reflected).clamp(-1, 1)
-    images = torch.exp(-(torch.rad2deg(torch.acos(cosine)) / spread_deg) ** 2) * mask
+    images = torch.exp(-((torch.rad2deg(torch.acos(cosine)) / spread_deg) ** 2)) * mask
     return images.float(), mask, (cu, cv)
 
 
@@ -205,7 +225,9 @@ def test_chrome_ball_calibration_recovers_the_lights():
 
 def test_reflect_view_is_a_mirror_reflection():
     facing = torch.tensor([[0.0, 0.0, -1.0]])
-    torch.testing.assert_close(reflect_view(facing), torch.tensor([[0.0, 0.0, -1.0]]))  # light behind the camera
+    torch.testing.assert_close(
+        reflect_view(facing), torch.tensor([[0.0, 0.0, -1.0]])
+    )  # light behind the camera
     tilted45 = torch.tensor([[math.sin(math.pi / 8), 0.0, -math.cos(math.pi / 8)]])
     light = reflect_view(tilted45)[0]
     assert abs(math.degrees(math.acos(-float(light[2]))) - 45.0) < 1e-5 and light[0] > 0
@@ -216,7 +238,9 @@ def test_reflect_view_is_a_mirror_reflection():
 
 def test_integration_recovers_a_tilted_plane_orthographic_and_perspective():
     h, w = 24, 32
-    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij"
+    )
     # orthographic: z = 0.3 u - 0.2 v (pixel units), normal (dz/du, dz/dv, -1)
     slope = torch.tensor([0.3, -0.2, -1.0], dtype=torch.float64)
     normals = torch.nn.functional.normalize(slope, dim=0).expand(h, w, 3)
@@ -238,7 +262,9 @@ def test_integration_recovers_a_tilted_plane_orthographic_and_perspective():
 def sphere_cap(h: int = 48, w: int = 64, K: torch.Tensor | None = None):
     """Normals and depth of a sphere (centre (0, 0, 3), radius 1) seen by `K` (default: orthographic,
     one pixel = 0.025 units): normals (h, w, 3), depth (h, w), mask."""
-    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij"
+    )
     centre = torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64)
     if K is None:
         x, y = (u - (w - 1) / 2) * 0.025, (v - (h - 1) / 2) * 0.025
@@ -260,7 +286,11 @@ def sphere_cap(h: int = 48, w: int = 64, K: torch.Tensor | None = None):
 
 @pytest.mark.parametrize("perspective", [False, True])
 def test_integration_recovers_a_sphere_cap(perspective):
-    K = torch.tensor([[70.0, 0, 31.5], [0, 70.0, 23.5], [0, 0, 1]], dtype=torch.float64) if perspective else None
+    K = (
+        torch.tensor([[70.0, 0, 31.5], [0, 70.0, 23.5], [0, 0, 1]], dtype=torch.float64)
+        if perspective
+        else None
+    )
     normals, depth, mask = sphere_cap(K=K)
     for integrate in (integrate_least_squares, integrate_bilateral):
         result = integrate(normals, mask, K=K, pixel_size=0.025)
@@ -278,8 +308,15 @@ def dome_on_ground(width: int = 64, height: int = 48) -> PhotometricCapture:
     ground = trimesh.Trimesh([[-3, 0, -3], [3, 0, -3], [3, 0, 3], [-3, 0, 3]], [[0, 2, 1], [0, 3, 2]])
     scene = trimesh.util.concatenate([dome, ground])
     pose = look_at((0.0, 0.7, -1.3), (0.0, 0.1, 0.0), up=(0, 1, 0))
-    return render_photometric(Mesh(scene.vertices, scene.faces), ring_lights(3, 30.0), cam_to_world=pose,
-                              width=width, height=height, fov_deg=40, shadows=False)[0]
+    return render_photometric(
+        Mesh(scene.vertices, scene.faces),
+        ring_lights(3, 30.0),
+        cam_to_world=pose,
+        width=width,
+        height=height,
+        fov_deg=40,
+        shadows=False,
+    )[0]
 
 
 def step_band(depth: torch.Tensor, mask: torch.Tensor, relative_jump: float = 0.03) -> torch.Tensor:
@@ -313,7 +350,9 @@ def test_integration_and_depth_error_input_errors():
         integrate_least_squares(torch.zeros(4, 4, 3))
     with pytest.raises(ConfigError, match="align"):
         depth_error(torch.ones(2, 2), torch.ones(2, 2), align="affine")
-    aligned = depth_error(2 * torch.ones(3, 3) + torch.eye(3), 4 * torch.ones(3, 3) + 2 * torch.eye(3), align="scale")
+    aligned = depth_error(
+        2 * torch.ones(3, 3) + torch.eye(3), 4 * torch.ones(3, 3) + 2 * torch.eye(3), align="scale"
+    )
     assert aligned.mean_abs < 1e-6 and abs(aligned.scale - 2) < 1e-9
 
 
@@ -325,15 +364,24 @@ SPHERE = Sphere(center=(0.0, 0.0, 2.0), radius=0.4)
 
 @pytest.fixture(scope="module")
 def sphere_capture() -> PhotometricCapture:
-    return render_photometric(SPHERE.mesh(5), ring_lights(8, 35.0), cam_to_world=torch.eye(4),
-                              width=64, height=64, fov_deg=30, shadows=False)[0]
+    return render_photometric(
+        SPHERE.mesh(5),
+        ring_lights(8, 35.0),
+        cam_to_world=torch.eye(4),
+        width=64,
+        height=64,
+        fov_deg=30,
+        shadows=False,
+    )[0]
 
 
 def test_rig_ground_truth_matches_the_analytic_sphere_and_the_depth_camera(sphere_capture):
     capture = sphere_capture
     assert capture.images.shape == (8, 64, 64) and capture.mask.float().mean() > 0.3
     points = backproject_depth_to_camera(capture.depth[None].double(), capture.K[None].double())[0]
-    analytic = torch.nn.functional.normalize(points - torch.tensor(SPHERE.center, dtype=torch.float64), dim=-1)
+    analytic = torch.nn.functional.normalize(
+        points - torch.tensor(SPHERE.center, dtype=torch.float64), dim=-1
+    )
     error = angular_error(capture.normals, analytic.float(), capture.mask)
     assert error.mean_deg < 0.1  # interpolated vertex normals of a 5-times subdivided icosphere
     depth, _ = render_depth(SPHERE.mesh(5), capture.K[None].double(), torch.eye(4)[None].double(), 64, 64)
@@ -350,8 +398,16 @@ def test_rig_lambertian_least_squares_is_exact_where_every_light_is_on(sphere_ca
     result = least_squares_stereo(capture.images, capture.light_directions, capture.mask)
     assert angular_error(result.normals, capture.normals, lit).mean_deg < 0.01
     # without the clamp of attached shadows (an idealised linear sensor) it is exact everywhere
-    linear = render_photometric(SPHERE.mesh(5), ring_lights(8, 35.0), cam_to_world=torch.eye(4), width=64,
-                                height=64, fov_deg=30, shadows=False, attached_shadows=False)[0]
+    linear = render_photometric(
+        SPHERE.mesh(5),
+        ring_lights(8, 35.0),
+        cam_to_world=torch.eye(4),
+        width=64,
+        height=64,
+        fov_deg=30,
+        shadows=False,
+        attached_shadows=False,
+    )[0]
     assert (linear.images < 0).any()
     result = least_squares_stereo(linear.images, linear.light_directions, linear.mask)
     assert angular_error(result.normals, linear.normals, linear.mask).mean_deg < 0.01
@@ -368,20 +424,40 @@ def test_rig_cast_shadows_specular_noise_and_quantisation():
     mesh = Mesh(trimesh.util.concatenate([wall, ball]).vertices, trimesh.util.concatenate([wall, ball]).faces)
     lights = tilted([[0.0, 0.0, -1.0], [0.6, 0.0, -1.0]])
     shadowed = render_photometric(mesh, lights, cam_to_world=torch.eye(4), width=48, height=48, fov_deg=60)[0]
-    unshadowed = render_photometric(mesh, lights, cam_to_world=torch.eye(4), width=48, height=48, fov_deg=60,
-                                    shadows=False)[0]
+    unshadowed = render_photometric(
+        mesh, lights, cam_to_world=torch.eye(4), width=48, height=48, fov_deg=60, shadows=False
+    )[0]
     wall_pixels = shadowed.mask & (shadowed.depth > 2.9)
     dark = wall_pixels & (shadowed.images[1] == 0)
     assert dark.sum() > 20 and (unshadowed.images[1][dark] > 0.3).all()
     assert (shadowed.images[0][wall_pixels] == unshadowed.images[0][wall_pixels]).all()
     # a specular lobe brightens the ball where the half vector meets the normal; never the unlit side
-    glossy = render_photometric(mesh, lights, cam_to_world=torch.eye(4), width=48, height=48, fov_deg=60,
-                                specular=SpecularLobe("cook_torrance", strength=1.0, roughness=0.3))[0]
+    glossy = render_photometric(
+        mesh,
+        lights,
+        cam_to_world=torch.eye(4),
+        width=48,
+        height=48,
+        fov_deg=60,
+        specular=SpecularLobe("cook_torrance", strength=1.0, roughness=0.3),
+    )[0]
     assert float((glossy.images - shadowed.images).max()) > 0.2
     assert ((glossy.images - shadowed.images)[shadowed.images == 0] == 0).all()
     # noise is repeatable by seed and the images sit on the 8-bit levels
-    noisy = [render_photometric(mesh, lights, cam_to_world=torch.eye(4), width=48, height=48, fov_deg=60,
-                                noise_sigma=0.01, bits=8, seed=s)[0].images for s in (3, 3, 4)]
+    noisy = [
+        render_photometric(
+            mesh,
+            lights,
+            cam_to_world=torch.eye(4),
+            width=48,
+            height=48,
+            fov_deg=60,
+            noise_sigma=0.01,
+            bits=8,
+            seed=s,
+        )[0].images
+        for s in (3, 3, 4)
+    ]
     assert torch.equal(noisy[0], noisy[1]) and not torch.equal(noisy[0], noisy[2])
     levels = noisy[0] * 255
     assert (levels - levels.round()).abs().max() < 1e-4 and noisy[0].min() >= 0 and noisy[0].max() <= 1
@@ -389,8 +465,9 @@ def test_rig_cast_shadows_specular_noise_and_quantisation():
 
 def test_rig_textured_albedo_is_recovered_and_views_are_in_their_camera_frames():
     albedo = checker_albedo(0.2, 0.3, 0.9)
-    captures = render_photometric(SPHERE.mesh(4), cap_lights(12, 40.0), n_views=2, width=40, height=40,
-                                  albedo=albedo, shadows=False)
+    captures = render_photometric(
+        SPHERE.mesh(4), cap_lights(12, 40.0), n_views=2, width=40, height=40, albedo=albedo, shadows=False
+    )
     for capture in captures:
         result = robust_stereo(capture.images, capture.light_directions, capture.mask)
         assert angular_error(result.normals, capture.normals, capture.mask).mean_deg < 0.5
@@ -409,7 +486,9 @@ def test_rig_input_errors():
     with pytest.raises(ConfigError, match="specular model"):
         SpecularLobe("phong")
     with pytest.raises(ConfigError, match="bits"):
-        render_photometric(SPHERE.mesh(1), ring_lights(3), cam_to_world=torch.eye(4), width=8, height=8, bits=12)
+        render_photometric(
+            SPHERE.mesh(1), ring_lights(3), cam_to_world=torch.eye(4), width=8, height=8, bits=12
+        )
     with pytest.raises(InputError, match="non-empty"):
         render_photometric(Mesh(torch.zeros(3, 3), torch.zeros(0, 3, dtype=torch.int64)))
     with pytest.raises(ConfigError, match="n must be"):

@@ -44,8 +44,16 @@ def test_written_capture_reads_back(tmp_path, color):
     back = read_photometric(tmp_path / "capture", color=color)
     assert back.images.shape == capture.images.shape
     # images divided by the intensities come back to 16-bit quantisation of the (scaled) raw images
-    peak = float((capture.images * (capture.light_intensities[:, None, None, :] if color
-                                    else capture.light_intensities.mean(1)[:, None, None])).max())
+    peak = float(
+        (
+            capture.images
+            * (
+                capture.light_intensities[:, None, None, :]
+                if color
+                else capture.light_intensities.mean(1)[:, None, None]
+            )
+        ).max()
+    )
     tolerance = max(peak, 1.0) / 65535 / float(capture.light_intensities.min()) * 0.6
     torch.testing.assert_close(back.images, capture.images, atol=tolerance, rtol=0)
     torch.testing.assert_close(back.light_directions, capture.light_directions, atol=1e-7, rtol=0)
@@ -81,8 +89,12 @@ def test_diligent_axes_become_the_opencv_camera_frame(tmp_path):
     up = np.array([0.0, 0.6, 0.8])
     _write_png(tmp_path / "Normal_gt.png", np.broadcast_to((up + 1) / 2, (4, 4, 3)).copy(), 16)
     capture = read_photometric(tmp_path)
-    torch.testing.assert_close(capture.light_directions,
-                               torch.tensor([[0.0, 0, -1], [0, -0.6, -0.8], [0.6, 0, -0.8]]), atol=1e-6, rtol=0)
+    torch.testing.assert_close(
+        capture.light_directions,
+        torch.tensor([[0.0, 0, -1], [0, -0.6, -0.8], [0.6, 0, -0.8]]),
+        atol=1e-6,
+        rtol=0,
+    )
     torch.testing.assert_close(capture.normals[2, 1], torch.tensor([0.0, -0.6, -0.8]), atol=1e-4, rtol=0)
     assert capture.normals[..., 1].max() < 0  # up in the picture is -y in the camera frame
     # the conversion is its own inverse
@@ -143,8 +155,11 @@ def test_bunny_specular_ground_truth_axes_and_robust_below_least_squares(shared_
     assert ls.mean_deg < 20
     flipped = capture.normals * torch.tensor([1.0, -1.0, 1.0])
     assert angular_error(ls_normals, flipped, capture.mask).mean_deg > 40
-    robust = angular_error(robust_stereo(capture.images, capture.light_directions, capture.mask).normals,
-                           capture.normals, capture.mask)
+    robust = angular_error(
+        robust_stereo(capture.images, capture.light_directions, capture.mask).normals,
+        capture.normals,
+        capture.mask,
+    )
     assert robust.mean_deg < ls.mean_deg
 
 

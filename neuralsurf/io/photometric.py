@@ -56,11 +56,15 @@ def read_image(path: str | Path) -> np.ndarray:
         raise FileFormatError(f"image {path} does not exist; check the file list that names it")
     image = o3d.t.io.read_image(str(path))
     if image.is_empty():
-        raise FileFormatError(f"could not read image {path}: not a PNG/JPEG Open3D can decode; convert it to PNG")
+        raise FileFormatError(
+            f"could not read image {path}: not a PNG/JPEG Open3D can decode; convert it to PNG"
+        )
     array = image.as_tensor().numpy()
     scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(array.dtype)
     if scale is None:
-        raise FileFormatError(f"image {path} has {array.dtype} pixels; photometric images must be 8- or 16-bit")
+        raise FileFormatError(
+            f"image {path} has {array.dtype} pixels; photometric images must be 8- or 16-bit"
+        )
     array = array.astype(np.float32) / scale
     if array.ndim == 3 and array.shape[2] == 1:
         array = array[..., 0]
@@ -84,7 +88,9 @@ def _read_rows(path: Path, columns: tuple[int, ...], what: str) -> np.ndarray:
     try:
         rows = np.loadtxt(path, ndmin=2, dtype=np.float64)
     except ValueError as error:
-        raise FileFormatError(f"{path} is not a table of numbers ({error}); write one {what} per line") from None
+        raise FileFormatError(
+            f"{path} is not a table of numbers ({error}); write one {what} per line"
+        ) from None
     if rows.shape[1] not in columns or not np.isfinite(rows).all():
         raise FileFormatError(
             f"{path} must hold one {what} per line with {' or '.join(map(str, columns))} finite numbers, "
@@ -189,7 +195,9 @@ def read_photometric(
             )
         intensities = np.repeat(intensities, 3, axis=1) if intensities.shape[1] == 1 else intensities
         if (intensities <= 0).any():
-            raise InputError(f"{folder / 'light_intensities.txt'} has non-positive intensities; they must be > 0")
+            raise InputError(
+                f"{folder / 'light_intensities.txt'} has non-positive intensities; they must be > 0"
+            )
         images = images / (intensities[:, None, None, :] if color else intensities.mean(1)[:, None, None])
     images = torch.from_numpy(images.astype(np.float32))
     if (folder / "mask.png").is_file():
@@ -209,21 +217,31 @@ def read_photometric(
         content = {k: v for k, v in loadmat(folder / "Normal_gt.mat").items() if not k.startswith("__")}
         array = content.get("Normal_gt", next(iter(content.values()), None) if len(content) == 1 else None)
         if array is None:
-            raise FileFormatError(f"{folder / 'Normal_gt.mat'} has no variable Normal_gt (found {list(content)})")
+            raise FileFormatError(
+                f"{folder / 'Normal_gt.mat'} has no variable Normal_gt (found {list(content)})"
+            )
         normals = _decode_normals(np.asarray(array, dtype=np.float64), folder / "Normal_gt.mat")
     elif (folder / "Normal_gt.png").is_file():
-        normals = _decode_normals(read_image(folder / "Normal_gt.png").astype(np.float64) * 2 - 1,
-                                  folder / "Normal_gt.png")
+        normals = _decode_normals(
+            read_image(folder / "Normal_gt.png").astype(np.float64) * 2 - 1, folder / "Normal_gt.png"
+        )
     if normals is not None:
         if normals.shape[:2] != tuple(images.shape[1:3]):
-            raise InputError(f"{folder}: the ground-truth normal map is {normals.shape[:2]}, the images "
-                             f"{tuple(images.shape[1:3])}; they must match")
+            raise InputError(
+                f"{folder}: the ground-truth normal map is {normals.shape[:2]}, the images "
+                f"{tuple(images.shape[1:3])}; they must match"
+            )
         normals = diligent_to_camera(torch.from_numpy(normals).float()) * mask[..., None]
     if K is None and (folder / "K.txt").is_file():
         K = _read_rows(folder / "K.txt", (3,), "row of K")
-    depth = torch.from_numpy(np.load(folder / "depth.npy")).float() if (folder / "depth.npy").is_file() else None
-    pose = _read_rows(folder / "cam_to_world.txt", (4,), "row of the pose") if (
-        folder / "cam_to_world.txt").is_file() else None
+    depth = (
+        torch.from_numpy(np.load(folder / "depth.npy")).float() if (folder / "depth.npy").is_file() else None
+    )
+    pose = (
+        _read_rows(folder / "cam_to_world.txt", (4,), "row of the pose")
+        if (folder / "cam_to_world.txt").is_file()
+        else None
+    )
     return PhotometricCapture(
         images=images,
         light_directions=diligent_to_camera(torch.from_numpy(lights).float()),
@@ -248,14 +266,21 @@ def write_photometric(path: str | Path, capture: PhotometricCapture, bits: int =
     if bits not in (8, 16):
         raise ConfigError(f"bits must be 8 or 16, got {bits}")
     if (capture.images < 0).any():
-        raise InputError("PhotometricCapture.images has negative intensities, which a PNG cannot store; "
-                         "clamp them to 0 before writing")
+        raise InputError(
+            "PhotometricCapture.images has negative intensities, which a PNG cannot store; "
+            "clamp them to 0 before writing"
+        )
     folder = Path(path)
     folder.mkdir(parents=True, exist_ok=True)
     images = capture.images.detach().cpu().double().numpy()
-    intensities = None if capture.light_intensities is None else capture.light_intensities.cpu().double().numpy()
-    raw = images * (intensities[:, None, None, :] if capture.is_color else intensities.mean(1)[:, None, None]) \
-        if intensities is not None else images
+    intensities = (
+        None if capture.light_intensities is None else capture.light_intensities.cpu().double().numpy()
+    )
+    raw = (
+        images * (intensities[:, None, None, :] if capture.is_color else intensities.mean(1)[:, None, None])
+        if intensities is not None
+        else images
+    )
     peak = float(raw.max())
     if peak > 1.0:  # scale images and intensities alike: the quotient read back is unchanged
         raw = raw / peak
@@ -265,8 +290,11 @@ def write_photometric(path: str | Path, capture: PhotometricCapture, bits: int =
     for name, image in zip(names, raw):
         _write_png(folder / name, image, bits)
     (folder / "filenames.txt").write_text("\n".join(names) + "\n")
-    np.savetxt(folder / "light_directions.txt", camera_to_diligent(capture.light_directions.cpu().double()).numpy(),
-               fmt="%.9f")
+    np.savetxt(
+        folder / "light_directions.txt",
+        camera_to_diligent(capture.light_directions.cpu().double()).numpy(),
+        fmt="%.9f",
+    )
     if intensities is not None:
         np.savetxt(folder / "light_intensities.txt", intensities, fmt="%.9g")
     if capture.mask is not None:
@@ -276,8 +304,11 @@ def write_photometric(path: str | Path, capture: PhotometricCapture, bits: int =
 
         normals = camera_to_diligent(capture.normals.cpu().double()).numpy()
         savemat(folder / "Normal_gt.mat", {"Normal_gt": normals})
-        _write_png(folder / "Normal_gt.png", np.where(np.linalg.norm(normals, axis=-1, keepdims=True) > 0,
-                                                      (normals + 1) / 2, 0.5), 16)
+        _write_png(
+            folder / "Normal_gt.png",
+            np.where(np.linalg.norm(normals, axis=-1, keepdims=True) > 0, (normals + 1) / 2, 0.5),
+            16,
+        )
     if capture.K is not None:
         np.savetxt(folder / "K.txt", capture.K.cpu().double().numpy(), fmt="%.9g")
     if capture.cam_to_world is not None:
@@ -312,7 +343,9 @@ def read_image_list(list_file: str | Path, color: bool = True) -> tuple[Tensor, 
         for root in (list_file.parent, list_file.parent.parent):
             if (root / name).is_file():
                 return root / name
-        raise FileFormatError(f"{name!r} (listed in {list_file}) is in neither {list_file.parent} nor its parent")
+        raise FileFormatError(
+            f"{name!r} (listed in {list_file}) is in neither {list_file.parent} nor its parent"
+        )
 
     images = torch.from_numpy(_stack_images([resolve(name) for name in lines[1 : 1 + count]], color))
     mask = None
@@ -323,7 +356,9 @@ def read_image_list(list_file: str | Path, color: bool = True) -> tuple[Tensor, 
         if mask.shape != images.shape[1:3]:
             raise InputError(f"mask {extra[0]} is {tuple(mask.shape)}, the images {tuple(images.shape[1:3])}")
     elif len(lines) - 1 > count:
-        warnings.warn(f"{list_file}: ignoring {len(lines) - 1 - count} lines after the {count} images", stacklevel=2)
+        warnings.warn(
+            f"{list_file}: ignoring {len(lines) - 1 - count} lines after the {count} images", stacklevel=2
+        )
     return images, mask
 
 

@@ -138,10 +138,14 @@ def _albedo_values(albedo, points: Tensor, faces: Tensor, bary: Tensor, mesh: Me
         elif values.shape == (3,):
             values = values.expand(len(points), 3)
         else:
-            raise ConfigError(f"albedo must be a number, an RGB triple, 'vertex' or a callable, got shape "
-                              f"{tuple(values.shape)}")
+            raise ConfigError(
+                f"albedo must be a number, an RGB triple, 'vertex' or a callable, got shape "
+                f"{tuple(values.shape)}"
+            )
     if values.shape not in ((len(points),), (len(points), 3)) or (values < 0).any():
-        raise InputError(f"albedo values must be non-negative with shape (m,) or (m, 3), got {tuple(values.shape)}")
+        raise InputError(
+            f"albedo values must be non-negative with shape (m,) or (m, 3), got {tuple(values.shape)}"
+        )
     return values
 
 
@@ -234,13 +238,16 @@ def render_photometric(
     corner_normals = vertex_normals(mesh)[faces] if smooth else None  # (f, 3, 3)
     size = float((vertices.max(0).values - vertices.min(0).values).norm())
     generator = torch.Generator().manual_seed(int(seed))
-    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64),
-                          indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij"
+    )
     captures = []
     for k, p in zip(K, pose):
         y = (v - k[1, 2]) / k[1, 1]
         x = (u - k[0, 2] - k[0, 1] * y) / k[0, 0]
-        ray = torch.nn.functional.normalize(torch.stack([x, y, torch.ones_like(x)], -1), dim=-1)  # camera frame
+        ray = torch.nn.functional.normalize(
+            torch.stack([x, y, torch.ones_like(x)], -1), dim=-1
+        )  # camera frame
         world_ray = ray @ p[:3, :3].T
         origin = (p[:3, 3] - center).expand_as(world_ray)
         hit = scene.cast_rays(o3d.core.Tensor(torch.cat([origin, world_ray], -1).float().numpy()))
@@ -266,8 +273,9 @@ def render_photometric(
             radiance = values * (shading[:, None] if values.ndim == 2 else shading)
             if specular is not None:
                 half = torch.nn.functional.normalize(light + to_camera, dim=-1)
-                lobe = specular(n_dot_l, (normal * to_camera).sum(-1), (normal * half).sum(-1),
-                                (to_camera * half).sum(-1))
+                lobe = specular(
+                    n_dot_l, (normal * to_camera).sum(-1), (normal * half).sum(-1), (to_camera * half).sum(-1)
+                )
                 radiance = radiance + (lobe[:, None] if values.ndim == 2 else lobe)
             if shadows:
                 rays = torch.cat([offset, light.expand_as(offset)], -1).float().numpy()
@@ -276,7 +284,9 @@ def render_photometric(
                 radiance = torch.where(occluded.reshape(-1, *([1] * (radiance.ndim - 1))), 0.0, radiance)
             images[i][mask] = intensity * radiance
         if noise_sigma > 0:
-            images = images + noise_sigma * torch.randn(images.shape, generator=generator, dtype=torch.float64)
+            images = images + noise_sigma * torch.randn(
+                images.shape, generator=generator, dtype=torch.float64
+            )
         if noise_sigma > 0 or bits is not None:
             images = images.clamp(0, 1)
         if bits is not None:
@@ -285,10 +295,17 @@ def render_photometric(
         normal_map = torch.zeros(height, width, 3, dtype=torch.float64)
         normal_map[mask] = normal @ p[:3, :3]  # world -> camera: R^T n
         depth = torch.where(mask, t * ray[..., 2], 0.0)
-        captures.append(PhotometricCapture(
-            images=images.float(), light_directions=lights.float(), mask=mask, normals=normal_map.float(),
-            K=k.float(), depth=depth.float(), cam_to_world=p.float(),
-        ))
+        captures.append(
+            PhotometricCapture(
+                images=images.float(),
+                light_directions=lights.float(),
+                mask=mask,
+                normals=normal_map.float(),
+                K=k.float(),
+                depth=depth.float(),
+                cam_to_world=p.float(),
+            )
+        )
     return captures
 
 
