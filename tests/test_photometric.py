@@ -463,6 +463,32 @@ def test_rig_cast_shadows_specular_noise_and_quantisation():
     assert (levels - levels.round()).abs().max() < 1e-4 and noisy[0].min() >= 0 and noisy[0].max() <= 1
 
 
+def test_rig_robust_stereo_beats_least_squares_on_highlights_and_cast_shadows():
+    from neuralsurf.scenes import Torus
+
+    capture = render_photometric(
+        Torus().mesh(48),
+        cap_lights(24, 45.0),
+        cam_to_world=look_at((0.0, -0.9, -0.9), (0, 0, 0)),
+        width=48,
+        height=48,
+        fov_deg=40,
+        specular=SpecularLobe("blinn_phong", strength=0.6, shininess=40.0),
+    )[0]
+    assert ((capture.images == 0) & capture.mask).any()  # shadows (cast and attached)
+    ls = angular_error(
+        least_squares_stereo(capture.images, capture.light_directions, capture.mask).normals,
+        capture.normals,
+        capture.mask,
+    )
+    robust = angular_error(
+        robust_stereo(capture.images, capture.light_directions, capture.mask).normals,
+        capture.normals,
+        capture.mask,
+    )
+    assert robust.mean_deg <= 0.7 * ls.mean_deg, (robust.mean_deg, ls.mean_deg)
+
+
 def test_rig_textured_albedo_is_recovered_and_views_are_in_their_camera_frames():
     albedo = checker_albedo(0.2, 0.3, 0.9)
     captures = render_photometric(
