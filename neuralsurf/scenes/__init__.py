@@ -5,6 +5,7 @@ from neuralsurf.scenes.analytic import Box, Sphere, Torus, analytic_shape
 from neuralsurf.scenes.bunny import bunny, bunny_path
 from neuralsurf.scenes.recipes import Scene, analytic_scene, file_scene, mesh_scene
 from neuralsurf.scenes.scanner import look_at, orbit_cameras, scan_depth
+from neuralsurf.scenes.photometric_rig import SpecularLobe, cap_lights, render_photometric, ring_lights  # noqa: F401
 
 __all__ = ["Box", "Scene", "Sphere", "Torus", "analytic_scene", "analytic_shape", "bunny", "bunny_path",
            "file_scene", "look_at", "mesh_scene", "orbit_cameras", "sample_surface", "scan_depth"]
