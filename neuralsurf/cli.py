@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import random
 import time
 from pathlib import Path
@@ -13,6 +14,8 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from neuralsurf.training import fit
+
+log = logging.getLogger("neuralsurf")
 
 
 def seed_everything(seed: int) -> None:
@@ -37,34 +40,85 @@ def format_table(metrics: dict[str, float]) -> str:
     return "\n".join(["| metric | value |", "|---|---|", *rows])
 
 
+RESULT_KEYS = ("data", "model", "observation", "optimizer", "seed")
+"""Config sections that change what a fit computes (with the trainer's keys below)."""
+TRAINER_BOOKKEEPING = ("resume", "progress", "log_every", "image_every", "mesh_every", "checkpoint_every")
+
+
+def config_differences(stored: dict, current: dict) -> list[str]:
+    """Dotted keys whose values differ between two run configs, among those that change the result
+    (RESULT_KEYS, and the trainer's settings except its bookkeeping)."""
+    def flat(value, prefix: str) -> dict:
+        if isinstance(value, dict):
+            return {k: v for key, item in value.items() for k, v in flat(item, f"{prefix}.{key}").items()}
+        return {prefix: value}
+
+    def relevant(cfg: dict) -> dict:
+        trainer = {k: v for k, v in (cfg.get("trainer") or {}).items() if k not in TRAINER_BOOKKEEPING}
+        return {**flat({k: cfg.get(k) for k in RESULT_KEYS}, "cfg"), **flat(trainer, "cfg.trainer")}
+
+    old, new = relevant(stored), relevant(current)
+    return sorted(key[4:] for key in set(old) | set(new) if old.get(key) != new.get(key))
+
+
+def check_resume(run_dir: Path, cfg: dict) -> None:
+    """Resume only into a run made with the same settings: else a ConfigError naming the keys."""
+    from neuralsurf.errors import ConfigError
+    from neuralsurf.training import CHECKPOINT_NAME, load_checkpoint
+
+    path = run_dir / "checkpoints" / CHECKPOINT_NAME
+    if not (cfg["trainer"].get("resume") and path.is_file()):
+        return
+    differences = config_differences(load_checkpoint(path).get("config") or {}, cfg)
+    if differences:
+        raise ConfigError(
+            f"{run_dir} holds a run made with other settings ({', '.join(differences[:8])}"
+            f"{' ...' if len(differences) > 8 else ''}); resuming would mix two runs. Use a new run directory "
+            f"(hydra.run.dir=...) or start this one afresh with trainer.resume=false"
+        )
+
+
+def build_observations(cfg: DictConfig, scene) -> list:
+    """The configured observations (cfg.observation: name -> partial of an Observation.from_scene) of `scene`."""
+    return [instantiate(config, _convert_="all")(scene) for config in cfg.observation.values()]
+
+
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit the configured model to the configured scene, extract, measure and write the outputs:
     <run dir>/mesh.ply, metrics.json, checkpoints/last.pt and TensorBoard events."""
-    from neuralsurf.extract import extract_mesh
+    from neuralsurf.extract import NearPointsField, extract_mesh
     from neuralsurf.io import write_mesh
-    from neuralsurf.metrics import evaluate_mesh
+    from neuralsurf.metrics import depth_metrics, evaluate_mesh
+    from neuralsurf.devices import resolve_device
 
     run_dir = run_directory(cfg)
+    config = OmegaConf.to_container(cfg, resolve=True)
+    resolve_device(cfg.device)  # a bad device fails before the data is built
+    check_resume(run_dir, config)
     seed_everything(cfg.seed)
     scene = instantiate(cfg.data)
+    log.info("scene %s: %s", scene.name, scene.description)
     model = instantiate(cfg.model, _convert_="all")
-    trainer = OmegaConf.to_container(cfg.trainer, resolve=True)
-    result = fit(model, scene.cloud, loss=instantiate(cfg.loss), device=cfg.device, seed=cfg.seed,
-                 run_dir=run_dir, config=OmegaConf.to_container(cfg, resolve=True), **trainer)
+    result = fit(model, build_observations(cfg, scene), optimizer=instantiate(cfg.optimizer), device=cfg.device,
+                 seed=cfg.seed, run_dir=run_dir, config=config, **config["trainer"])
 
     started = time.perf_counter()
-    mesh = extract_mesh(result.field, **OmegaConf.to_container(cfg.extract, resolve=True))
+    extract = dict(config["extract"])
+    near = extract.pop("near_distance", None)
+    field = result.field if near is None else NearPointsField(result.field, scene.cloud.points, near)
+    mesh = extract_mesh(field, **extract)
     extract_seconds = time.perf_counter() - started
     mesh_path = run_dir / "mesh.ply"
     write_mesh(mesh_path, mesh)
 
     metrics = evaluate_mesh(mesh, scene.ground_truth, seed=cfg.seed) if scene.ground_truth is not None else {}
+    if scene.held_out is not None:
+        metrics.update(depth_metrics(mesh, scene.held_out))
     metrics = {**metrics, "watertight": mesh.is_watertight, "fit_seconds": result.seconds,
                "extract_seconds": extract_seconds, "steps": result.steps}
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
     _log_hparams(run_dir, cfg, metrics)
-    print(f"\nscene {scene.name}: mesh written to {mesh_path.resolve()}")
-    print(format_table(metrics))
+    log.info("scene %s: mesh written to %s\n%s", scene.name, mesh_path.resolve(), format_table(metrics))
     return metrics
 
 
@@ -139,7 +193,6 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     extra = {"environment": environment(), "scenes": scenes, "methods": methods, "total_seconds": seconds,
              "config": OmegaConf.to_container(cfg, resolve=True)}
     table = write_report(rows, run_dir, extra)
-    print(f"\n{len(rows)} rows in {seconds / 60:.1f} min; results in {run_dir.resolve()} (report.html, "
-          f"results.csv, results.json)\n")
-    print(table)
+    log.info("%d rows in %.1f min; results in %s (report.html, results.csv, results.json)\n%s",
+             len(rows), seconds / 60, run_dir.resolve(), table)
     return rows

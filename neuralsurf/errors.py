@@ -31,3 +31,7 @@ class MissingDependencyError(NeuralsurfError, ImportError):
 
 class ExtractionError(NeuralsurfError, RuntimeError):
     """A field has no zero level set inside the extraction box."""
+
+
+class CheckpointError(NeuralsurfError):
+    """A checkpoint cannot be read, does not match, or holds something other than neuralsurf's plain data."""

@@ -465,3 +465,39 @@ def slice_image(values, max_abs: float | None = None, bands: int = 10) -> np.nda
 __all__ = [
     "Grid", "GridSamples", "extract_mesh", "field_slice", "make_grid", "marching_cubes", "sample_grid", "slice_image",
 ]
+
+
+class NearPointsField(torch.nn.Module):
+    """`field` evaluated only within about `distance` of `points` (cells of an occupancy grid of that
+    size, dilated by one); elsewhere +`distance`. Extraction then meshes observed surfaces only (a room
+    from depth frames), and never evaluates the network far from the data.
+
+    field: world x[..., 3] -> f[...]; points: Float[Tensor, "n 3"] world; distance: world units.
+    """
+
+    def __init__(self, field: Field, points: Tensor, distance: float):
+        super().__init__()
+        if not distance > 0:
+            raise ConfigError(f"distance must be positive (world units), got {distance}")
+        self.field, self.distance = field, float(distance)
+        points = points.detach().double().cpu()
+        self.origin = points.min(0).values - 2 * distance
+        cells = ((points - self.origin) / distance).long()
+        shape = (cells.max(0).values + 3).tolist()
+        occupied = torch.zeros(shape, dtype=torch.bool)
+        occupied[cells[:, 0], cells[:, 1], cells[:, 2]] = True
+        occupied = torch.nn.functional.max_pool3d(occupied[None, None].float(), 3, 1, 1)[0, 0] > 0
+        self.register_buffer("occupied", occupied, persistent=False)
+        self.bounds = getattr(field, "bounds", None)
+
+    def forward(self, x: Tensor) -> Tensor:
+        cells = ((x.detach().double() - self.origin.to(x.device)) / self.distance).long()
+        size = torch.tensor(self.occupied.shape, device=x.device)
+        inside = ((cells >= 0) & (cells < size)).all(-1)
+        near = torch.zeros(x.shape[:-1], dtype=torch.bool, device=x.device)
+        c = cells[inside]
+        near[inside] = self.occupied.to(x.device)[c[:, 0], c[:, 1], c[:, 2]]
+        values = torch.full(x.shape[:-1], self.distance, dtype=torch.float32, device=x.device)
+        if near.any():
+            values[near] = self.field(x[near]).to(values.dtype)
+        return values

@@ -364,3 +364,28 @@ def evaluate_mesh(
     metrics["n_vertices"] = float(len(pred.vertices))
     metrics["n_faces"] = float(len(pred.faces))
     return metrics
+
+
+def depth_metrics(mesh: Mesh, frames, threshold: float = 0.05) -> dict[str, float]:
+    """Scores that need no ground-truth mesh: the reconstruction ray-cast from held-out depth frames.
+
+    Args:
+        mesh: the reconstruction (world frame); frames: DepthFrames held out from fitting;
+        threshold: metres within which a held-out reading counts as covered.
+    Returns:
+        depth_error_mean / depth_error_median: |rendered - measured| z-depth (metres) over the held-out
+        valid pixels where the reconstruction is seen; depth_completeness: the fraction of held-out valid
+        pixels whose rendered depth lies within `threshold` of the reading.
+    """
+    from neuralsurf.geometry import render_depth
+
+    measured = frames.depth.cpu()
+    rendered, _ = render_depth(mesh, frames.K.cpu(), frames.cam_to_world.cpu(), frames.width, frames.height)
+    valid = measured > 0
+    seen = valid & (rendered > 0)
+    error = (rendered - measured).abs()[seen]
+    return {
+        "depth_error_mean": float(error.mean()) if len(error) else math.nan,
+        "depth_error_median": float(error.median()) if len(error) else math.nan,
+        "depth_completeness": float((seen & ((rendered - measured).abs() < threshold)).sum() / valid.sum().clamp_min(1)),
+    }

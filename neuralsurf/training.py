@@ -1,5 +1,5 @@
-"""The fit loop, readable top to bottom: samples -> batches -> losses -> Adam, with TensorBoard,
-atomic checkpoints and exact resume."""
+"""The fit loop, readable top to bottom: observations -> batches -> weighted loss terms -> optimiser,
+with TensorBoard, atomic checkpoints, exact resume, and the saved field that `load_field` reads."""
 
 from __future__ import annotations
 
@@ -9,17 +9,17 @@ import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
 from torch import nn
 
 from neuralsurf.devices import resolve_device
-from neuralsurf.errors import ConfigError, InputError, NeuralsurfError
-from neuralsurf.geometry import estimate_normals, orient_normals
-from neuralsurf.losses import LossWeights, evaluate_sdf_batch, sdf_losses
+from neuralsurf.errors import CheckpointError, ConfigError, InputError, NeuralsurfError
 from neuralsurf.models.field import NormalizedField
-from neuralsurf.sampling import draw_batch, make_sdf_samples
+from neuralsurf.models.spec import REBUILDABLE, build_model, model_spec
+from neuralsurf.observations import Observation, PointSamples, union_bounds
 from neuralsurf.structures import Normalization, PointCloud
 
 CHECKPOINT_NAME = "last.pt"
@@ -46,7 +46,7 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # a truncated or foreign file
-        raise NeuralsurfError(f"cannot read checkpoint {path}: {error}; delete it to start afresh") from None
+        raise CheckpointError(f"cannot read checkpoint {path}: {error}; delete it to start afresh") from None
 
 
 @dataclass
@@ -60,63 +60,110 @@ class FitResult:
     field: NormalizedField
     """The model seen from the world frame: pass it to `extract_mesh`."""
     history: dict[str, list[float]] = field(default_factory=dict)
-    """Logged values per logging step ("step", "total", each term, "lr", "grad_norm", "steps_per_s")."""
+    """Logged values per logging step ("step", "total", each term as "<observation>/<term>", "lr",
+    "grad_norm", "steps_per_s")."""
     steps: int = 0
     """Optimisation steps done, counting those before a resume."""
     seconds: float = 0.0
     """Wall time of the optimisation, counting those before a resume."""
 
-
-def prepare_cloud(cloud: PointCloud, normals: str, normal_k: int) -> PointCloud:
-    """Check the input and supply normals: "given" (must be there), "estimate" (when absent:
-    PCA + MST orientation), "ignore" (drop them: fit with surface, eikonal and off-surface terms)."""
-    if not isinstance(cloud, PointCloud):
-        raise InputError(f"fit expects a neuralsurf.PointCloud, got {type(cloud).__name__}")
-    if len(cloud) < 3:
-        raise InputError(f"fit needs at least 3 points, the cloud has {len(cloud)}")
-    if normals == "ignore":
-        return cloud.with_normals(None)
-    if normals == "given" and cloud.normals is None:
-        raise InputError("normals='given' but the cloud has no normals; use normals='estimate' or 'ignore'")
-    if normals not in ("given", "estimate"):
-        raise ConfigError(f"unknown normals={normals!r}; choose given, estimate or ignore")
-    if cloud.normals is not None:
-        return cloud.with_normals(torch.nn.functional.normalize(cloud.normals, dim=-1))
-    estimated = estimate_normals(cloud.points, normal_k)
-    return cloud.with_normals(orient_normals(cloud.points, estimated, normal_k))
+    def save(self, path: str | Path) -> None:
+        """Write the fitted field (model spec and weights, normalisation, margin) atomically; read it
+        back with `load_field(path)`."""
+        save_checkpoint(Path(path), field_state(self.model, self.normalization, self.field.margin, self.steps))
 
 
-def _param_groups(model: nn.Module, lr: float, encoding_lr: float) -> list[dict]:
-    """Encoding tables (hash grids) learn at `encoding_lr`, the network at `lr`."""
+def field_state(model: nn.Module, normalization: Normalization, margin: float, steps: int) -> dict[str, Any]:
+    """What `load_field` needs: the model as plain data, its weights, the unit frame and the box margin."""
+    spec = model_spec(model) if REBUILDABLE.get(type(model).__name__) is type(model) else None
+    return {"model_spec": spec, "model": model.state_dict(),
+            "normalization": normalization.state_dict(), "margin": float(margin), "step": int(steps)}
+
+
+def load_field(path: str | Path, model: nn.Module | None = None, device: str | torch.device = "cpu") -> NormalizedField:
+    """The world-frame field saved by `FitResult.save` or by a fit's checkpoint (`run/checkpoints/last.pt`).
+
+    The model is rebuilt from its stored constructor arguments (an allowlist of neuralsurf's model
+    classes and plain values: nothing in the file can choose code to run), or pass `model` to load the
+    weights into one of your own. Raises CheckpointError for a file that is not such a checkpoint.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} not found; pass the last.pt of a run or a file of FitResult.save")
+    state = load_checkpoint(path)
+    missing = [key for key in ("model", "normalization", "margin") + (("model_spec",) if model is None else ())
+               if key not in state]
+    if missing:
+        raise CheckpointError(f"{path} lacks {missing}: it was not written by neuralsurf's fit or FitResult.save "
+                              f"(checkpoints of neuralsurf before 0.2 cannot be loaded; fit again)")
+    if model is None and state["model_spec"] is None:
+        raise CheckpointError(f"{path} holds a model of a class neuralsurf cannot rebuild; pass it: "
+                              f"load_field(path, model=YourModel(...))")
+    model = build_model(state["model_spec"]) if model is None else model
+    try:
+        model.load_state_dict(state["model"])
+        normalization = Normalization.from_state_dict(state["normalization"])
+    except (RuntimeError, KeyError, TypeError, ValueError) as error:
+        raise CheckpointError(f"{path} does not match its model: {error}") from None
+    return NormalizedField(model, normalization, margin=float(state["margin"])).to(resolve_device(device)).eval()
+
+
+def default_optimizer(params, lr: float = 1e-3) -> torch.optim.Optimizer:
+    """Adam with eps 1e-15 (Instant-NGP's), the default of `fit`."""
+    return torch.optim.Adam(params, lr=lr, eps=1e-15)
+
+
+def parameter_groups(model: nn.Module, trainable: list[nn.Parameter] | None,
+                     encoding_lr: float | None) -> list[dict]:
+    """The optimised parameters: `trainable` (all of the model's by default), with those of the
+    model's `encoding` (hash grids) in a group of their own at `encoding_lr` (None: the common lr)."""
+    params = list(model.parameters()) if trainable is None else list(trainable)
+    owned = {id(p) for p in model.parameters()}
+    foreign = [p for p in params if id(p) not in owned]
+    if foreign or not params:
+        raise ConfigError("trainable must be a non-empty list of the model's own parameters "
+                          f"({len(foreign)} of {len(params)} are not); wrap extra tensors such as latent codes "
+                          f"in the model")
     encoding = getattr(model, "encoding", None)
     encoding_ids = {id(p) for p in encoding.parameters()} if isinstance(encoding, nn.Module) else set()
-    groups = [
-        {"params": [p for p in model.parameters() if id(p) not in encoding_ids], "lr": lr},
-        {"params": [p for p in model.parameters() if id(p) in encoding_ids], "lr": encoding_lr},
-    ]
+    groups = [{"params": [p for p in params if id(p) not in encoding_ids]},
+              {"params": [p for p in params if id(p) in encoding_ids]}]
+    if encoding_lr is not None:
+        groups[1]["lr"] = encoding_lr
     return [g for g in groups if g["params"]]
 
 
-def _grad_norm(model: nn.Module) -> float:
-    norms = [p.grad.detach().norm() for p in model.parameters() if p.grad is not None]
+def _grad_norm(params: list[nn.Parameter]) -> float:
+    norms = [p.grad.detach().norm() for p in params if p.grad is not None]
     return float(torch.stack(norms).norm()) if norms else 0.0
+
+
+def _as_observations(observations) -> list[Observation]:
+    if isinstance(observations, PointCloud):
+        return [PointSamples(observations)]
+    observations = [observations] if isinstance(observations, Observation) else list(observations)
+    bad = [type(o).__name__ for o in observations if not isinstance(o, Observation)]
+    if bad or not observations:
+        raise InputError(f"fit takes observations (PointSamples, DepthRays, ...) or a PointCloud, got "
+                         f"{bad or 'nothing'}; wrap data as e.g. neuralsurf.observations.DepthRays(frames)")
+    names = [o.name for o in observations]
+    if len(set(names)) < len(names):
+        raise ConfigError(f"observations need distinct names (they prefix the loss terms), got {names}")
+    return observations
 
 
 def fit(
     model: nn.Module,
-    cloud: PointCloud,
+    observations: Observation | PointCloud | Sequence[Observation],
     *,
     steps: int = 2000,
-    batch_size: int = 8192,
-    free_fraction: float = 0.25,
-    lr: float = 1e-3,
-    encoding_lr: float = 1e-2,
+    optimizer: Callable[..., torch.optim.Optimizer] = default_optimizer,
+    encoding_lr: float | None = 1e-2,
+    trainable: Sequence[nn.Parameter] | None = None,
     warmup_steps: int = 0,
     min_lr_ratio: float = 0.01,
-    loss: LossWeights | None = None,
-    sampling: dict[str, Any] | None = None,
-    normals: str = "estimate",
-    normal_k: int = 30,
+    margin: float = 0.05,
+    normalization: Normalization | None = None,
     device: str | torch.device = "auto",
     seed: int = 0,
     run_dir: str | Path | None = None,
@@ -128,23 +175,30 @@ def fit(
     config: dict | None = None,
     progress: bool = True,
 ) -> FitResult:
-    """Fit `model` (unit frame, x[..., 3] -> sdf) to `cloud` (world frame) and return a FitResult.
+    """Fit `model` (unit frame, x[..., 3] -> sdf) to `observations` (world frame) and return a FitResult.
 
+    `observations`: one Observation, several (their weighted terms are summed), or a PointCloud
+    (`PointSamples(cloud)`). The unit frame maps the union of their bounds to [-0.5, 0.5]^3 (or is
+    `normalization`, e.g. a learned prior's); the fit covers that cube plus `margin` on each side.
+    `optimizer(param_groups)` builds the optimiser (default: Adam, lr 1e-3) over `trainable` (all of
+    the model's parameters by default; e.g. only a latent code under a frozen decoder), the model's
+    `encoding` at `encoding_lr`; the lr follows a warm-up and a cosine decay to `min_lr_ratio`.
     With `run_dir`, TensorBoard events go there and checkpoints to `run_dir/checkpoints/last.pt`
     every `checkpoint_every` steps (and at the end); with `resume`, an existing checkpoint there is
-    loaded and training continues exactly where it stopped. `sampling` holds keyword arguments of
-    `make_sdf_samples`; `config` is stored in checkpoints for the record.
+    loaded and training continues exactly where it stopped. `config` is stored in checkpoints.
     """
-    if steps < 1 or batch_size < 1:
-        raise ConfigError(f"fit needs steps >= 1 and batch_size >= 1, got steps={steps}, batch_size={batch_size}")
-    loss = loss or LossWeights()
+    if not (isinstance(steps, int) and not isinstance(steps, bool) and steps >= 1):
+        raise ConfigError(f"fit needs an integer steps >= 1, got {steps!r}")
+    observations = _as_observations(observations)
     device = resolve_device(device)
-    cloud = prepare_cloud(cloud, normals, normal_k)
-    normalization = Normalization.from_points(cloud.points)
-    sampling = dict(sampling or {})
-    samples = make_sdf_samples(normalization.cloud_to_unit(cloud), seed=seed, **sampling).to(device)
+    normalization = normalization or Normalization.from_points(union_bounds(observations))
+    box = 0.5 + margin
+    samplers = [o.prepare(normalization, box, device, seed + i) for i, o in enumerate(observations)]
     model = model.to(device).train()
-    optimizer = torch.optim.Adam(_param_groups(model, lr, encoding_lr), eps=1e-15)
+    groups = parameter_groups(model, None if trainable is None else list(trainable), encoding_lr)
+    params = [p for g in groups for p in g["params"]]
+    frozen = [p for p in model.parameters() if p.requires_grad and all(p is not q for q in params)]
+    optimizer = optimizer(groups)
     scheduler = torch.optim.lr_scheduler.LambdaLR(
         optimizer, lambda s: cosine_schedule(s, steps, warmup_steps, min_lr_ratio)
     )
@@ -160,7 +214,7 @@ def fit(
             model.load_state_dict(state["model"])
             optimizer.load_state_dict(state["optimizer"])
         except (RuntimeError, ValueError, KeyError) as error:
-            raise NeuralsurfError(
+            raise CheckpointError(
                 f"checkpoint {checkpoint_path} does not match this model ({error}); "
                 f"use another run directory or resume=False"
             ) from None
@@ -173,17 +227,16 @@ def fit(
             warnings.warn(f"{checkpoint_path} already holds {start_step} >= {steps} steps; nothing to train")
 
     writer = _summary_writer(run_dir)
-    box = float(sampling.get("box", 0.55))
-    world_field = NormalizedField(model, normalization, margin=box - 0.5)
+    world_field = NormalizedField(model, normalization, margin=margin)
+    weights = {f"{o.name}/{term}": w for o, s in zip(observations, samplers) for term, w in s.weights.items()}
 
     def checkpoint(step: int, seconds: float) -> None:
         if checkpoint_path is None:
             return
         save_checkpoint(checkpoint_path, {
-            "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+            **field_state(model, normalization, margin, step), "optimizer": optimizer.state_dict(),
             "scheduler": scheduler.state_dict(), "generator": generator.get_state(),
-            "torch_rng": torch.get_rng_state(), "history": history, "step": step, "seconds": seconds,
-            "normalization": normalization.state_dict(), "config": config or {},
+            "torch_rng": torch.get_rng_state(), "history": history, "seconds": seconds, "config": config or {},
         })
 
     from tqdm.auto import tqdm
@@ -192,47 +245,68 @@ def fit(
                desc="fit", dynamic_ncols=True)
     started, window_start, window_steps = time.perf_counter(), time.perf_counter(), 0
     done = start_step
-    for step in bar:
-        batch = draw_batch(samples, batch_size, free_fraction, generator)
-        terms = sdf_losses(evaluate_sdf_batch(model, batch), batch, loss)
-        if not torch.isfinite(terms["total"]):
-            checkpoint(step, seconds_before + time.perf_counter() - started)
-            raise NeuralsurfError(
-                f"loss became {terms['total'].item()} at step {step}; lower lr (now {lr}) or check the input"
-            )
-        optimizer.zero_grad(set_to_none=True)
-        terms["total"].backward()
-        optimizer.step()
-        scheduler.step()
-        window_steps += 1
+    for p in frozen:
+        p.requires_grad_(False)
+    try:
+        for step in bar:
+            terms = {}
+            for observation, sampler in zip(observations, samplers):
+                batch = sampler.sample(generator)
+                terms.update({f"{observation.name}/{k}": v for k, v in sampler.losses(model, batch).items()})
+            total = sum(weights[name] * value for name, value in terms.items())
+            if not torch.isfinite(total):
+                checkpoint(step, seconds_before + time.perf_counter() - started)
+                bad = [name for name, value in terms.items() if not torch.isfinite(value)]
+                raise NeuralsurfError(
+                    f"the fit diverged: loss became {total.item()} at step {step} (terms {bad}); lower the "
+                    f"learning rate (optimizer.lr, trainer.encoding_lr) or check the input for outliers"
+                )
+            optimizer.zero_grad(set_to_none=True)
+            total.backward()
+            optimizer.step()
+            scheduler.step()
+            window_steps += 1
 
-        done = step + 1
-        if done % log_every == 0 or done == steps:
-            now = time.perf_counter()
-            record = {name: float(value.detach()) for name, value in terms.items()}
-            record.update(step=done, lr=optimizer.param_groups[0]["lr"], grad_norm=_grad_norm(model),
-                          steps_per_s=window_steps / (now - window_start))
-            window_start, window_steps = now, 0
-            for name, value in record.items():
-                history.setdefault(name, []).append(value)
-            bar.set_postfix(loss=f"{record['total']:.2e}")
-            if writer is not None:
+            done = step + 1
+            if done % log_every == 0 or done == steps:
+                now = time.perf_counter()
+                record = {name: float(value.detach()) for name, value in terms.items()}
+                record.update(total=float(total.detach()), step=done, lr=optimizer.param_groups[0]["lr"],
+                              grad_norm=_grad_norm(params), steps_per_s=window_steps / (now - window_start))
+                window_start, window_steps = now, 0
                 for name, value in record.items():
-                    if name != "step":
-                        writer.add_scalar(f"loss/{name}" if name in terms else f"train/{name}", value, done)
-        if writer is not None and image_every and (done % image_every == 0 or done == steps):
-            _log_slices(writer, world_field, done)
-        if writer is not None and mesh_every and done % mesh_every == 0:
-            _log_mesh(writer, world_field, done)
-        if done % checkpoint_every == 0 or done == steps:
-            checkpoint(done, seconds_before + time.perf_counter() - started)
+                    history.setdefault(name, []).append(value)
+                bar.set_postfix(loss=f"{record['total']:.2e}")
+                if writer is not None:
+                    for name, value in record.items():
+                        if name != "step":
+                            tag = f"loss/{name}" if name in terms or name == "total" else f"train/{name}"
+                            writer.add_scalar(tag, value, done)
+            if writer is not None and image_every and (done % image_every == 0 or done == steps):
+                _log_slices(writer, world_field, done)
+            if writer is not None and mesh_every and done % mesh_every == 0:
+                _log_mesh(writer, world_field, done)
+            if done % checkpoint_every == 0 or done == steps:
+                checkpoint(done, seconds_before + time.perf_counter() - started)
+    finally:
+        for p in frozen:
+            p.requires_grad_(True)
     bar.close()
     model.eval()
+    _check_converged(history, world_field)
     if writer is not None:
         _log_mesh(writer, world_field, steps)
         writer.close()
     return FitResult(model, normalization, world_field.eval(), history, max(done, start_step),
                      seconds_before + time.perf_counter() - started)
+
+
+def _check_converged(history: dict[str, list[float]], world_field: NormalizedField) -> None:
+    """Warn when the loss ended above where it started (a diverged fit that stayed finite)."""
+    total = history.get("total", [])
+    if len(total) >= 2 and total[-1] > total[0]:
+        warnings.warn(f"the fit's loss rose from {total[0]:.3g} to {total[-1]:.3g}: it probably diverged; "
+                      f"lower the learning rate (optimizer.lr, trainer.encoding_lr)", stacklevel=3)
 
 
 def _summary_writer(run_dir: Path | None):

@@ -56,10 +56,12 @@ def test_every_scene_and_method_config_is_loaded():
     cfg = compose_evaluate([])
     assert set(SCENES) == set(cfg.scene) and set(METHODS) - {"broken"} == set(cfg.method)
     for name in SCENES:
-        assert cfg.scene[name]._target_.startswith("neuralsurf.evaluation.scenes.")
+        assert cfg.scene[name]._target_.startswith("neuralsurf.scenes.")
     # the neural method reuses train.py's groups
     assert cfg.method.neural_sdf.model._target_ == "neuralsurf.models.SDFMLP"
-    assert cfg.method.neural_sdf.loss._target_ == "neuralsurf.losses.LossWeights"
+    assert cfg.method.neural_sdf.points._target_ == "neuralsurf.observations.PointSamples.from_scene"
+    assert cfg.method.neural_sdf.rays._target_ == "neuralsurf.observations.DepthRays.from_scene"
+    assert cfg.method.neural_sdf_points.rays is None
     assert "steps" in cfg.method.neural_sdf.trainer and "resolution" in cfg.method.neural_sdf.extract
 
 
@@ -123,7 +125,7 @@ def test_a_failing_method_is_a_row_and_the_run_goes_on(tmp_path):
 
 def test_empty_or_nan_meshes_are_failed_rows(tmp_path):
     from neuralsurf.evaluation import run_benchmark
-    from neuralsurf.evaluation.scenes import analytic
+    from neuralsurf.scenes import analytic_scene as analytic
 
     empty = Mesh(torch.zeros(0, 3, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.int64))
     nan = Mesh(torch.eye(3, dtype=torch.float64), torch.tensor([[0, 1, 2]]))

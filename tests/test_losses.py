@@ -2,14 +2,9 @@ import pytest
 import torch
 
 from neuralsurf.errors import ConfigError
-from neuralsurf.losses import (
-    LossWeights,
-    clamped_l1,
-    eikonal_loss,
-    evaluate_sdf_batch,
-    normal_loss,
-    sdf_losses,
-)
+from neuralsurf.losses import clamped_l1, eikonal_loss, normal_loss
+from neuralsurf.observations import PointSamples
+from neuralsurf.observations.points import DEFAULT_POINT_WEIGHTS, evaluate_sdf_batch, point_terms
 from neuralsurf.sampling import draw_batch, make_sdf_samples
 from neuralsurf.scenes import Sphere
 
@@ -19,7 +14,7 @@ class ExactSphere(torch.nn.Module):
         super().__init__()
         self.sphere = Sphere(radius=radius)
 
-    def forward(self, x, latent=None):
+    def forward(self, x):
         return self.sphere.sdf(x)
 
 
@@ -33,8 +28,8 @@ def sphere_batch(with_normals: bool = True):
 
 def test_exact_sphere_sdf_scores_about_zero():
     batch = sphere_batch()
-    terms = sdf_losses(evaluate_sdf_batch(ExactSphere(), batch), batch, LossWeights())
-    assert set(terms) == {"surface", "sdf", "normal", "eikonal", "total"}
+    terms = point_terms(evaluate_sdf_batch(ExactSphere(), batch), batch, DEFAULT_POINT_WEIGHTS)
+    assert set(terms) == {"surface", "sdf", "normal", "eikonal"}
     assert terms["surface"] < 1e-6
     assert terms["normal"] < 1e-6
     assert terms["eikonal"] < 1e-6
@@ -44,16 +39,15 @@ def test_exact_sphere_sdf_scores_about_zero():
 
 def test_wrong_sphere_scores_its_error():
     batch = sphere_batch()
-    terms = sdf_losses(evaluate_sdf_batch(ExactSphere(radius=0.35), batch), batch, LossWeights())
+    terms = point_terms(evaluate_sdf_batch(ExactSphere(radius=0.35), batch), batch, DEFAULT_POINT_WEIGHTS)
     assert terms["surface"].item() == pytest.approx(0.05, abs=1e-5)
 
 
 def test_terms_without_normals_and_weights_switch_terms_off():
     batch = sphere_batch(with_normals=False)
-    weights = LossWeights(normal=0.5, eikonal=0.0, off_surface=1.0)
-    terms = sdf_losses(evaluate_sdf_batch(ExactSphere(), batch), batch, weights)
-    assert set(terms) == {"surface", "off_surface", "total"}
-    assert terms["total"].item() == pytest.approx(3.0 * terms["surface"].item() + terms["off_surface"].item())
+    weights = {**DEFAULT_POINT_WEIGHTS, "normal": 0.5, "eikonal": 0.0, "off_surface": 1.0}
+    terms = point_terms(evaluate_sdf_batch(ExactSphere(), batch), batch, weights)
+    assert set(terms) == {"surface", "off_surface"}  # no normals: no sdf and normal terms
 
 
 def test_loss_primitives_on_hand_made_values():
@@ -63,9 +57,13 @@ def test_loss_primitives_on_hand_made_values():
 
 
 def test_bad_weights_are_reported():
+    cloud = Sphere(radius=0.3).sample_surface(100, seed=1)
     with pytest.raises(ConfigError, match=">= 0"):
-        LossWeights(surface=-1.0)
-    batch = sphere_batch()
+        PointSamples(cloud, weights={"surface": -1.0})
+    with pytest.raises(ConfigError, match="no loss term"):
+        PointSamples(cloud, weights={"surfce": 1.0})
     with pytest.raises(ConfigError, match="at least one"):
-        sdf_losses(evaluate_sdf_batch(ExactSphere(), batch), batch,
-                   LossWeights(surface=0, sdf=0, normal=0, eikonal=0, off_surface=0))
+        PointSamples(cloud, weights={name: 0.0 for name in DEFAULT_POINT_WEIGHTS})
+    batch = sphere_batch(with_normals=False)
+    with pytest.raises(ConfigError, match="lacks its data"):
+        point_terms(evaluate_sdf_batch(ExactSphere(), batch), batch, {"normal": 1.0})

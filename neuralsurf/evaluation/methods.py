@@ -7,6 +7,7 @@ provenance, e.g. in the neural checkpoints).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -22,51 +23,37 @@ class NotApplicable(NeuralsurfError):
     """This method does not take this scene's kind of input; the row is skipped with the reason."""
 
 
-def neural_sdf(scene: Scene, *, model: nn.Module | None = None, loss=None,
-               trainer: dict[str, Any] | None = None, extract: dict[str, Any] | None = None,
-               device: str = "auto", checkpoint: str | None = None, save_checkpoint: bool = True,
-               seed: int = 0, run_dir: str | Path | None = None, config: dict | None = None) -> Mesh:
-    """Fit a neural SDF to the scene's cloud with `neuralsurf.fit` (as train.py does) and extract it;
-    or, with `checkpoint`, score an existing fit (model rebuilt from the checkpoint's config)."""
-    from neuralsurf.extract import extract_mesh
-    from neuralsurf.training import fit
+def neural_sdf(scene: Scene, *, model: nn.Module | None = None, points: Callable | None = None,
+               rays: Callable | None = None, optimizer: Callable | None = None, trainer: dict[str, Any] | None = None,
+               extract: dict[str, Any] | None = None, device: str = "auto", checkpoint: str | None = None,
+               save_checkpoint: bool = True, seed: int = 0, run_dir: str | Path | None = None,
+               config: dict | None = None) -> Mesh:
+    """Fit a neural SDF with `neuralsurf.fit` (as train.py does) and extract it: from the depth frames as
+    rays (`rays(scene)`) when the scene is a depth capture and `rays` is given, else from its point cloud
+    (`points(scene)`); or, with `checkpoint`, score an existing fit (`load_field`)."""
+    from neuralsurf.extract import NearPointsField, extract_mesh
+    from neuralsurf.observations import NotObserved
+    from neuralsurf.training import default_optimizer, fit, load_field
 
     extract = dict(extract or {})
+    near = extract.pop("near_distance", None)
+
+    def mesh_of(field):
+        return extract_mesh(field if near is None else NearPointsField(field, scene.cloud.points, near), **extract)
+
     if checkpoint is not None:
-        field = load_field(checkpoint, device)
-    else:
-        if model is None:
-            raise NeuralsurfError("neural_sdf needs a model (a model config) or a checkpoint")
-        trainer = dict(trainer or {})
-        trainer.pop("resume", None)
-        fit_dir = Path(run_dir) if (run_dir is not None and save_checkpoint) else None
-        result = fit(model, scene.cloud, loss=loss, device=device, seed=seed, run_dir=fit_dir,
-                     resume=False, config=config or {}, **trainer)
-        field = result.field
-    return extract_mesh(field, **extract)
-
-
-def load_field(path: str | Path, device: str = "auto"):
-    """A NormalizedField from a checkpoint of `fit` (train.py's or evaluate.py's): the model is rebuilt
-    from the checkpoint's stored config (its "model" section, `_target_` + instantiate)."""
-    from hydra.utils import instantiate
-
-    from neuralsurf.models.field import NormalizedField
-    from neuralsurf.structures import Normalization
-    from neuralsurf.training import load_checkpoint, resolve_device
-
-    path = Path(path)
-    if not path.is_file():
-        raise NeuralsurfError(f"checkpoint {path} not found; pass the last.pt of a train.py or evaluate.py run")
-    state = load_checkpoint(path)
-    model_config = (state.get("config") or {}).get("model")
-    if not model_config:
-        raise NeuralsurfError(f"checkpoint {path} stores no model config (config['model']); cannot rebuild it")
-    model = instantiate(model_config, _convert_="all")
-    model.load_state_dict(state["model"])
-    box = float(((state["config"].get("trainer") or {}).get("sampling") or {}).get("box", 0.55))
-    field = NormalizedField(model, Normalization.from_state_dict(state["normalization"]), margin=box - 0.5)
-    return field.to(resolve_device(device)).eval()
+        return mesh_of(load_field(checkpoint, device=device))
+    if model is None or points is None:
+        raise NeuralsurfError("neural_sdf needs a model and a points observation (configs), or a checkpoint")
+    try:
+        observation = rays(scene) if (rays is not None and scene.depth_input) else points(scene)
+    except NotObserved as error:
+        raise NotApplicable(str(error)) from None
+    trainer = {**(trainer or {}), "resume": False}
+    fit_dir = Path(run_dir) if (run_dir is not None and save_checkpoint) else None
+    result = fit(model, [observation], optimizer=optimizer or default_optimizer, device=device, seed=seed,
+                 run_dir=fit_dir, config=config or {}, **trainer)
+    return mesh_of(result.field)
 
 
 def poisson(scene: Scene, *, depth: int = 9, density_trim: float | None = None, scale: float = 1.1,

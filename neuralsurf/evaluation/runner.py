@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from neuralsurf.evaluation.methods import NotApplicable
-from neuralsurf.evaluation.scenes import SceneUnavailable
+from neuralsurf.scenes import SceneUnavailable
 from neuralsurf.scenes import Scene
 from neuralsurf.structures import Mesh
 
@@ -108,7 +108,7 @@ def run_benchmark(
     every `evaluate_mesh` metric (gt's normalised frame), file paths of the mesh and render (relative
     to `run_dir`), the method's config (JSON) and the environment (versions, machine).
     """
-    from neuralsurf.metrics import evaluate_mesh
+    from neuralsurf.metrics import depth_metrics, evaluate_mesh
 
     run_dir = Path(run_dir)
     configs = configs or {}
@@ -144,9 +144,13 @@ def run_benchmark(
                 mesh = check_mesh(method(scene, seed=seed, run_dir=run_dir / "fits" / f"{scene_name}__{method_name}"))
                 row["seconds"] = time.perf_counter() - started
                 row["peak_rss_mb"], row["cuda_peak_mb"] = peak_memory_mb()
-                metrics = evaluate_mesh(mesh, scene.ground_truth, n_samples=n_samples, seed=seed)
-                if not math.isfinite(metrics["chamfer_l1"]):
-                    raise ValueError(f"the metrics are not finite (chamfer_l1 = {metrics['chamfer_l1']})")
+                metrics = {}
+                if scene.ground_truth is not None:
+                    metrics = evaluate_mesh(mesh, scene.ground_truth, n_samples=n_samples, seed=seed)
+                    if not math.isfinite(metrics["chamfer_l1"]):
+                        raise ValueError(f"the metrics are not finite (chamfer_l1 = {metrics['chamfer_l1']})")
+                if scene.held_out is not None:
+                    metrics.update(depth_metrics(mesh, scene.held_out))
             except NotApplicable as error:
                 row["status"], row["reason"] = "skipped", str(error)
                 log(f"  {method_name:>12} on {scene_name}: skipped ({error})")
@@ -165,14 +169,15 @@ def run_benchmark(
                 path = Path("meshes") / f"{scene_name}__{method_name}.ply"
                 write_mesh(run_dir / path, mesh)
                 row["mesh"] = str(path)
-            if render:
+            if render and scene.ground_truth is not None:
                 try:
                     gt_image = gt_image if gt_image is not None else _gt_render(scene, run_dir, render_size)
                     row["render"] = _render_row(scene, mesh, method_name, gt_image, run_dir, render_size)
                 except Exception as error:  # noqa: BLE001 - a render problem must not lose the numbers
                     row["render_error"] = f"{type(error).__name__}: {error}"
-            log(f"  {method_name:>12} on {scene_name}: chamfer_l1 {row['chamfer_l1']:.5f}  "
-                f"F@1% {row.get('fscore_1%', math.nan):.3f}  {row['seconds']:.1f} s  "
+            log(f"  {method_name:>12} on {scene_name}: chamfer_l1 {row.get('chamfer_l1', math.nan):.5f}  "
+                f"F@1% {row.get('fscore_1%', math.nan):.3f}  depth error {row.get('depth_error_mean', math.nan):.4f}  "
+                f"completeness {row.get('depth_completeness', math.nan):.3f}  {row['seconds']:.1f} s  "
                 f"{row['peak_rss_mb']:.0f} MiB  {row['n_faces']} faces")
     return rows
 

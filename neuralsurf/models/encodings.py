@@ -12,8 +12,10 @@ import torch
 from torch import Tensor, nn
 
 from neuralsurf.errors import ConfigError
+from neuralsurf.models.spec import rebuildable
 
 
+@rebuildable
 class FourierFeatures(nn.Module):
     """NeRF-style positional encoding: [x, sin(2^k pi x), cos(2^k pi x)] for k < frequencies."""
 
@@ -34,6 +36,7 @@ class FourierFeatures(nn.Module):
 _PRIMES = (1, 2_654_435_761, 805_459_861)
 
 
+@rebuildable
 class HashGrid(nn.Module):
     """Multi-resolution grid of learned features (Instant-NGP, Mueller et al. 2022), pure PyTorch.
 

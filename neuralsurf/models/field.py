@@ -21,6 +21,7 @@ class NormalizedField(nn.Module):
         self.model = model
         self.normalization = normalization
         self.latent = latent
+        self.margin = float(margin)
         half = 0.5 + margin
         corners = torch.tensor([[-half] * 3, [half] * 3], dtype=torch.float64)
         self.register_buffer("bounds", normalization.to_world(corners), persistent=False)

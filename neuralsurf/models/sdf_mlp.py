@@ -10,6 +10,7 @@ from torch import Tensor, nn
 from torch.nn.utils.parametrizations import weight_norm as apply_weight_norm
 
 from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.models.spec import rebuildable
 
 
 class Sine(nn.Module):
@@ -33,6 +34,7 @@ def _activation(name: str, softplus_beta: float, sine_omega: float) -> nn.Module
     raise ConfigError(f"unknown activation {name!r}; choose relu, softplus or sine")
 
 
+@rebuildable
 class SDFMLP(nn.Module):
     """x[..., 3] (unit frame) [+ latent code] -> signed distance [...].
 

@@ -1,11 +1,26 @@
-"""Built-in data: the Stanford bunny, analytic shapes with exact SDFs, scene recipes."""
+"""Built-in data: the Stanford bunny, analytic shapes with exact SDFs, synthetic scanners, scene recipes."""
 
 from neuralsurf.geometry import cloud_from_mesh as sample_surface
 from neuralsurf.scenes.analytic import Box, Sphere, Torus, analytic_shape
 from neuralsurf.scenes.bunny import bunny, bunny_path
-from neuralsurf.scenes.recipes import Scene, analytic_scene, file_scene, mesh_scene
+from neuralsurf.scenes.recipes import (
+    Scene,
+    SceneUnavailable,
+    analytic_scene,
+    bunny_depth,
+    bunny_points,
+    data_root,
+    depth_scene,
+    file_scene,
+    mesh_scene,
+    redkitchen,
+    rgbd_scene,
+    stanford_scans,
+)
 from neuralsurf.scenes.scanner import look_at, orbit_cameras, scan_depth
 from neuralsurf.scenes.photometric_rig import SpecularLobe, cap_lights, render_photometric, ring_lights  # noqa: F401
 
-__all__ = ["Box", "Scene", "Sphere", "Torus", "analytic_scene", "analytic_shape", "bunny", "bunny_path",
-           "file_scene", "look_at", "mesh_scene", "orbit_cameras", "sample_surface", "scan_depth"]
+__all__ = ["Box", "Scene", "SceneUnavailable", "Sphere", "Torus", "analytic_scene", "analytic_shape", "bunny",
+           "bunny_depth", "bunny_path", "bunny_points", "data_root", "depth_scene", "file_scene", "look_at",
+           "mesh_scene", "orbit_cameras", "redkitchen", "rgbd_scene", "sample_surface", "scan_depth",
+           "stanford_scans"]

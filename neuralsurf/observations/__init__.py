@@ -1,0 +1,8 @@
+"""Supervision for fits: each kind of observation samples its own batches and returns its loss terms."""
+
+from neuralsurf.observations.base import NotObserved, Observation, Sampler, union_bounds
+from neuralsurf.observations.collection import CollectionOccupancy, CollectionSDF, LatentPrior, SDFSampleSet
+from neuralsurf.observations.points import PointSamples
+from neuralsurf.observations.rays import DepthRays, RayBatch, Rays, depth_rays
+
+__all__ = ["DepthRays", "NotObserved", "Observation", "PointSamples", "RayBatch", "Rays", "Sampler", "depth_rays", "union_bounds"]

@@ -1,0 +1,187 @@
+"""Point samples: a point cloud (with or without normals) as surface, near-surface and free-space
+samples with approximate signed distances (DeepSDF, IGR); the maths of `neuralsurf.sampling`."""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor, nn
+
+from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.geometry import estimate_normals, orient_normals
+from neuralsurf.losses import clamped_l1, eikonal_loss, normal_loss, off_surface_loss, surface_loss
+from neuralsurf.observations.base import Observation, Sampler, check_weights
+from neuralsurf.sampling import SDFBatch, SDFSamples, draw_batch, make_sdf_samples
+from neuralsurf.structures import Normalization, PointCloud
+
+POINT_TERMS = ("surface", "sdf", "normal", "eikonal", "off_surface")
+DEFAULT_POINT_WEIGHTS = {"surface": 3.0, "sdf": 1.0, "normal": 0.1, "eikonal": 0.1, "off_surface": 0.0}
+
+
+def prepare_cloud(cloud: PointCloud, normals: str, normal_k: int) -> PointCloud:
+    """Check the input and supply normals: "given" (must be there), "estimate" (when absent:
+    PCA + MST orientation), "ignore" (drop them: fit with surface, eikonal and off-surface terms)."""
+    if not isinstance(cloud, PointCloud):
+        raise InputError(f"PointSamples expects a neuralsurf.PointCloud, got {type(cloud).__name__}")
+    if len(cloud) < 3:
+        raise InputError(f"fitting needs at least 3 points, the cloud has {len(cloud)}")
+    points = cloud.points.double()
+    spread = torch.linalg.svdvals(points - points.mean(0))
+    if spread[1] <= 1e-9 * max(float(spread[0]), 1e-300):
+        raise InputError(
+            f"the {len(cloud)} points are collinear (or all at one place): a surface cannot be fitted to them; "
+            f"check the file or the scan"
+        )
+    if normals == "ignore":
+        return cloud.with_normals(None)
+    if normals == "given" and cloud.normals is None:
+        raise InputError("normals='given' but the cloud has no normals; use normals='estimate' or 'ignore'")
+    if normals not in ("given", "estimate"):
+        raise ConfigError(f"unknown normals={normals!r}; choose given, estimate or ignore")
+    if cloud.normals is not None:
+        zero = cloud.normals.norm(dim=-1) < 1e-12
+        if zero.all():
+            raise InputError(
+                f"all {len(cloud)} normals of the cloud have zero length; drop them (cloud.with_normals(None)) "
+                f"or use normals='ignore' or 'estimate' on a cloud without normals"
+            )
+        if zero.any():
+            if normals == "given":
+                raise InputError(
+                    f"{int(zero.sum())} of {len(cloud)} normals have zero length; use normals='estimate' to "
+                    f"replace them by estimated ones, or remove those points"
+                )
+            warnings.warn(f"{int(zero.sum())} of {len(cloud)} normals have zero length: replaced by estimated "
+                          f"normals oriented like their neighbours", stacklevel=3)
+            given = torch.nn.functional.normalize(cloud.normals, dim=-1)
+            estimated = orient_normals(cloud.points, estimate_normals(cloud.points, normal_k), normal_k).to(given)
+            if (estimated * given)[~zero].sum() < 0:  # orient them like the given normals overall
+                estimated = -estimated
+            return cloud.with_normals(torch.where(zero[:, None], estimated, given))
+        return cloud.with_normals(torch.nn.functional.normalize(cloud.normals, dim=-1))
+    estimated = estimate_normals(cloud.points, normal_k)
+    return cloud.with_normals(orient_normals(cloud.points, estimated, normal_k))
+
+
+@dataclass(frozen=True)
+class SDFOutputs:
+    """The model evaluated on a point batch (unit frame)."""
+
+    surface: Tensor
+    """Float[Tensor, "n"]: f at surface points."""
+    near: Tensor
+    """Float[Tensor, "m"]: f at near-surface points."""
+    free: Tensor
+    """Float[Tensor, "k"]: f at free-space points."""
+    surface_gradient: Tensor
+    """Float[Tensor, "n 3"]: grad f at surface points."""
+    gradient: Tensor
+    """Float[Tensor, "n+m+k 3"]: grad f at all points."""
+
+
+def evaluate_sdf_batch(model: nn.Module, batch: SDFBatch) -> SDFOutputs:
+    """One forward pass over all samples of `batch`, with gradients kept for the loss."""
+    points = torch.cat([batch.surface_points, batch.near_points, batch.free_points]).requires_grad_(True)
+    values = model(points)
+    (gradient,) = torch.autograd.grad(values.sum(), points, create_graph=True)
+    n, m = len(batch.surface_points), len(batch.near_points)
+    return SDFOutputs(values[:n], values[n : n + m], values[n + m :], gradient[:n], gradient)
+
+
+def point_terms(outputs: SDFOutputs, batch: SDFBatch, weights: Mapping[str, float], clamp: float = 0.1,
+                off_surface_alpha: float = 100.0) -> dict[str, Tensor]:
+    """Unweighted loss terms whose weight is positive and whose data is there (normals), in
+    POINT_TERMS order: surface |f|, clamped-L1 `sdf`, `normal` 1 - cos, `eikonal`, `off_surface`."""
+    terms: dict[str, Tensor] = {}
+    if weights.get("surface"):
+        terms["surface"] = surface_loss(outputs.surface)
+    if weights.get("sdf") and batch.near_sdf is not None:
+        pred = torch.cat([outputs.near, outputs.free])
+        target = torch.cat([batch.near_sdf, batch.free_sdf])
+        terms["sdf"] = clamped_l1(pred, target, clamp)
+    if weights.get("normal") and batch.surface_normals is not None:
+        terms["normal"] = normal_loss(outputs.surface_gradient, batch.surface_normals)
+    if weights.get("eikonal"):
+        terms["eikonal"] = eikonal_loss(outputs.gradient)
+    if weights.get("off_surface"):
+        terms["off_surface"] = off_surface_loss(outputs.free, off_surface_alpha)
+    if not terms:
+        raise ConfigError("every point loss term is switched off or lacks its data (normals); "
+                          "give a positive weight to surface, eikonal or off_surface")
+    return terms
+
+
+@dataclass(frozen=True)
+class PointSampler(Sampler):
+    samples: SDFSamples
+    weights: dict[str, float]
+    batch_size: int
+    free_fraction: float
+    clamp: float
+    off_surface_alpha: float
+
+    def sample(self, generator: torch.Generator) -> SDFBatch:
+        return draw_batch(self.samples, self.batch_size, self.free_fraction, generator)
+
+    def losses(self, model: nn.Module, batch: SDFBatch) -> dict[str, Tensor]:
+        return point_terms(evaluate_sdf_batch(model, batch), batch, self.weights, self.clamp, self.off_surface_alpha)
+
+
+@dataclass(frozen=True)
+class PointSamples(Observation):
+    """A point cloud as SDF supervision (surface, normals, near and free samples, eikonal)."""
+
+    cloud: PointCloud
+    """The input cloud, world frame, with or without normals."""
+    weights: Mapping[str, float] = field(default_factory=lambda: dict(DEFAULT_POINT_WEIGHTS))
+    """Term weights: surface, sdf (clamped L1 of near and free samples), normal, eikonal, off_surface."""
+    normals: str = "estimate"
+    """"given" (must be there), "estimate" (PCA + MST orientation when absent), "ignore"."""
+    normal_k: int = 30
+    """Neighbours for normal estimation."""
+    batch_size: int = 8192
+    """Surface and near-surface samples per step (each)."""
+    free_fraction: float = 0.25
+    """Free-space samples per step, as a fraction of `batch_size`."""
+    n_near: int = 1_000_000
+    """Size of the near-surface pool (see `make_sdf_samples`)."""
+    n_free: int = 250_000
+    """Size of the free-space pool."""
+    near_sigmas: tuple[float, ...] = (0.0025, 0.025)
+    """Gaussian offsets of near samples, unit frame."""
+    winding_points: int = 5000
+    """Free-space signs from the winding number of this many points (0: nearest normal)."""
+    clamp: float = 0.1
+    """DeepSDF's clamp distance of the sdf term, unit frame."""
+    off_surface_alpha: float = 100.0
+    """exp(-alpha |f|) of the off_surface term."""
+    name: str = "points"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "weights", check_weights(self.weights, POINT_TERMS, "PointSamples"))
+        object.__setattr__(self, "near_sigmas", tuple(self.near_sigmas))
+        if not (isinstance(self.batch_size, int) and self.batch_size >= 1 and 0 <= self.free_fraction):
+            raise ConfigError(f"PointSamples needs an integer batch_size >= 1 and free_fraction >= 0, got "
+                              f"batch_size={self.batch_size!r}, free_fraction={self.free_fraction!r}")
+        if not isinstance(self.cloud, PointCloud):
+            raise InputError(f"PointSamples expects a neuralsurf.PointCloud, got {type(self.cloud).__name__}")
+
+    @classmethod
+    def from_scene(cls, scene, **options) -> PointSamples:
+        """The scene's point cloud (a `neuralsurf.scenes.Scene`) with these options."""
+        return cls(scene.cloud, **options)
+
+    def bounds(self) -> Tensor:
+        points = self.cloud.points.double()
+        return torch.stack([points.min(0).values, points.max(0).values])
+
+    def prepare(self, normalization: Normalization, box: float, device: torch.device, seed: int) -> PointSampler:
+        cloud = prepare_cloud(self.cloud, self.normals, self.normal_k)
+        samples = make_sdf_samples(normalization.cloud_to_unit(cloud), n_near=self.n_near, n_free=self.n_free,
+                                   near_sigmas=self.near_sigmas, box=box, winding_points=self.winding_points,
+                                   seed=seed)
+        return PointSampler(samples.to(device), self.weights, self.batch_size, self.free_fraction, self.clamp,
+                            self.off_surface_alpha)

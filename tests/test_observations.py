@@ -1,0 +1,135 @@
+"""Depth rays and the observation contract against closed-form oracles: ray-sphere hits, exact sphere SDFs."""
+
+import math
+
+import pytest
+import torch
+
+from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.models import SDFMLP, HashGrid
+from neuralsurf.observations import DepthRays, PointSamples, depth_rays
+from neuralsurf.observations.rays import box_entry, ray_terms
+from neuralsurf.scenes import Sphere, look_at
+from neuralsurf.structures import DepthFrames, Normalization
+from neuralsurf.training import fit
+
+CENTER, RADIUS = torch.tensor([0.2, -0.1, 0.3], dtype=torch.float64), 0.5
+K = torch.tensor([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]])
+
+
+def sphere_frames(eyes, width: int = 64, height: int = 48) -> DepthFrames:
+    """Closed-form z-depth of the sphere: the nearer root of |o + t d - c| = r along each pixel's ray."""
+    poses = torch.stack([look_at(eye, CENTER) for eye in eyes])
+    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64),
+                          indexing="ij")
+    camera = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], -1)
+    depths = []
+    for pose in poses:
+        d = camera @ pose[:3, :3].T  # world direction per unit z
+        o = pose[:3, 3] - CENTER
+        a, b, c = (d * d).sum(-1), 2 * (d * o).sum(-1), float(o @ o) - RADIUS**2
+        disc = b**2 - 4 * a * c
+        z = (-b - disc.clamp_min(0).sqrt()) / (2 * a)
+        depths.append(torch.where(disc > 0, z, 0.0))
+    return DepthFrames(torch.stack(depths).float(), K, poses.float())
+
+
+class ExactSphere(torch.nn.Module):
+    """The sphere's SDF in a unit frame."""
+
+    def __init__(self, normalization: Normalization, radius: float = RADIUS):
+        super().__init__()
+        self.center = normalization.to_unit(CENTER).float()
+        self.radius = radius / normalization.scale
+
+    def forward(self, x):
+        return (x - self.center).norm(dim=-1) - self.radius
+
+
+def prepared(frames, **options):
+    observation = DepthRays(frames, noise_model="constant", sigma=0.001, **options)
+    normalization = Normalization.from_points(observation.bounds())
+    return observation, normalization, observation.prepare(normalization, 0.55, torch.device("cpu"), 0)
+
+
+def test_rays_hit_the_sphere_where_ray_sphere_intersection_says():
+    frames = sphere_frames([(2.0, 0.5, 1.0), (-1.5, 1.0, -1.0)])
+    rays = depth_rays(frames, lambda z: torch.full_like(z, 0.001))
+    assert len(rays.hit) == int((frames.depth > 0).sum()) > 1000
+    assert torch.allclose(rays.directions.norm(dim=-1), torch.ones(len(rays.hit)), atol=1e-6)
+    hits = rays.origins.double() + rays.hit[:, None].double() * rays.directions.double()
+    assert ((hits - CENTER).norm(dim=-1) - RADIUS).abs().max() < 1e-5
+    # the depth map's normals are the sphere's: |cos| between ray and normal from the geometry
+    normal = (hits - CENTER) / RADIUS
+    expected = (normal * rays.directions.double()).sum(-1).abs()
+    interior = rays.cosine > 0.3  # away from the limb, where one-sided differences are coarse
+    assert (rays.cosine.double() - expected)[interior].abs().median() < 0.01
+
+
+def test_each_ray_term_is_about_zero_for_the_exact_sdf_and_positive_for_a_wrong_radius():
+    frames = sphere_frames([(2.0, 0.5, 1.0), (-1.5, 1.0, -1.0)])
+    observation, normalization, sampler = prepared(frames)
+    batch = sampler.sample(torch.Generator().manual_seed(0))
+    exact = ray_terms(ExactSphere(normalization), batch, observation.weights)
+    assert set(exact) == {"surface", "band", "free", "eikonal"}
+    assert exact["surface"] < 1e-5 and exact["free"] < 1e-6 and exact["eikonal"] < 1e-6
+    assert exact["band"] < 0.02 * float(sampler.band.mean())  # projected-distance target vs. a curved surface
+    wrong = ray_terms(ExactSphere(normalization, radius=0.45), batch, observation.weights)
+    assert wrong["surface"].item() == pytest.approx(0.05 / normalization.scale, rel=0.02)
+    assert wrong["band"] > 10 * exact["band"]
+    smaller = ray_terms(ExactSphere(normalization, radius=0.55), batch, observation.weights)
+    assert smaller["free"] > 1e-3  # a surface in front of the hit lies in seen free space
+
+
+def test_box_entry_is_where_rays_cross_the_cube():
+    origins = torch.tensor([[-2.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 3.0, 0.1]])
+    directions = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+    assert torch.allclose(box_entry(origins, directions, 0.5), torch.tensor([1.5, 0.0, 2.5]))
+
+
+def test_missing_pixels_are_skipped_and_all_missing_is_a_clear_error():
+    frames = sphere_frames([(2.0, 0.5, 1.0)])
+    rays = depth_rays(frames)
+    assert len(rays.hit) == int((frames.depth > 0).sum()) < frames.depth.numel()
+    empty = DepthFrames(torch.zeros(1, 48, 64), K, frames.cam_to_world)
+    with pytest.raises(InputError, match="missing"):
+        DepthRays(empty).bounds()
+    with pytest.raises(ConfigError, match="no loss term"):
+        DepthRays(frames, weights={"surfaec": 1.0})
+
+
+def tiny_model() -> SDFMLP:
+    torch.manual_seed(0)
+    return SDFMLP(width=32, depth=2, skip_layers=(), weight_norm=False,
+                  encoding=HashGrid(levels=6, log2_table_size=14, max_resolution=96))
+
+
+def test_a_fit_of_two_depth_views_recovers_the_sphere_radius_within_one_percent():
+    frames = sphere_frames([(2.0, 0.5, 1.0), (-1.5, 1.0, -1.0)], width=96, height=72)
+    frames = DepthFrames(frames.depth, torch.tensor([[90.0, 0, 47.5], [0, 90.0, 35.5], [0, 0, 1]]), frames.cam_to_world)
+    observation = DepthRays(frames, n_rays=512, noise_model="constant", sigma=0.001)
+    result = fit(tiny_model(), observation, steps=250, device="cpu", progress=False, image_every=0)
+    # radius along rays through the centre towards both cameras (the seen caps)
+    seen = depth_rays(frames, lambda z: torch.full_like(z, 1e-3))
+    towards = torch.nn.functional.normalize(seen.origins.double()[[0, -1]] - CENTER, dim=-1)
+    t = torch.linspace(0.3, 0.7, 4001, dtype=torch.float64)
+    for direction in towards:
+        values = result.field((CENTER + t[:, None] * direction).float()).detach()
+        crossing = float(t[int((values > 0).nonzero()[0])])
+        assert crossing == pytest.approx(RADIUS, rel=0.01)
+
+
+def test_a_fit_sums_the_terms_of_two_observations():
+    frames = sphere_frames([(2.0, 0.5, 1.0), (-1.5, 1.0, -1.0)])
+    cloud = Sphere(center=tuple(CENTER.tolist()), radius=RADIUS).sample_surface(2000, seed=0)
+    observations = [DepthRays(frames, n_rays=128), PointSamples(cloud, batch_size=256, n_near=4000, n_free=1000)]
+    result = fit(tiny_model(), observations, steps=30, device="cpu", progress=False, image_every=0, log_every=10)
+    history = result.history
+    assert {"rays/surface", "rays/band", "rays/free", "points/surface", "points/sdf"} <= set(history)
+    recomputed = sum(observations[0].weights[k.split("/")[1]] * history[k][-1] for k in history if k.startswith("rays/"))
+    recomputed += sum(observations[1].weights[k.split("/")[1]] * history[k][-1] for k in history if k.startswith("points/"))
+    assert history["total"][-1] == pytest.approx(recomputed, rel=1e-5)
+    assert history["total"][-1] < history["total"][0]
+    with pytest.raises(ConfigError, match="distinct names"):
+        fit(tiny_model(), [observations[1], observations[1]], steps=1, device="cpu", progress=False)
+    assert math.isfinite(history["total"][-1])
