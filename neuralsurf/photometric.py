@@ -112,51 +112,64 @@ def _weighted_fit(gray: Tensor, lights: Tensor, weights: Tensor) -> tuple[Tensor
     return torch.where(ok[:, None], g, 0.0), ok
 
 
-def _result(
+def _pixel_outputs(
     g: Tensor,
     ok: Tensor,
     gray: Tensor,
     color: Tensor | None,
     lights: Tensor,
-    weights: Tensor | None,
-    mask: Tensor,
+    weights: Tensor,
     usable: Tensor | None = None,
-) -> PhotometricStereoResult:
-    """Assemble the per-pixel solution g [p, 3] into maps: normals, albedo (per channel), confidence."""
-    h, w = mask.shape
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Per-pixel outputs of a weighted fit g [p, 3]: normal [p, 3], albedo [p] or [p, 3] (per channel),
+    confidence [p], solved [p] and summed weight [p]."""
     rho = g.norm(dim=-1)
     ok = ok & (rho > 0)
     normal = g / rho.clamp_min(1e-12)[:, None]
     shading = lights @ normal.T  # (n, p)
-    weights = torch.ones_like(gray) if weights is None else weights
+    weighted_shading = weights * shading
     # per-channel albedo: weighted least squares of I_c = rho_c s over the observations kept
-    s2 = (weights * shading * shading).sum(0).clamp_min(1e-12)
+    s2 = (weighted_shading * shading).sum(0).clamp_min(1e-12)
     if color is not None:
-        rho_map = ((weights * shading)[..., None] * color).sum(0) / s2[:, None]
+        albedo = torch.einsum("np,npc->pc", weighted_shading, color) / s2[:, None]
     else:
-        rho_map = rho
+        albedo = rho
     residual = (weights * (gray - rho[None] * shading) ** 2).sum(0)
     energy = (weights * gray**2).sum(0).clamp_min(1e-12)
     confidence = (1 - (residual / energy).sqrt()).clamp(0, 1)
+    kept = weights.sum(0)
     if usable is not None:  # share of the usable observations the robust fit kept
-        confidence = confidence * (weights.sum(0) / usable.clamp_min(1)).clamp(0, 1)
+        confidence = confidence * (kept / usable.clamp_min(1)).clamp(0, 1)
     confidence = torch.where(ok, confidence, 0.0)
+    normal = torch.where(ok[:, None], normal, 0.0)
+    albedo = torch.where(ok[:, None] if albedo.ndim == 2 else ok, albedo, 0.0)
+    return normal, albedo, confidence, ok, kept
 
-    def scatter(values: Tensor, fill: float = 0.0) -> Tensor:
-        out = torch.full((h, w, *values.shape[1:]), fill, dtype=values.dtype, device=values.device)
-        out[mask] = values
-        return out
 
-    zero = lambda t: torch.where(ok.reshape(-1, *([1] * (t.ndim - 1))), t, 0.0)
-    solved = torch.zeros(h, w, dtype=torch.bool, device=mask.device)
-    solved[mask] = ok
-    return PhotometricStereoResult(
-        normals=scatter(zero(normal)),
-        albedo=scatter(zero(rho_map)),
-        confidence=scatter(confidence),
-        mask=solved,
-        inliers=scatter(weights.sum(0)),
-    )
+def _assemble(mask: Tensor, outputs: tuple[Tensor, ...]) -> PhotometricStereoResult:
+    """Per-pixel outputs of the masked pixels -> (h, w, ...) maps (a reshape when every pixel is solved)."""
+    h, w = mask.shape
+    if bool(mask.all()):
+        return PhotometricStereoResult(*(t.reshape(h, w, *t.shape[1:]) for t in outputs))
+    return _maps(mask, *outputs)
+
+
+def _by_chunks(gray: Tensor, color: Tensor | None, chunk: int | None, fit) -> tuple[Tensor, ...]:
+    """Run `fit(gray [n, q], color [n, q, 3] | None) -> per-pixel outputs` over chunks of q pixels and
+    concatenate (bounds the memory of the (n, q) temporaries; None: all pixels at once)."""
+    p = gray.shape[1]
+    if chunk is not None and not (isinstance(chunk, int) and chunk > 0):
+        raise ConfigError(f"chunk_pixels must be a positive integer or None, got {chunk!r}")
+    if chunk is None or chunk >= p:
+        return fit(gray, color)
+    parts = [
+        fit(
+            gray[:, i : i + chunk].contiguous(),
+            None if color is None else color[:, i : i + chunk].contiguous(),
+        )
+        for i in range(0, p, chunk)
+    ]
+    return tuple(torch.cat(values) for values in zip(*parts))
 
 
 def least_squares_stereo(
@@ -216,11 +229,11 @@ def least_squares_stereo(
             ok.reshape(h, w),
             inliers.reshape(h, w),
         )
-    return _maps(mask, ok, normal, albedo, confidence, inliers)
+    return _maps(mask, normal, albedo, confidence, ok, inliers)
 
 
 def _maps(
-    mask: Tensor, ok: Tensor, normal: Tensor, albedo: Tensor, confidence: Tensor, inliers: Tensor
+    mask: Tensor, normal: Tensor, albedo: Tensor, confidence: Tensor, ok: Tensor, inliers: Tensor
 ) -> PhotometricStereoResult:
     """Scatter per-pixel values of the masked pixels into (h, w, ...) maps (0 elsewhere)."""
     h, w = mask.shape
@@ -266,18 +279,24 @@ def trimmed_stereo(
     mask: Tensor | None = None,
     dark_fraction: float = 0.3,
     bright_fraction: float = 0.1,
+    chunk_pixels: int | None = None,
 ) -> PhotometricStereoResult:
     """Photometric stereo on the middle of each pixel's observations: the darkest `dark_fraction`
     (shadows) and brightest `bright_fraction` (highlights) are left out, the rest fit by least squares.
 
-    Args and returns as `least_squares_stereo`.
+    Args and returns as `least_squares_stereo`; `chunk_pixels` pixels are solved at a time (None: all;
+    a chunk bounds the memory of the (n, chunk) temporaries).
     """
     _check_fractions(dark_fraction, bright_fraction)
     images, lights, mask = _check_inputs(images, lights, mask)
     gray, color = _gather(images, mask)
-    weights = _trim_weights(gray, dark_fraction, bright_fraction)
-    g, ok = _weighted_fit(gray, lights, weights)
-    return _result(g, ok, gray, color, lights, weights, mask)
+
+    def fit(gray: Tensor, color: Tensor | None) -> tuple[Tensor, ...]:
+        weights = _trim_weights(gray, dark_fraction, bright_fraction)
+        g, ok = _weighted_fit(gray, lights, weights)
+        return _pixel_outputs(g, ok, gray, color, lights, weights)
+
+    return _assemble(mask, _by_chunks(gray, color, chunk_pixels, fit))
 
 
 def robust_stereo(
@@ -289,6 +308,7 @@ def robust_stereo(
     dark_fraction: float = 0.3,
     bright_fraction: float = 0.1,
     shadow_threshold: float = 0.02,
+    chunk_pixels: int | None = None,
 ) -> PhotometricStereoResult:
     """Photometric stereo robust to shadows and highlights: trimmed least squares, then iteratively
     reweighted least squares.
@@ -305,6 +325,7 @@ def robust_stereo(
         scale: residual, as a fraction of the albedo, beyond which an observation gets no weight.
         dark_fraction, bright_fraction: the trimmed start (`trimmed_stereo`).
         shadow_threshold: observations below this fraction of the pixel's brightest are shadows.
+        chunk_pixels: pixels solved at a time (None: all at once; a chunk bounds the temporaries' memory).
     Returns:
         PhotometricStereoResult; confidence counts the share of lit, unshadowed observations kept.
     """
@@ -315,29 +336,24 @@ def robust_stereo(
         raise ConfigError(f"scale must be a positive fraction of the albedo, got {scale}")
     images, lights, mask = _check_inputs(images, lights, mask)
     gray, color = _gather(images, mask)
-    lit = (gray > shadow_threshold * gray.amax(0, keepdim=True)).to(gray.dtype)
-    weights = _trim_weights(gray, dark_fraction, bright_fraction) * lit
-    g, ok = _weighted_fit(gray, lights, weights)
-    for _ in range(iterations):
-        predicted = lights @ g.T  # (n, p) = rho n . l
-        rho = g.norm(dim=-1).clamp_min(1e-12)
-        # Tukey weights (1 - (r / (scale rho))^2)^2, in place over the (n, p) observations
-        weights = (
-            torch.sub(gray, predicted)
-            .div_(scale * rho[None])
-            .square_()
-            .neg_()
-            .add_(1)
-            .clamp_(min=0)
-            .square_()
-        )
-        weights.mul_(lit).masked_fill_(predicted <= 0, 0.0)
-        g_new, ok_new = _weighted_fit(gray, lights, weights)
-        g = torch.where(
-            ok_new[:, None], g_new, g
-        )  # a pixel whose reweighted fit degenerates keeps its last g
-    usable = (lit * (lights @ g.T > 0).to(gray.dtype)).sum(0)
-    return _result(g, ok, gray, color, lights, weights, mask, usable=usable)
+
+    def fit(gray: Tensor, color: Tensor | None) -> tuple[Tensor, ...]:
+        lit = (gray > shadow_threshold * gray.amax(0, keepdim=True)).to(gray.dtype)
+        weights = _trim_weights(gray, dark_fraction, bright_fraction) * lit
+        g, ok = _weighted_fit(gray, lights, weights)
+        for _ in range(iterations):
+            predicted = lights @ g.T  # (n, p) = rho n . l
+            rho = g.norm(dim=-1).clamp_min(1e-12)
+            # Tukey weights (1 - (r / (scale rho))^2)^2, in place over the (n, p) observations
+            weights = torch.sub(gray, predicted).div_(scale * rho[None]).square_()
+            weights = weights.neg_().add_(1).clamp_(min=0).square_()
+            weights.mul_(lit).masked_fill_(predicted <= 0, 0.0)
+            g_new, ok_new = _weighted_fit(gray, lights, weights)
+            g = torch.where(ok_new[:, None], g_new, g)  # a pixel whose reweighted fit degenerates keeps its g
+        usable = (lit * (lights @ g.T > 0).to(gray.dtype)).sum(0)
+        return _pixel_outputs(g, ok, gray, color, lights, weights, usable=usable)
+
+    return _assemble(mask, _by_chunks(gray, color, chunk_pixels, fit))
 
 
 METHODS = {"least_squares": least_squares_stereo, "trimmed": trimmed_stereo, "robust": robust_stereo}

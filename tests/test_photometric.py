@@ -106,6 +106,9 @@ def test_trimmed_fit_matches_a_per_pixel_numpy_solve_of_the_kept_observations():
     images = torch.rand(12, 5, 5, generator=generator)
     lights = torch.nn.functional.normalize(torch.randn(12, 3, generator=generator), dim=-1)
     result = trimmed_stereo(images, lights, dark_fraction=0.25, bright_fraction=0.25)
+    chunked = trimmed_stereo(images, lights, dark_fraction=0.25, bright_fraction=0.25, chunk_pixels=7)
+    for name in ("normals", "albedo", "confidence", "mask", "inliers"):
+        torch.testing.assert_close(getattr(chunked, name), getattr(result, name))
     for row, column in ((0, 0), (2, 3), (4, 1)):
         values = images[:, row, column].double().numpy()
         kept = np.argsort(values)[3:9]  # 25 % of 12 = 3 darkest and 3 brightest left out
