@@ -55,7 +55,7 @@ def train_for(model, observation, minutes: float, max_steps: int, lr: float, lab
     started = time.perf_counter()
     result = fit(model, observation, steps=steps, normalization=Normalization(), encoding_lr=None, progress=False,
                  optimizer=functools.partial(default_optimizer, lr=lr), log_every=max(1, steps // 10))
-    key = [k for k in result.history if k.endswith(("/sdf", "/occupancy"))][0]
+    key = next(k for k in result.history if k.endswith(("/sdf", "/occupancy")))
     print(f"{label}: {steps} steps in {time.perf_counter() - started:.0f} s, {key} "
           f"{result.history[key][0]:.4f} -> {result.history[key][-1]:.4f}", flush=True)
     return result.model, steps, time.perf_counter() - started

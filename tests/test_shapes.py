@@ -90,7 +90,7 @@ def test_records_are_seeded_and_splits_draw_disjoint_streams():
     with pytest.raises(ConfigError, match="unknown shape class"):
         collection_records(("sofa",))
     with pytest.raises(ConfigError, match="unknown split"):
-        ShapeRecord("chair", "training", 0).seed
+        _ = ShapeRecord("chair", "training", 0).seed
 
 
 def _check_generated(kind: str, indices) -> None:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import os
+import zipfile
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
@@ -154,7 +155,7 @@ def _cached_recipe(path: Path) -> str | None:
     try:
         with np.load(path, allow_pickle=False) as data:
             return str(data["recipe"])
-    except Exception:  # unreadable: built again
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):  # unreadable: built again
         return None
 
 
