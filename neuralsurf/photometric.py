@@ -735,6 +735,10 @@ def integrate_bilateral(
     return _finish(t, mask, K, done, normals.dtype if normals.is_floating_point() else torch.float32)
 
 
+INTEGRATORS = {"least_squares": integrate_least_squares, "bilateral": integrate_bilateral}
+"""Normal-integration methods by name (for configs): each `(normals, mask, K, **options) -> NormalIntegration`."""
+
+
 @dataclass(frozen=True)
 class DepthError:
     """Depth error after aligning an estimate that is known up to scale and/or offset."""
@@ -780,6 +784,7 @@ def depth_error(
 
 
 __all__ = [
+    "INTEGRATORS",
     "METHODS",
     "AngularError",
     "ChromeBallCalibration",
