@@ -1,0 +1,1 @@
+"""Hydra configs of neuralsurf, shipped in the package (the repository configs/ links here)."""
