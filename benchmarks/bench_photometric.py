@@ -123,7 +123,7 @@ def report_stereo(name: str, images, lights, mask, truth) -> None:
         e = angular_error(method(images, lights, mask).normals, truth, mask)
         errors[method.__name__] = e
         print(
-            f"  {name:36s} {method.__name__:22s} mean {e.mean_deg:7.3f} deg  median {e.median_deg:7.3f} deg"
+            f"  {name:36s} {method.__name__:22s} mean {e.mean_deg:9.3g} deg  median {e.median_deg:9.3g} deg"
         )
     ratio = errors["robust_stereo"].mean_deg / errors["least_squares_stereo"].mean_deg
     print(f"  {name:36s} robust / least squares mean: {ratio:.3f}")
@@ -153,7 +153,7 @@ def accuracy(args) -> None:
         lit,
     )
     print(
-        f"  {'rig_lambertian, pixels lit by all':36s} least_squares_stereo   mean {e.mean_deg:7.3f} deg  "
+        f"  {'rig_lambertian, pixels lit by all':36s} least_squares_stereo   mean {e.mean_deg:9.3g} deg  "
         f"({int(lit.sum())} of {int(lambertian.mask.sum())} pixels)"
     )
     linear = render_photometric(
@@ -172,7 +172,7 @@ def accuracy(args) -> None:
         linear.mask,
     )
     print(
-        f"  {'rig_lambertian, no attached shadows':36s} least_squares_stereo   mean {e.mean_deg:7.3f} deg  "
+        f"  {'rig_lambertian, no attached shadows':36s} least_squares_stereo   mean {e.mean_deg:9.3g} deg  "
         f"median {e.median_deg:7.3f} deg (unclamped n . l: no shadow of any kind)"
     )
     specular = render_photometric(
