@@ -77,8 +77,9 @@ def main() -> None:
     cloud = ns.scenes.sample_surface(gt, n=100_000, noise=0.0, seed=0)
     torch.manual_seed(0)
     model = instantiate(cfg.model, _convert_="all")
-    result, fit_seconds = timed(f"fit, {trainer['steps']} steps", rows, ns.fit, model, cloud,
-                                loss=instantiate(cfg.loss), device=device, **trainer)
+    observation = instantiate(cfg.observation.points, _convert_="all")(ns.scenes.Scene("bunny", cloud, gt))
+    result, fit_seconds = timed(f"fit, {trainer['steps']} steps", rows, ns.fit, model, observation,
+                                optimizer=instantiate(cfg.optimizer), device=device, **trainer)
     print(f"  -> {result.steps / fit_seconds:.2f} steps/s overall (sampling included); "
           f"{result.history['steps_per_s'][-1]:.2f} steps/s in the last logging window")
 

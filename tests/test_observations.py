@@ -8,7 +8,7 @@ import torch
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.models import SDFMLP, HashGrid
 from neuralsurf.observations import DepthRays, PointSamples, depth_rays
-from neuralsurf.observations.rays import box_entry, ray_terms
+from neuralsurf.observations.rays import box_entry, carve_labels, ray_terms
 from neuralsurf.scenes import Sphere, look_at
 from neuralsurf.structures import DepthFrames, Normalization
 from neuralsurf.training import fit
@@ -66,19 +66,37 @@ def test_rays_hit_the_sphere_where_ray_sphere_intersection_says():
     assert (rays.cosine.double() - expected)[interior].abs().median() < 0.01
 
 
+AROUND = [(2.2, 0.3, 0.1), (-1.8, 0.1, 0.4), (0.3, 2.0, 0.2), (0.1, -2.0, 0.5), (0.4, 0.2, 2.1), (-0.2, -0.3, -1.6)]
+
+
+def test_space_carving_labels_agree_with_the_sphere():
+    frames = sphere_frames(AROUND)
+    points = CENTER + (2 * torch.rand(20000, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) - 1)
+    bounds = torch.stack([CENTER - RADIUS, CENTER + RADIUS])
+    labels = carve_labels(points, frames, band=0.01, sigma_of_depth=lambda z: torch.zeros_like(z), bounds=bounds)
+    distance = (points - CENTER).norm(dim=-1) - RADIUS
+    assert (labels == 1).sum() > 2000 and (labels == -1).sum() > 0.3 * (distance < 0).sum()
+    assert not ((distance > 0) & (labels == -1)).any()
+    # a point is compared with the reading of the nearest pixel centre: near the limb that reading can
+    # lie a pixel footprint (about 0.01 here) farther than the point's own ray would see
+    assert not ((distance < -0.01) & (labels == 1)).any()
+
+
 def test_each_ray_term_is_about_zero_for_the_exact_sdf_and_positive_for_a_wrong_radius():
-    frames = sphere_frames([(2.0, 0.5, 1.0), (-1.5, 1.0, -1.0)])
+    frames = sphere_frames(AROUND)
     observation, normalization, sampler = prepared(frames)
     batch = sampler.sample(torch.Generator().manual_seed(0))
     exact = ray_terms(ExactSphere(normalization), batch, observation.weights)
-    assert set(exact) == {"surface", "band", "free", "eikonal"}
+    assert set(exact) == {"surface", "band", "free", "carve", "eikonal"}
     assert exact["surface"] < 1e-5 and exact["free"] < 1e-6 and exact["eikonal"] < 1e-6
+    assert exact["carve"] < 1e-4  # only labels within a pixel footprint of the limb can be off
     assert exact["band"] < 0.02 * float(sampler.band.mean())  # projected-distance target vs. a curved surface
     wrong = ray_terms(ExactSphere(normalization, radius=0.45), batch, observation.weights)
     assert wrong["surface"].item() == pytest.approx(0.05 / normalization.scale, rel=0.02)
     assert wrong["band"] > 10 * exact["band"]
-    smaller = ray_terms(ExactSphere(normalization, radius=0.55), batch, observation.weights)
-    assert smaller["free"] > 1e-3  # a surface in front of the hit lies in seen free space
+    larger = ray_terms(ExactSphere(normalization, radius=0.55), batch, observation.weights)
+    assert larger["free"] > 1e-3 and larger["carve"] > 1e-3  # a surface in seen free space
+    assert wrong["carve"] > 1e-3  # a hollow where the views say inside
 
 
 def test_box_entry_is_where_rays_cross_the_cube():

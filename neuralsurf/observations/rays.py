@@ -7,7 +7,11 @@ Per step, a batch of rays with samples along each (iSDF, Ortiz et al. 2022; Azin
   of the sensor noise sigma at that depth;
 - `free`: stratified between the box and the band, where the ray saw free space: 0 <= f <= the
   distance to the hit along the ray (the hit is a surface point, so it bounds the distance);
-- `eikonal`: |grad f| = 1 on every sample and on uniform points of the box.
+- `carve`: on uniform points of the box labelled by all views at once (space carving): a point in
+  front of a reading in some view is free (f >= 0); a point behind the readings of every view that
+  sees it (at least two, no missing pixel among them) is inside (f <= 0); others are unknown.
+  Without it the field is free inside the object and in corners no ray crosses, and grows pockets;
+- `eikonal`: |grad f| = 1 on every sample and on the uniform points.
 Missing pixels (depth 0) are skipped, never fitted as surface.
 """
 
@@ -25,8 +29,8 @@ from neuralsurf.losses import eikonal_loss
 from neuralsurf.observations.base import NotObserved, Observation, Sampler, check_weights
 from neuralsurf.structures import DepthFrames, Normalization
 
-RAY_TERMS = ("surface", "band", "free", "eikonal")
-DEFAULT_RAY_WEIGHTS = {"surface": 1.0, "band": 1.0, "free": 1.0, "eikonal": 0.1}
+RAY_TERMS = ("surface", "band", "free", "carve", "eikonal")
+DEFAULT_RAY_WEIGHTS = {"surface": 1.0, "band": 1.0, "free": 1.0, "carve": 1.0, "eikonal": 0.1}
 
 
 @dataclass(frozen=True)
@@ -83,6 +87,46 @@ def box_entry(origins: Tensor, directions: Tensor, box: float) -> Tensor:
     return torch.minimum(t0, t1).amax(-1).clamp_min(0.0)
 
 
+def carve_labels(points: Tensor, frames: DepthFrames, band: float, sigma_of_depth=kinect_sigma,
+                 bounds: Tensor | None = None) -> Tensor:
+    """Space carving of world points by all depth frames at once.
+
+    A view votes "free" where the point lies in front of its pixel's reading by more than the band
+    (`band`, or 3 noise sigmas of the reading if larger), "behind" where it lies farther than the band
+    behind it; a point projecting onto a missing pixel, or within the band, vetoes "inside". Views
+    whose image a point misses say nothing of it, so "inside" is also limited to `bounds` (the box of
+    the observed surface), beyond which points behind the object may lie outside the other views.
+    Args:
+        points: Float[Tensor, "n 3"] world; frames: DepthFrames; band: metres;
+        bounds: Float[Tensor, "2 3"] world box, or None for no limit.
+    Returns:
+        Int8[Tensor, "n"]: +1 free (some view saw through it), -1 inside (behind the readings of at
+        least two views and of every view it projects into), 0 unknown.
+    """
+    from neuralsurf.geometry import project_points
+
+    free = torch.zeros(len(points), dtype=torch.bool)
+    veto = torch.zeros(len(points), dtype=torch.bool)
+    behind = torch.zeros(len(points), dtype=torch.int32)
+    for depth, K, pose in zip(frames.depth.cpu(), frames.K.cpu(), frames.cam_to_world.cpu()):
+        uv, z = project_points(points.double(), K.double(), pose.double())
+        pixel = uv.round().long()
+        seen = (z > 0) & (pixel[:, 0] >= 0) & (pixel[:, 0] < depth.shape[1]) & (pixel[:, 1] >= 0) & (
+            pixel[:, 1] < depth.shape[0])
+        reading = torch.zeros(len(points), dtype=torch.float64)
+        reading[seen] = depth[pixel[seen, 1], pixel[seen, 0]].double()
+        valid = seen & (reading > 0)
+        margin = torch.clamp(3 * sigma_of_depth(reading), min=band)
+        free |= valid & (z < reading - margin)
+        is_behind = valid & (z > reading + margin)
+        behind += is_behind.int()
+        veto |= seen & ~is_behind
+    if bounds is not None:
+        bounds = torch.as_tensor(bounds, dtype=torch.float64)
+        veto |= ((points < bounds[0]) | (points > bounds[1])).any(-1)
+    return torch.where(free, 1, torch.where(~veto & (behind >= 2), -1, 0)).to(torch.int8)
+
+
 @dataclass(frozen=True)
 class RayBatch:
     """Rays drawn for one step, with the distances of their samples (unit frame)."""
@@ -104,27 +148,30 @@ class RayBatch:
     band_t: Tensor
     """Float[Tensor, "r b"]: distances of samples in the band [hit - band, hit + band]."""
     uniform: Tensor
-    """Float[Tensor, "u 3"]: uniform points of the box (eikonal only)."""
+    """Float[Tensor, "u 3"]: uniform points of the box (carve and eikonal terms)."""
+    uniform_label: Tensor
+    """Int8[Tensor, "u"]: their `carve_labels` (+1 free, -1 inside, 0 unknown)."""
 
 
 def draw_rays(rays: Rays, entry: Tensor, n_rays: int, n_free: int, n_band: int, band: Tensor, n_uniform: int,
-              box: float, generator: torch.Generator) -> RayBatch:
+              carved: tuple[Tensor, Tensor], generator: torch.Generator) -> RayBatch:
     """`n_rays` rays at random with `n_free` stratified free samples in [entry, hit - band] and `n_band`
-    uniform samples in [hit - band, hit + band] each. Random numbers are drawn on the CPU with
+    uniform samples in [hit - band, hit + band] each, and `n_uniform` points of the `carved` pool
+    (points Float[Tensor, "p 3"], labels Int8[Tensor, "p"]). Random numbers are drawn on the CPU with
     `generator` (a resumed fit draws the same batches) and moved to the rays' device.
     band: Float[Tensor, "r"], half-width of each ray's band."""
     device = rays.hit.device
     pick = torch.randint(len(rays.hit), (n_rays,), generator=generator).to(device)
     u_free = torch.rand(n_rays, n_free, generator=generator).to(device)
     u_band = torch.rand(n_rays, n_band, generator=generator).to(device)
-    uniform = ((2 * torch.rand(n_uniform, 3, generator=generator) - 1) * box).to(device)
+    chosen = torch.randint(len(carved[0]), (n_uniform,), generator=generator).to(device)
     hit, half = rays.hit[pick], band[pick]
     start, stop = entry[pick], hit - half
     strata = (torch.arange(n_free, device=device) + u_free) / max(n_free, 1)
     free_t = start[:, None] + strata * (stop - start).clamp_min(0)[:, None]
     band_t = hit[:, None] + half[:, None] * (2 * u_band - 1)
     return RayBatch(rays.origins[pick], rays.directions[pick], hit, rays.sigma[pick], rays.cosine[pick], free_t,
-                    (stop > start)[:, None].expand_as(free_t), band_t, uniform)
+                    (stop > start)[:, None].expand_as(free_t), band_t, carved[0][chosen], carved[1][chosen])
 
 
 def ray_terms(model: nn.Module, batch: RayBatch, weights: Mapping[str, float]) -> dict[str, Tensor]:
@@ -150,6 +197,10 @@ def ray_terms(model: nn.Module, batch: RayBatch, weights: Mapping[str, float]) -
         free = along[:, 1 + b :]
         violation = torch.relu(free - bound) + torch.relu(-free)
         terms["free"] = (violation * batch.free_valid).sum() / batch.free_valid.sum().clamp_min(1)
+    if weights.get("carve"):
+        label = batch.uniform_label.to(values.dtype)
+        violation = torch.relu(-label * values[r * (1 + b + f) :])
+        terms["carve"] = violation.sum() / (label != 0).sum().clamp_min(1)
     if weights.get("eikonal"):
         (gradient,) = torch.autograd.grad(values.sum(), points, create_graph=True)
         terms["eikonal"] = eikonal_loss(gradient)
@@ -168,11 +219,11 @@ class RaySampler(Sampler):
     n_free: int
     n_band: int
     n_uniform: int
-    box: float
+    carved: tuple[Tensor, Tensor]
 
     def sample(self, generator: torch.Generator) -> RayBatch:
         return draw_rays(self.rays, self.entry, self.n_rays, self.n_free, self.n_band, self.band, self.n_uniform,
-                         self.box, generator)
+                         self.carved, generator)
 
     def losses(self, model: nn.Module, batch: RayBatch) -> dict[str, Tensor]:
         return ray_terms(model, batch, self.weights)
@@ -193,7 +244,9 @@ class DepthRays(Observation):
     n_band: int = 6
     """Samples per ray in the truncation band."""
     n_uniform: int = 1024
-    """Uniform points of the box per step (eikonal only)."""
+    """Uniform points of the box per step (carve and eikonal terms)."""
+    n_carve: int = 200_000
+    """Size of the pool of uniform points labelled by space carving (drawn once, seeded)."""
     truncation: float = 0.01
     """Half-width of the band around each hit, unit frame (at least 3 noise sigmas)."""
     max_rays: int = 4_000_000
@@ -209,9 +262,11 @@ class DepthRays(Observation):
         object.__setattr__(self, "weights", check_weights(self.weights, RAY_TERMS, "DepthRays"))
         if not isinstance(self.frames, DepthFrames):
             raise InputError(f"DepthRays expects neuralsurf.DepthFrames, got {type(self.frames).__name__}")
-        counts = {k: getattr(self, k) for k in ("n_rays", "n_free", "n_band", "n_uniform", "max_rays")}
-        if any(not isinstance(v, int) or v < 0 for v in counts.values()) or not counts["n_rays"] or not counts["max_rays"]:
-            raise ConfigError(f"DepthRays needs integer sample counts (n_rays, max_rays >= 1, others >= 0), got {counts}")
+        counts = {k: getattr(self, k) for k in ("n_rays", "n_free", "n_band", "n_uniform", "n_carve", "max_rays")}
+        if any(not isinstance(v, int) or v < 0 for v in counts.values()) or not all(
+                counts[k] for k in ("n_rays", "n_carve", "max_rays")):
+            raise ConfigError(f"DepthRays needs integer sample counts (n_rays, n_carve, max_rays >= 1, others >= 0), "
+                              f"got {counts}")
         if not self.truncation > 0 or self.noise_model not in ("kinect", "constant") or not self.sigma > 0:
             raise ConfigError(f"DepthRays needs truncation > 0, sigma > 0 and noise_model kinect or constant, got "
                               f"truncation={self.truncation}, noise_model={self.noise_model!r}, sigma={self.sigma}")
@@ -225,9 +280,11 @@ class DepthRays(Observation):
                               f"fit it with PointSamples (observation=points)")
         return cls(scene.frames, **options)
 
+    def _sigma_of_depth(self):
+        return kinect_sigma if self.noise_model == "kinect" else (lambda z: torch.full_like(z, self.sigma))
+
     def _world_rays(self) -> Rays:
-        sigma = kinect_sigma if self.noise_model == "kinect" else (lambda z: torch.full_like(z, self.sigma))
-        return depth_rays(self.frames.to("cpu"), sigma)
+        return depth_rays(self.frames.to("cpu"), self._sigma_of_depth())
 
     def bounds(self) -> Tensor:
         rays = self._world_rays()
@@ -245,4 +302,9 @@ class DepthRays(Observation):
         unit = Rays(*(getattr(unit, name).to(device) for name in Rays.__dataclass_fields__))
         entry = box_entry(unit.origins, unit.directions, box)
         band = torch.clamp(3 * unit.sigma, min=self.truncation)
-        return RaySampler(unit, entry, band, self.weights, self.n_rays, self.n_free, self.n_band, self.n_uniform, box)
+        generator = torch.Generator().manual_seed(seed)
+        pool = (2 * torch.rand(self.n_carve, 3, generator=generator, dtype=torch.float64) - 1) * box
+        labels = carve_labels(normalization.to_world(pool), self.frames, self.truncation * scale, self._sigma_of_depth(),
+                              self.bounds())
+        carved = (pool.float().to(device), labels.to(device))
+        return RaySampler(unit, entry, band, self.weights, self.n_rays, self.n_free, self.n_band, self.n_uniform, carved)
