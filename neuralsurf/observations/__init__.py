@@ -2,7 +2,8 @@
 
 from neuralsurf.observations.base import NotObserved, Observation, Sampler, union_bounds
 from neuralsurf.observations.collection import CollectionOccupancy, CollectionSDF, LatentPrior, SDFSampleSet
+from neuralsurf.observations.normals import NormalBatch, NormalMaps
 from neuralsurf.observations.points import PointSamples
 from neuralsurf.observations.rays import DepthRays, RayBatch, Rays, depth_rays
 
-__all__ = ["DepthRays", "NotObserved", "Observation", "PointSamples", "RayBatch", "Rays", "Sampler", "depth_rays", "union_bounds"]
+__all__ = ["DepthRays", "NormalBatch", "NormalMaps", "NotObserved", "Observation", "PointSamples", "RayBatch", "Rays", "Sampler", "depth_rays", "union_bounds"]

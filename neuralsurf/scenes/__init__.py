@@ -9,18 +9,22 @@ from neuralsurf.scenes.recipes import (
     analytic_scene,
     bunny_depth,
     bunny_points,
+    bunny_specular_ps,
     data_root,
     depth_scene,
     file_scene,
     mesh_scene,
     redkitchen,
     rgbd_scene,
+    rig_fusion,
+    rig_lambertian,
+    rig_specular,
     stanford_scans,
 )
 from neuralsurf.scenes.scanner import look_at, orbit_cameras, scan_depth
 from neuralsurf.scenes.photometric_rig import SpecularLobe, cap_lights, render_photometric, ring_lights  # noqa: F401
 
 __all__ = ["Box", "Scene", "SceneUnavailable", "Sphere", "Torus", "analytic_scene", "analytic_shape", "bunny",
-           "bunny_depth", "bunny_path", "bunny_points", "data_root", "depth_scene", "file_scene", "look_at",
-           "mesh_scene", "orbit_cameras", "redkitchen", "rgbd_scene", "sample_surface", "scan_depth",
+           "bunny_depth", "bunny_path", "bunny_points", "bunny_specular_ps", "data_root", "depth_scene", "file_scene", "look_at",
+           "mesh_scene", "orbit_cameras", "redkitchen", "rgbd_scene", "rig_fusion", "rig_lambertian", "rig_specular", "sample_surface", "scan_depth",
            "stanford_scans"]

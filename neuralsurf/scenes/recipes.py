@@ -17,8 +17,9 @@ import torch
 
 from neuralsurf.errors import MissingDependencyError, NeuralsurfError
 from neuralsurf.geometry import cloud_from_mesh
+from neuralsurf.photometric import PhotometricStereoResult
 from neuralsurf.scenes.analytic import analytic_shape
-from neuralsurf.structures import DepthFrames, Mesh, PointCloud
+from neuralsurf.structures import DepthFrames, Mesh, PhotometricCapture, PointCloud
 
 
 class SceneUnavailable(NeuralsurfError):
@@ -45,6 +46,12 @@ class Scene:
     depth_input: bool = False
     """True when `frames` are the input and `cloud` their back-projection (False for range scans,
     whose frames are renderings of the scanned points for TSDF fusion)."""
+    photometric: tuple[PhotometricCapture, ...] | None = None
+    """Photometric captures (images under known lights, with ground-truth normals where known), one per
+    view; for photometric stereo methods and, with `normal_maps`, depth + normals fusion."""
+    normal_maps: tuple[PhotometricStereoResult, ...] | None = None
+    """The photometric stereo estimate of each capture (normals, confidence, mask) that fusion methods
+    take as their input normals (NormalMaps, Nehab fusion)."""
 
 
 def data_root(root: str | Path | None = None) -> Path:
@@ -164,3 +171,122 @@ def stanford_scans(name: str = "stanford_scans", root: str | None = None, conf: 
     cloud = PointCloud(points, normals)
     text = f"{len(clouds)} real range scans aligned by {conf_path.name} ({len(cloud)} points)"
     return Scene(name, cloud, read_mesh(gt_path), read_range_scan_frames(conf_path), text)
+
+
+# ----------------------------------------------------------------------------------------------
+# photometric scenes (issue 12): captures under known lights, and depth + normals from one rig
+
+
+def _rig_view(mesh: Mesh, distance: float = 2.5) -> torch.Tensor:
+    """Float64[Tensor, "4 4"]: a camera `distance` bounding-box sizes in front of the mesh (+z), looking at it."""
+    from neuralsurf.scenes.scanner import look_at
+
+    lo, hi = mesh.bounds.double()
+    center, extent = (lo + hi) / 2, float((hi - lo).max())
+    return look_at(center + torch.tensor([0.0, 0.0, distance * extent], dtype=torch.float64), center, up=(0, 1, 0))
+
+
+def _capture_scene(name: str, capture: PhotometricCapture, mesh: Mesh, text: str) -> Scene:
+    """A one-view photometric scene; its cloud is the back-projection of the capture's exact depth."""
+    from neuralsurf.geometry import depth_to_cloud
+
+    frames = DepthFrames(capture.depth[None], capture.K[None], capture.cam_to_world[None])
+    cloud = depth_to_cloud(frames, with_normals=True)
+    return Scene(name, cloud, mesh, description=text, photometric=(capture,))
+
+
+@lru_cache(maxsize=4)
+def rig_lambertian(name: str = "rig_lambertian", size: int = 256, n_lights: int = 96, max_angle_deg: float = 45.0,
+                   fov_deg: float = 30.0) -> Scene:
+    """The bunny on the photometric rig, one view (size x size), `n_lights` DiLiGenT-like lights within
+    `max_angle_deg` of the view axis: Lambertian (albedo 0.8), attached shadows only (no cast
+    shadows), no noise. Ground truth: the rig's normal map."""
+    from neuralsurf.scenes.photometric_rig import cap_lights, render_photometric
+
+    mesh = _bunny_mesh()
+    capture = render_photometric(mesh, cap_lights(n_lights, max_angle_deg), cam_to_world=_rig_view(mesh),
+                                 width=size, height=size, fov_deg=fov_deg, shadows=False)[0]
+    return _capture_scene(name, capture, mesh, f"bunny, 1 view {size}x{size}, {n_lights} lights, Lambertian, "
+                                               f"no cast shadows, no noise")
+
+
+@lru_cache(maxsize=4)
+def rig_specular(name: str = "rig_specular", size: int = 256, n_lights: int = 96, max_angle_deg: float = 45.0,
+                 fov_deg: float = 30.0, strength: float = 0.6, shininess: float = 40.0) -> Scene:
+    """As `rig_lambertian` with a Blinn-Phong highlight (`strength`, `shininess`) and cast shadows."""
+    from neuralsurf.scenes.photometric_rig import SpecularLobe, cap_lights, render_photometric
+
+    mesh = _bunny_mesh()
+    capture = render_photometric(mesh, cap_lights(n_lights, max_angle_deg), cam_to_world=_rig_view(mesh),
+                                 width=size, height=size, fov_deg=fov_deg, shadows=True,
+                                 specular=SpecularLobe("blinn_phong", strength=strength, shininess=shininess))[0]
+    return _capture_scene(name, capture, mesh, f"bunny, 1 view {size}x{size}, {n_lights} lights, Blinn-Phong "
+                                               f"highlights (strength {strength}, shininess {shininess}), cast shadows")
+
+
+@lru_cache(maxsize=2)
+def bunny_specular_ps(name: str = "bunny_specular_ps", root: str | None = None,
+                      folder: str = "bunny_specular_ps") -> Scene:
+    """The 50-light specular bunny capture (DiLiGenT layout) under the data root, with ground-truth
+    normals. It has no depth and no camera: its cloud is the relief integrated from the ground-truth
+    normals (orthographic, pixel units), only so that the scene is complete; score normals on it."""
+    from neuralsurf.io import read_photometric
+    from neuralsurf.photometric import integrate_least_squares
+
+    path = data_root(root) / folder
+    if not path.is_dir():
+        raise SceneUnavailable(f"{path} not found: pass data_root=<folder holding {folder}/> or set NEURALSURF_DATA")
+    capture = read_photometric(path)
+    if capture.normals is None:
+        raise SceneUnavailable(f"{path} has no ground-truth normals (Normal_gt.png / .mat) to score against")
+    mask = capture.pixel_mask() & (capture.normals.norm(dim=-1) > 0.5)
+    relief = integrate_least_squares(capture.normals, mask).depth
+    v, u = torch.nonzero(mask, as_tuple=True)
+    points = torch.stack([u.double(), v.double(), relief[mask].double()], -1)
+    cloud = PointCloud(points, capture.normals[mask].double())
+    return Scene(name, cloud, None, description=f"{len(capture)} lights, {capture.width}x{capture.height}, "
+                                                 f"specular, real-data layout ({path})", photometric=(capture,))
+
+
+@lru_cache(maxsize=4)
+def rig_fusion(name: str = "rig_fusion", n_views: int = 8, width: int = 320, height: int = 240,
+               fov_deg: float = 40.0, n_lights: int = 24, max_angle_deg: float = 45.0, depth_scale: int = 2,
+               noise: str = "kinect", stereo: str = "robust", strength: float = 0.6, shininess: float = 40.0,
+               image_noise: float = 0.005, seed: int = 0) -> Scene:
+    """The bunny seen from `n_views` cameras on an orbit, each with a noisy depth map at 1/`depth_scale`
+    of the resolution (`scan_depth`, `noise`, Kinect v1 by default) and photometric normals at full
+    resolution: `n_lights` rig lights with Blinn-Phong highlights, cast shadows, sensor noise
+    `image_noise` and 16-bit quantisation, solved by `stereo` photometric stereo (robust: IRLS).
+
+    The input is the depth frames (`frames`, as for `bunny_depth`) and the stereo normal maps
+    (`normal_maps`, one `PhotometricStereoResult` per view, camera frame, with confidence);
+    `photometric` holds the rendered captures (images, lights, exact normals and depth)."""
+    from dataclasses import replace
+
+    from neuralsurf.photometric import photometric_stereo
+    from neuralsurf.scenes.photometric_rig import SpecularLobe, cap_lights, render_photometric
+    from neuralsurf.scenes.scanner import intrinsics_from_fov, orbit_cameras, scan_depth
+
+    mesh = _bunny_mesh()
+    vertices = mesh.vertices.double()
+    lo, hi = vertices.min(0).values, vertices.max(0).values
+    center = (lo + hi) / 2
+    radius = float((vertices - center).norm(dim=-1).max())
+    poses = orbit_cameras(center, radius, n_views, fov_deg, width / height)
+    K = intrinsics_from_fov(width, height, fov_deg)
+    captures = render_photometric(mesh, cap_lights(n_lights, max_angle_deg), cam_to_world=poses, K=K, width=width,
+                                  height=height, specular=SpecularLobe("blinn_phong", strength=strength,
+                                                                       shininess=shininess),
+                                  shadows=True, noise_sigma=image_noise, bits=16, seed=seed)
+    # the depth camera: same poses, 1/depth_scale of the pixels (pixel centres stay at integers)
+    s = depth_scale
+    K_depth = K.clone()
+    K_depth[0, 0], K_depth[1, 1] = K[0, 0] / s, K[1, 1] / s
+    K_depth[0, 2], K_depth[1, 2] = (K[0, 2] + 0.5) / s - 0.5, (K[1, 2] + 0.5) / s - 0.5
+    frames = scan_depth(mesh, width=width // s, height=height // s, noise=noise, seed=seed, cam_to_world=poses,
+                        K=K_depth)
+    results = tuple(photometric_stereo(c, stereo) for c in captures)
+    scene = depth_scene(name, frames, mesh, description=f"{noise} depth at {width // s}x{height // s}; "
+                        f"{stereo} photometric stereo normals at {width}x{height} from {n_lights} lights "
+                        f"(highlights, cast shadows)")
+    return replace(scene, photometric=tuple(captures), normal_maps=results)
