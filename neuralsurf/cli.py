@@ -93,10 +93,10 @@ def build_observations(cfg: DictConfig, scene) -> list:
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit the configured model to the configured scene, extract, measure and write the outputs:
     <run dir>/mesh.ply, metrics.json, checkpoints/last.pt and TensorBoard events."""
+    from neuralsurf.devices import resolve_device
     from neuralsurf.extract import NearPointsField, extract_mesh
     from neuralsurf.io import write_mesh
     from neuralsurf.metrics import depth_metrics, evaluate_mesh
-    from neuralsurf.devices import resolve_device
 
     run_dir = run_directory(cfg)
     config = OmegaConf.to_container(cfg, resolve=True)

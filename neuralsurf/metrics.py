@@ -38,13 +38,14 @@ __all__ = [
     "chamfer_l1",
     "chamfer_l2",
     "chamfer_l2_sum",
+    "depth_metrics",
+    "evaluate_mesh",
+    "evaluate_samples",
     "fscore",
     "fscore_key",
-    "normal_consistency",
     "hausdorff",
     "iou",
-    "evaluate_samples",
-    "evaluate_mesh",
+    "normal_consistency",
 ]
 
 

@@ -7,9 +7,9 @@ import math
 import os
 import time
 import warnings
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
@@ -45,7 +45,7 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
     """Read a checkpoint written by `save_checkpoint` (tensors and plain containers only)."""
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # a truncated or foreign file
+    except Exception as error:  # noqa: BLE001 - a truncated or foreign file, whatever torch raises
         raise CheckpointError(f"cannot read checkpoint {path}: {error}; delete it to start afresh") from None
 
 
@@ -293,7 +293,7 @@ def fit(
             p.requires_grad_(True)
     bar.close()
     model.eval()
-    _check_converged(history, world_field)
+    _check_converged(history)
     if writer is not None:
         _log_mesh(writer, world_field, steps)
         writer.close()
@@ -301,7 +301,7 @@ def fit(
                      seconds_before + time.perf_counter() - started)
 
 
-def _check_converged(history: dict[str, list[float]], world_field: NormalizedField) -> None:
+def _check_converged(history: dict[str, list[float]]) -> None:
     """Warn when the loss ended above where it started (a diverged fit that stayed finite)."""
     total = history.get("total", [])
     if len(total) >= 2 and total[-1] > total[0]:

@@ -15,7 +15,7 @@ from neuralsurf.scenes import Sphere
 from neuralsurf.training import fit, load_field, save_checkpoint
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-TINY = dict(steps=5, device="cpu", progress=False, image_every=0)
+TINY = {"steps": 5, "device": "cpu", "progress": False, "image_every": 0}
 
 
 def tiny_fit(**options):
@@ -52,7 +52,7 @@ CRAFTED_SPECS = [
 def crafted(tmp_path: Path, spec) -> tuple[Path, Path]:
     """A checkpoint whose stored config and model spec name functions that would create `out`."""
     out = tmp_path / "pwned"
-    fill = lambda value: {k: fill(v) for k, v in value.items()} if isinstance(value, dict) else (  # noqa: E731
+    fill = lambda value: {k: fill(v) for k, v in value.items()} if isinstance(value, dict) else (
         value.format(out=out) if isinstance(value, str) else value)
     state = tiny_fit().model.state_dict()
     path = tmp_path / "last.pt"
@@ -64,7 +64,7 @@ def crafted(tmp_path: Path, spec) -> tuple[Path, Path]:
 
 @pytest.mark.parametrize("spec", [None, *CRAFTED_SPECS])
 def test_a_crafted_checkpoint_runs_nothing_and_is_a_clear_error(tmp_path, spec):
-    path, out = crafted(tmp_path, spec)
+    path, _ = crafted(tmp_path, spec)
     with pytest.raises(CheckpointError):
         load_field(path)
     assert not list(tmp_path.glob("pwned*"))
@@ -73,7 +73,7 @@ def test_a_crafted_checkpoint_runs_nothing_and_is_a_clear_error(tmp_path, spec):
 def test_a_crafted_checkpoint_through_evaluate_creates_no_file(tmp_path):
     from neuralsurf.cli import evaluate
 
-    path, out = crafted(tmp_path, CRAFTED_SPECS[0])
+    path, _ = crafted(tmp_path, CRAFTED_SPECS[0])
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         cfg = compose("evaluate", overrides=["suite=tiny", "methods=[neural_sdf]", f"method.neural_sdf.checkpoint={path}",
                                              "render=false"])

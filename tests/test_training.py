@@ -9,7 +9,7 @@ from neuralsurf.scenes import Sphere
 from neuralsurf.structures import PointCloud
 from neuralsurf.training import cosine_schedule, fit, load_checkpoint, resolve_device
 
-TINY = dict(image_every=0, log_every=5, progress=False, device="cpu")
+TINY = {"image_every": 0, "log_every": 5, "progress": False, "device": "cpu"}
 
 
 def points(cloud: PointCloud, **options) -> PointSamples:

@@ -20,8 +20,8 @@ import numpy as np
 import torch
 
 from neuralsurf.evaluation.methods import NotApplicable
-from neuralsurf.scenes import SceneUnavailable
-from neuralsurf.scenes import Scene
+from neuralsurf.evaluation.photometric import NormalMapResult, normal_map_picture, score_normal_maps
+from neuralsurf.scenes import Scene, SceneUnavailable
 from neuralsurf.structures import Mesh
 
 SceneFactory = Callable[[], Scene]
@@ -141,7 +141,17 @@ def run_benchmark(
             started = time.perf_counter()
             try:
                 method = make_method()
-                mesh = check_mesh(method(scene, seed=seed, run_dir=run_dir / "fits" / f"{scene_name}__{method_name}"))
+                output = method(scene, seed=seed, run_dir=run_dir / "fits" / f"{scene_name}__{method_name}")
+                if isinstance(output, NormalMapResult):  # photometric stereo: scored by angular error
+                    row["seconds"] = time.perf_counter() - started
+                    row["peak_rss_mb"], row["cuda_peak_mb"] = peak_memory_mb()
+                    row.update(score_normal_maps(output))
+                    if render:
+                        row["render"] = normal_map_picture(output, scene_name, method_name, run_dir)
+                    log(f"  {method_name:>12} on {scene_name}: normal error mean {row['normal_error_mean_deg']:.3f} "
+                        f"deg, median {row['normal_error_median_deg']:.3f} deg  {row['seconds']:.1f} s")
+                    continue
+                mesh = check_mesh(output)
                 row["seconds"] = time.perf_counter() - started
                 row["peak_rss_mb"], row["cuda_peak_mb"] = peak_memory_mb()
                 metrics = {}
