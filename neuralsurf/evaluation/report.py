@@ -14,7 +14,9 @@ TABLE_COLUMNS = [("method", "method"), ("scene", "scene"), ("status", "status"),
                  ("chamfer_l1", "Chamfer-L1"), ("chamfer_l1_exact", "Chamfer-L1 exact"),
                  ("fscore_1%", "F@1%"), ("normal_consistency", "NC"), ("iou", "IoU"),
                  ("hausdorff", "Hausdorff"), ("depth_error_mean", "held-out depth err m"),
-                 ("depth_completeness", "held-out compl."), ("seconds", "time s"), ("peak_rss_mb", "peak RSS MiB"),
+                 ("depth_completeness", "held-out compl."), ("normal_error_mean_deg", "normal err mean deg"),
+                 ("normal_error_median_deg", "normal err median deg"),
+                 ("integration_depth_error", "integrated depth err"), ("seconds", "time s"), ("peak_rss_mb", "peak RSS MiB"),
                  ("cuda_peak_mb", "CUDA peak MiB"), ("n_faces", "faces"), ("watertight", "watertight")]
 
 
