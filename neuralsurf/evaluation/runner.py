@@ -10,6 +10,7 @@ import json
 import math
 import platform
 import random
+import re
 import time
 import traceback
 from collections.abc import Callable
@@ -19,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from neuralsurf.errors import ConfigError
 from neuralsurf.evaluation.methods import NotApplicable
 from neuralsurf.evaluation.photometric import NormalMapResult, normal_map_picture, score_normal_maps
 from neuralsurf.scenes import Scene, SceneUnavailable
@@ -110,6 +112,10 @@ def run_benchmark(
     """
     from neuralsurf.metrics import depth_metrics, evaluate_mesh
 
+    unsafe = [name for name in [*scenes, *methods] if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.-]*", name)]
+    if unsafe:
+        raise ConfigError(f"scene and method names become file names in the run directory: {unsafe} may hold only "
+                          f"letters, digits, '_', '-' and '.', and may not start with '.' (no '/' or '..')")
     run_dir = Path(run_dir)
     configs = configs or {}
     env = environment()

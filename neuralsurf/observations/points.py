@@ -30,7 +30,7 @@ def prepare_cloud(cloud: PointCloud, normals: str, normal_k: int) -> PointCloud:
         raise InputError(f"fitting needs at least 3 points, the cloud has {len(cloud)}")
     points = cloud.points.double()
     spread = torch.linalg.svdvals(points - points.mean(0))
-    if spread[1] <= 1e-9 * max(float(spread[0]), 1e-300):
+    if spread[1] <= 1e-6 * max(float(spread[0]), 1e-300):
         raise InputError(
             f"the {len(cloud)} points are collinear (or all at one place): a surface cannot be fitted to them; "
             f"check the file or the scan"

@@ -68,28 +68,28 @@ def _bunny_mesh() -> Mesh:
         raise SceneUnavailable(str(error)) from None
 
 
-def mesh_scene(mesh: Mesh, n_points: int = 100_000, noise: float = 0.0, normals: bool = True,
+def mesh_scene(mesh: Mesh, n_points: int = 100_000, noise_fraction: float = 0.0, normals: bool = True,
                seed: int = 0, name: str = "mesh") -> Scene:
-    """Sample `n_points` from `mesh`; `noise` is a Gaussian standard deviation as a fraction of
-    the bounding box's longest side; `normals=False` drops the normals."""
+    """Sample `n_points` from `mesh`; `noise_fraction` is a Gaussian standard deviation as a fraction
+    of the bounding box's longest side; `normals=False` drops the normals."""
     size = float((mesh.bounds[1] - mesh.bounds[0]).max())
-    cloud = cloud_from_mesh(mesh, n_points, noise=noise * size, seed=seed)
-    text = f"{n_points} surface points, noise {noise:.2%} of the box, {'with' if normals else 'no'} normals"
+    cloud = cloud_from_mesh(mesh, n_points, noise=noise_fraction * size, seed=seed)
+    text = f"{n_points} surface points, noise {noise_fraction:.2%} of the box, {'with' if normals else 'no'} normals"
     return Scene(name, cloud if normals else cloud.with_normals(None), mesh, description=text)
 
 
 @lru_cache(maxsize=16)
-def bunny_points(name: str = "bunny", n_points: int = 100_000, noise: float = 0.0, normals: bool = True,
+def bunny_points(name: str = "bunny", n_points: int = 100_000, noise_fraction: float = 0.0, normals: bool = True,
                  seed: int = 0) -> Scene:
     """`n_points` area-uniform samples of the watertight bunny (the `data` extra), as `mesh_scene`."""
-    return mesh_scene(_bunny_mesh(), n_points, noise, normals, seed, name=name)
+    return mesh_scene(_bunny_mesh(), n_points, noise_fraction, normals, seed, name=name)
 
 
 @lru_cache(maxsize=16)
-def analytic_scene(shape: str = "sphere", n_points: int = 20_000, noise: float = 0.0, normals: bool = True,
+def analytic_scene(shape: str = "sphere", n_points: int = 20_000, noise_fraction: float = 0.0, normals: bool = True,
                    seed: int = 0, name: str | None = None) -> Scene:
     """Samples of an analytic shape (sphere, torus, box); the ground truth is its fine tessellation."""
-    return mesh_scene(analytic_shape(shape).mesh(), n_points, noise, normals, seed, name=name or shape)
+    return mesh_scene(analytic_shape(shape).mesh(), n_points, noise_fraction, normals, seed, name=name or shape)
 
 
 def file_scene(path: str | Path, ground_truth: str | Path | None = None, name: str | None = None) -> Scene:

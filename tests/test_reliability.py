@@ -1,0 +1,76 @@
+"""Defects found by probing main at 7ae1b8d as a new user and as an attacker would (issue 16): each is now a
+clear error or a warning. Every test here failed (or crashed) on 7ae1b8d."""
+
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.io import write_point_cloud
+from neuralsurf.models import SDFMLP
+from neuralsurf.observations import PointSamples
+from neuralsurf.scenes import Sphere
+from neuralsurf.structures import PointCloud
+from neuralsurf.training import fit
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+QUICK = {"steps": 3, "device": "cpu", "progress": False, "image_every": 0}
+
+
+def small(cloud, **options):
+    return PointSamples(cloud, **{"batch_size": 64, "n_near": 500, "n_free": 100, "winding_points": 100, **options})
+
+
+def tiny_model():
+    return SDFMLP(width=16, depth=2, skip_layers=(), weight_norm=False)
+
+
+def test_zero_length_normals_are_an_error_or_replaced_with_a_warning():
+    cloud = Sphere(radius=1.0).sample_surface(500, seed=0)
+    with pytest.raises(InputError, match="all 500 normals"):
+        fit(tiny_model(), small(cloud.with_normals(torch.zeros(500, 3))), **QUICK)
+    normals = cloud.normals.clone()
+    normals[:10] = 0
+    with pytest.raises(InputError, match="10 of 500 normals have zero length"):
+        fit(tiny_model(), small(cloud.with_normals(normals), normals="given"), **QUICK)
+    with pytest.warns(UserWarning, match="replaced by estimated"):
+        fit(tiny_model(), small(cloud.with_normals(normals)), **QUICK)
+
+
+def test_collinear_points_are_a_clear_error():
+    line = PointCloud(torch.linspace(0, 1, 50)[:, None] * torch.tensor([[1.0, 2.0, 3.0]]))
+    with pytest.raises(InputError, match="collinear"):
+        fit(tiny_model(), small(line), **QUICK)
+
+
+def test_a_diverged_fit_says_so():
+    cloud = Sphere(radius=1.0).sample_surface(500, seed=0)
+    with pytest.warns(UserWarning, match="diverged"):
+        fit(tiny_model(), small(cloud), steps=20, log_every=5, device="cpu", progress=False, image_every=0,
+            optimizer=lambda groups: torch.optim.Adam(groups, lr=1e9), encoding_lr=1e9)
+
+
+def test_sphere_experiment_on_a_file_of_ones_own(tmp_path):
+    from neuralsurf.cli import train
+
+    write_point_cloud(tmp_path / "ball.ply", Sphere(radius=1.0).sample_surface(800, seed=0))
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        cfg = compose("train", overrides=["experiment=sphere_sdf", "data=file", f"data.path={tmp_path / 'ball.ply'}",
+                                          "trainer.steps=2", "trainer.progress=false", "trainer.image_every=0",
+                                          "observation.points.batch_size=64", "observation.points.n_near=500",
+                                          "observation.points.n_free=100", "extract.resolution=16", "device=cpu"])
+    OmegaConf.set_struct(cfg, False)
+    cfg.run_dir = str(tmp_path / "run")
+    assert train(cfg)["steps"] == 2
+
+
+@pytest.mark.parametrize("name", ["../escape", "a/b", ".hidden"])
+def test_scene_names_cannot_write_outside_the_run_directory(tmp_path, name):
+    from neuralsurf.evaluation import run_benchmark
+
+    with pytest.raises(ConfigError, match="file names"):
+        run_benchmark({name: lambda: None}, {"m": lambda: None}, tmp_path / "run", render=False)
+    assert not (tmp_path / "escape").exists()
