@@ -48,6 +48,7 @@ def test_collinear_points_are_a_clear_error():
 
 def test_a_diverged_fit_says_so():
     cloud = Sphere(radius=1.0).sample_surface(500, seed=0)
+    torch.manual_seed(0)
     with pytest.warns(UserWarning, match="diverged"):
         fit(tiny_model(), small(cloud), steps=20, log_every=5, device="cpu", progress=False, image_every=0,
             optimizer=lambda groups: torch.optim.Adam(groups, lr=1e9), encoding_lr=1e9)
