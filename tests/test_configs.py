@@ -19,7 +19,8 @@ MODELS = sorted(p.stem for p in (CONFIGS / "model").glob("*.yaml"))
 # tiny settings for smoke runs: a few steps, small pools and inputs, coarse extraction
 TINY = ["trainer.steps=3", "trainer.log_every=1", "trainer.image_every=3", "trainer.progress=false",
         "extract.resolution=32", "device=cpu"]
-TINY_OBSERVATIONS = {"points": {"batch_size": 64, "n_near": 2000, "n_free": 500}, "rays": {"n_rays": 64}}
+TINY_OBSERVATIONS = {"points": {"batch_size": 64, "n_near": 2000, "n_free": 500}, "rays": {"n_rays": 64},
+                      "normals": {"n_pixels": 64}}
 TINY_DATA = {"n_points": 3000, "n_views": 4, "width": 64, "height": 48, "max_frames": 20}
 
 

@@ -137,13 +137,14 @@ def test_mismatched_poses_and_missing_data_are_clear_errors():
         NormalMaps.from_scene(NoNormals())
 
 
+@pytest.mark.slow
 def test_depth_rays_and_normal_maps_fit_together():
     from neuralsurf.models import SDFMLP, HashGrid
 
     obs = observation(n_pixels=256)
-    rays = DepthRays(obs.depth, noise_model="constant", sigma=0.001, n_rays=256, n_uniform=256)
+    rays = DepthRays(obs.depth, noise_model="constant", sigma=0.001, n_rays=256, n_uniform=256, n_carve=2000)
     model = SDFMLP(encoding=HashGrid(levels=4, log2_table_size=12, max_resolution=64), width=32, depth=2, skip_layers=[], weight_norm=False)
-    result = fit(model, [rays, obs], steps=30, device="cpu", seed=0, progress=False, log_every=10,
+    result = fit(model, [rays, obs], steps=20, device="cpu", seed=0, progress=False, log_every=10,
                  image_every=0)
     normal = result.history["normals/normal"]
     assert all(torch.isfinite(torch.tensor(normal))) and "rays/surface" in result.history
