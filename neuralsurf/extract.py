@@ -147,10 +147,14 @@ def _all_points(shape) -> np.ndarray:
 
 def _cell_extremes(values: Tensor) -> tuple[Tensor, Tensor]:
     """Float[Tensor, "X Y Z"] point values -> min and max over each cell's 8 corners, [X-1, Y-1, Z-1]."""
-    corners = [values[i : values.shape[0] - 1 + i, j : values.shape[1] - 1 + j, k : values.shape[2] - 1 + k]
-               for i, j, k in itertools.product((0, 1), repeat=3)]
-    stacked = torch.stack(corners)
-    return stacked.min(0).values, stacked.max(0).values
+    corners = (values[i : values.shape[0] - 1 + i, j : values.shape[1] - 1 + j, k : values.shape[2] - 1 + k]
+               for i, j, k in itertools.product((0, 1), repeat=3))
+    low = next(corners).clone()
+    high = low.clone()
+    for corner in corners:  # running extremes: two grids in memory, not eight
+        torch.minimum(low, corner, out=low)
+        torch.maximum(high, corner, out=high)
+    return low, high
 
 
 def cells_near_level(values: Tensor, level: float, threshold: float) -> Tensor:
