@@ -195,7 +195,7 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     rows = run_benchmark({name: scene_factory(name) for name in scenes},
                          {name: method_factory(name) for name in methods}, run_dir, seed=cfg.seed,
                          n_samples=cfg.n_samples, render=cfg.render, render_size=cfg.render_size,
-                         save_meshes=cfg.save_meshes, configs=configs)
+                         save_meshes=cfg.save_meshes, configs=configs, log=log.info)
     seconds = time.perf_counter() - started
     extra = {"environment": environment(), "scenes": scenes, "methods": methods, "total_seconds": seconds,
              "config": OmegaConf.to_container(cfg, resolve=True)}
