@@ -18,8 +18,10 @@ K = torch.tensor([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]])
 
 
 def sphere_frames(eyes, width: int = 64, height: int = 48) -> DepthFrames:
-    """Closed-form z-depth of the sphere: the nearer root of |o + t d - c| = r along each pixel's ray."""
+    """Closed-form z-depth of the sphere: the nearer root of |o + t d - c| = r along each pixel's ray
+    (K of a 64x48 image scaled to width x height)."""
     poses = torch.stack([look_at(eye, CENTER) for eye in eyes])
+    K = torch.tensor([[60.0 * width / 64, 0, (width - 1) / 2], [0, 60.0 * width / 64, (height - 1) / 2], [0, 0, 1]])
     v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64),
                           indexing="ij")
     camera = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], -1)
@@ -124,7 +126,6 @@ def tiny_model() -> SDFMLP:
 
 def test_a_fit_of_two_depth_views_recovers_the_sphere_radius_within_one_percent():
     frames = sphere_frames([(2.0, 0.5, 1.0), (-1.5, 1.0, -1.0)], width=96, height=72)
-    frames = DepthFrames(frames.depth, torch.tensor([[90.0, 0, 47.5], [0, 90.0, 35.5], [0, 0, 1]]), frames.cam_to_world)
     observation = DepthRays(frames, n_rays=512, noise_model="constant", sigma=0.001)
     result = fit(tiny_model(), observation, steps=250, device="cpu", progress=False, image_every=0)
     # radius along rays through the centre towards both cameras (the seen caps)
