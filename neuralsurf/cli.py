@@ -205,13 +205,33 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     return rows
 
 
+def check_run_dir_argument(argv: list[str]) -> None:
+    """Exit with a clear message when `hydra.run.dir=` names a path under a file (Hydra's own mkdir
+    would fail with a raw FileExistsError before any neuralsurf code runs)."""
+    import sys
+
+    for argument in argv:
+        if argument.startswith(("hydra.run.dir=", "hydra.sweep.dir=")):
+            key, value = argument.split("=", 1)
+            path = Path(value)
+            blocking = next((p for p in (path, *path.parents) if p.exists() and not p.is_dir()), None)
+            if blocking is not None:
+                sys.exit(f"error: {key}={value}: {blocking} is a file, not a folder; choose another run directory")
+
+
 def train_main() -> None:
     """`neuralsurf-train [overrides]`: Hydra's command line around `train`."""
+    import sys
+
+    check_run_dir_argument(sys.argv[1:])
     hydra.main(version_base="1.3", config_path="configs", config_name="train")(train)()
 
 
 def evaluate_main() -> None:
     """`neuralsurf-evaluate [overrides]`: Hydra's command line around `evaluate`."""
+    import sys
+
+    check_run_dir_argument(sys.argv[1:])
     hydra.main(version_base="1.3", config_path="configs", config_name="evaluate")(evaluate)()
 
 

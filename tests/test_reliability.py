@@ -76,3 +76,12 @@ def test_scene_names_cannot_write_outside_the_run_directory(tmp_path, name):
     with pytest.raises(ConfigError, match="file names"):
         run_benchmark({name: lambda: None}, {"m": lambda: None}, tmp_path / "run", render=False)
     assert not (tmp_path / "escape").exists()
+
+
+def test_a_run_directory_under_a_file_is_a_clear_error(tmp_path):
+    from neuralsurf.cli import check_run_dir_argument
+
+    (tmp_path / "taken").write_text("a file")
+    with pytest.raises(SystemExit, match="is a file, not a folder"):
+        check_run_dir_argument(["experiment=bunny_sdf", f"hydra.run.dir={tmp_path / 'taken' / 'run'}"])
+    check_run_dir_argument([f"hydra.run.dir={tmp_path / 'free' / 'run'}"])  # a new folder is fine
