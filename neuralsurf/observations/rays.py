@@ -179,7 +179,7 @@ def draw_rays(rays: Rays, entry: Tensor, n_rays: int, n_free: int, n_band: int, 
 
 
 def ray_terms(model: nn.Module, batch: RayBatch, weights: Mapping[str, float]) -> dict[str, Tensor]:
-    """Unweighted ray loss terms (surface, band, free, eikonal; those with a positive weight) of the
+    """Unweighted ray loss terms (surface, band, free, carve, eikonal; those with a positive weight) of the
     unit-frame `model` on `batch`, from one forward pass over all samples."""
     r, f = batch.free_t.shape
     b = batch.band_t.shape[1]
@@ -209,7 +209,7 @@ def ray_terms(model: nn.Module, batch: RayBatch, weights: Mapping[str, float]) -
         (gradient,) = torch.autograd.grad(values.sum(), points, create_graph=True)
         terms["eikonal"] = eikonal_loss(gradient)
     if not terms:
-        raise ConfigError("every ray loss term is switched off; give a positive weight to surface, band or free")
+        raise ConfigError("every ray loss term is switched off; give a positive weight to surface, band, free or carve")
     return terms
 
 
