@@ -13,11 +13,9 @@ from __future__ import annotations
 
 import itertools
 import math
-import os
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -361,29 +359,10 @@ def sample_grid(
     corners = np.stack([grid.origin, grid.origin + np.array(grid.cells) * grid.spacing])
     samples = GridSamples(torch.from_numpy(values), torch.from_numpy(corners), float(grid.spacing))
     if path is not None:
-        _write_npz(Path(path), values=values, bounds=corners, spacing=np.float64(grid.spacing))
+        from neuralsurf.io.npz import write_npz
+
+        write_npz(path, {"values": values, "bounds": corners, "spacing": np.float64(grid.spacing)})
     return samples
-
-
-def _write_npz(path: Path, **arrays: np.ndarray) -> None:
-    """Write plain arrays to `path` (.npz, uncompressed) through a temporary file and a rename."""
-    from neuralsurf.errors import FileFormatError
-
-    if path.is_dir():
-        raise FileFormatError(f"cannot write {str(path)!r}: it is a folder; pass a file name")
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            with open(temporary, "wb") as file:
-                np.savez(file, **arrays)
-            os.replace(temporary, path)
-        finally:
-            temporary.unlink(missing_ok=True)
-    except OSError as error:
-        raise FileFormatError(
-            f"cannot write {str(path)!r}: {error.strerror or error}; check that its folder is a writable folder"
-        ) from error
 
 
 # ----------------------------------------------------------------------------------- slices

@@ -56,6 +56,7 @@ from neuralsurf.devices import resolve_device
 from neuralsurf.errors import ConfigError, ExtractionError, FileFormatError, InputError
 from neuralsurf.extract import as_bounds
 from neuralsurf.geometry import kinect_sigma
+from neuralsurf.io.npz import write_npz
 from neuralsurf.structures import DepthFrames, Mesh
 
 WEIGHTINGS = ("constant", "depth")
@@ -619,20 +620,7 @@ class TSDFVolume:
             arrays["color"] = self._color[:used].cpu().numpy()
         if self.sparse:
             arrays["keys"], arrays["slots"] = self._keys.cpu().numpy(), self._slots.cpu().numpy()
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-            try:
-                with open(temporary, "wb") as file:
-                    np.savez_compressed(file, **arrays)
-                os.replace(temporary, path)
-            finally:
-                temporary.unlink(missing_ok=True)
-        except OSError as error:
-            raise FileFormatError(
-                f"cannot save the TSDF volume to {str(path)!r}: {error.strerror or error}; check the folder "
-                f"exists as a folder and is writable"
-            ) from error
+        write_npz(path, arrays, compressed=True)
         return path
 
     @classmethod

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from neuralsurf.errors import ConfigError, FileFormatError
+from neuralsurf.io.npz import write_npz
 from neuralsurf.shapes.procedural import Shape, ShapeRecord, check_shape
 from neuralsurf.structures import Mesh
 
@@ -111,22 +112,6 @@ def shape_samples(shape: Shape, recipe: CacheRecipe) -> dict[str, np.ndarray]:
         "mesh_faces": mesh.faces.numpy().astype(np.int64),
         "recipe": np.array(record),
     }
-
-
-def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """Write `arrays` to `path` atomically: a temporary file in the same folder, then a rename, so an
-    interruption leaves either the old state or the whole file, never half of one."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(temporary, "wb") as handle:
-            np.savez(handle, **arrays)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(temporary, path)
-    finally:
-        if temporary.exists():
-            temporary.unlink()
 
 
 def cache_path(out: Path, record: ShapeRecord) -> Path:
