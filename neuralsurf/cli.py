@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import random
 import time
 from pathlib import Path
@@ -94,19 +95,23 @@ def train(cfg: DictConfig) -> dict[str, float]:
     """Fit the configured model to the configured scene, extract, measure and write the outputs:
     <run dir>/mesh.ply, metrics.json, checkpoints/last.pt and TensorBoard events."""
     from neuralsurf.devices import resolve_device
+    from neuralsurf.distributed import init_from_environment
     from neuralsurf.extract import NearPointsField, extract_mesh
     from neuralsurf.io import write_mesh
     from neuralsurf.metrics import depth_metrics, evaluate_mesh
+    from neuralsurf.priors import ShapeCollection
 
-    run_dir = run_directory(cfg)
+    device = resolve_device(init_from_environment(cfg.device))  # torchrun: the process group, a GPU per rank
+    run_dir = shared_run_directory(cfg)
     config = OmegaConf.to_container(cfg, resolve=True)
-    resolve_device(cfg.device)  # a bad device fails before the data is built
     check_resume(run_dir, config)
     seed_everything(cfg.seed)
     scene = instantiate(cfg.data)
     log.info("scene %s: %s", scene.name, scene.description)
+    if isinstance(scene, ShapeCollection):
+        return train_prior(cfg, scene, run_dir, config, device)
     model = instantiate(cfg.model, _convert_="all")
-    result = fit(model, build_observations(cfg, scene), optimizer=instantiate(cfg.optimizer), device=cfg.device,
+    result = fit(model, build_observations(cfg, scene), optimizer=instantiate(cfg.optimizer), device=device,
                  seed=cfg.seed, run_dir=run_dir, config=config, **config["trainer"])
 
     started = time.perf_counter()
@@ -126,6 +131,59 @@ def train(cfg: DictConfig) -> dict[str, float]:
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
     _log_hparams(run_dir, cfg, metrics)
     log.info("scene %s: mesh written to %s\n%s", scene.name, mesh_path.resolve(), format_table(metrics))
+    return metrics
+
+
+def shared_run_directory(cfg: DictConfig) -> Path:
+    """The run directory; under torchrun, rank 0's on every rank (the others' own, made by Hydra
+    before this code runs, is removed when empty: see `train_main`)."""
+    from neuralsurf.distributed import broadcast_object
+
+    own = run_directory(cfg)
+    shared = Path(broadcast_object(str(own)))
+    if shared != own and own.is_dir() and not any(own.iterdir()):
+        own.rmdir()
+    return shared
+
+
+def train_prior(cfg: DictConfig, collection, run_dir: Path, config: dict, device: str) -> dict[str, float]:
+    """Train a learned prior (cfg.model: a builder called with the collection's number of training
+    shapes) over `collection` (built here, or found cached), then complete its test shapes from noisy
+    clouds (cfg.score) and write mesh.ply (the first test shape), metrics.json (means and per-shape
+    values) and checkpoints/last.pt (read back with neuralsurf.priors.load_prior). Under torchrun
+    every rank trains; rank 0 alone builds, scores and writes."""
+    from neuralsurf.distributed import barrier, is_main_process
+    from neuralsurf.io import write_mesh
+    from neuralsurf.models import OccupancyNetwork
+    from neuralsurf.priors import score_completions
+    from neuralsurf.structures import Normalization
+
+    if is_main_process():
+        collection.build(progress=bool(cfg.trainer.progress))
+    barrier()
+    model = instantiate(cfg.model, _convert_="all")(n_shapes=collection.count("train"))
+    log.info("%s over %d training shapes in %s", type(model).__name__, collection.count("train"), collection.folder)
+    trainer = dict(config["trainer"])
+    if isinstance(model, OccupancyNetwork) and (trainer["image_every"] or trainer["mesh_every"]):
+        log.info("no SDF previews of an occupancy network (no field without a cloud's code): image_every=0, "
+                 "mesh_every=0")
+        trainer.update(image_every=0, mesh_every=0)
+    result = fit(model, build_observations(cfg, collection), optimizer=instantiate(cfg.optimizer), device=device,
+                 seed=cfg.seed, run_dir=run_dir, config=config, normalization=Normalization(), **trainer)
+    if not is_main_process():
+        return {}
+    score = dict(config.get("score") or {})
+    limit = score.pop("shapes", None)
+    means, per_shape, mesh = score_completions(result.model, collection.test_shapes(limit), seed=cfg.seed,
+                                               device=device, resolution=cfg.extract.resolution, **score)
+    if mesh is not None:
+        write_mesh(run_dir / "mesh.ply", mesh)
+    metrics = {**means, "fit_seconds": result.seconds, "steps": result.steps}
+    (run_dir / "metrics.json").write_text(json.dumps({**metrics, "per_shape": per_shape}, indent=2, default=float))
+    _log_hparams(run_dir, cfg, metrics)
+    log.info("%s: %d test shapes completed from %s noisy points; mesh of %s in %s\n%s", collection.name,
+             len(per_shape), score.get("n_points", 3000), per_shape[0]["shape"], run_dir.resolve(),
+             format_table(metrics))
     return metrics
 
 
@@ -224,6 +282,8 @@ def train_main() -> None:
     import sys
 
     check_run_dir_argument(sys.argv[1:])
+    if int(os.environ.get("RANK", "0")) > 0:  # torchrun: logs and the run's config from rank 0 only
+        sys.argv += ["hydra.output_subdir=null", "hydra/job_logging=disabled"]
     hydra.main(version_base="1.3", config_path="configs", config_name="train")(train)()
 
 

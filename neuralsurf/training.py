@@ -16,6 +16,7 @@ import torch
 from torch import nn
 
 from neuralsurf.devices import resolve_device
+from neuralsurf.distributed import mean_over_ranks, rank_and_world
 from neuralsurf.errors import CheckpointError, ConfigError, InputError, NeuralsurfError
 from neuralsurf.models.field import NormalizedField
 from neuralsurf.models.spec import REBUILDABLE, build_model, model_spec
@@ -133,6 +134,21 @@ def parameter_groups(model: nn.Module, trainable: list[nn.Parameter] | None,
     return [g for g in groups if g["params"]]
 
 
+class LossTerms(nn.Module):
+    """The named, unweighted loss terms of `model` on one batch of each observation: the forward that
+    DistributedDataParallel wraps under torchrun (the fit's only call into the model)."""
+
+    def __init__(self, model: nn.Module, observations: list[Observation], samplers: list) -> None:
+        super().__init__()
+        self.model = model
+        self.names = [o.name for o in observations]
+        self.samplers = samplers
+
+    def forward(self, batches: list) -> dict[str, torch.Tensor]:
+        return {f"{name}/{term}": value for name, sampler, batch in zip(self.names, self.samplers, batches)
+                for term, value in sampler.losses(self.model, batch).items()}
+
+
 def _grad_norm(params: list[nn.Parameter]) -> float:
     norms = [p.grad.detach().norm() for p in params if p.grad is not None]
     return float(torch.stack(norms).norm()) if norms else 0.0
@@ -186,6 +202,9 @@ def fit(
     With `run_dir`, TensorBoard events go there and checkpoints to `run_dir/checkpoints/last.pt`
     every `checkpoint_every` steps (and at the end); with `resume`, an existing checkpoint there is
     loaded and training continues exactly where it stopped. `config` is stored in checkpoints.
+    Under torchrun (a process group, `neuralsurf.distributed`) the gradients are averaged over the
+    processes by DistributedDataParallel, the logged values are their means, and only rank 0 writes
+    checkpoints and TensorBoard events (every rank resumes from them).
     """
     if not (isinstance(steps, int) and not isinstance(steps, bool) and steps >= 1):
         raise ConfigError(f"fit needs an integer steps >= 1, got {steps!r}")
@@ -226,12 +245,13 @@ def fit(
         if start_step >= steps:
             warnings.warn(f"{checkpoint_path} already holds {start_step} >= {steps} steps; nothing to train")
 
-    writer = _summary_writer(run_dir)
+    rank, world = rank_and_world()
+    writer = _summary_writer(run_dir) if rank == 0 else None
     world_field = NormalizedField(model, normalization, margin=margin)
     weights = {f"{o.name}/{term}": w for o, s in zip(observations, samplers) for term, w in s.weights.items()}
 
     def checkpoint(step: int, seconds: float) -> None:
-        if checkpoint_path is None:
+        if checkpoint_path is None or rank != 0:
             return
         save_checkpoint(checkpoint_path, {
             **field_state(model, normalization, margin, step), "optimizer": optimizer.state_dict(),
@@ -241,18 +261,18 @@ def fit(
 
     from tqdm.auto import tqdm
 
-    bar = tqdm(range(start_step, steps), initial=start_step, total=steps, disable=not progress,
+    bar = tqdm(range(start_step, steps), initial=start_step, total=steps, disable=not progress or rank != 0,
                desc="fit", dynamic_ncols=True)
     started, window_start, window_steps = time.perf_counter(), time.perf_counter(), 0
     done = start_step
     for p in frozen:
         p.requires_grad_(False)
+    loss_terms = LossTerms(model, observations, samplers)
+    if world > 1:  # after the resume: its broadcast of rank 0's weights also waits for every rank's reading
+        loss_terms = torch.nn.parallel.DistributedDataParallel(loss_terms)
     try:
         for step in bar:
-            terms = {}
-            for observation, sampler in zip(observations, samplers):
-                batch = sampler.sample(generator)
-                terms.update({f"{observation.name}/{k}": v for k, v in sampler.losses(model, batch).items()})
+            terms = loss_terms([sampler.sample(generator) for sampler in samplers])
             total = sum(weights[name] * value for name, value in terms.items())
             if not torch.isfinite(total):
                 checkpoint(step, seconds_before + time.perf_counter() - started)
@@ -270,8 +290,9 @@ def fit(
             done = step + 1
             if done % log_every == 0 or done == steps:
                 now = time.perf_counter()
-                record = {name: float(value.detach()) for name, value in terms.items()}
-                record.update(total=float(total.detach()), step=done, lr=optimizer.param_groups[0]["lr"],
+                record = mean_over_ranks({name: float(value.detach()) for name, value in terms.items()}
+                                         | {"total": float(total.detach())})
+                record.update(step=done, lr=optimizer.param_groups[0]["lr"],
                               grad_norm=_grad_norm(params), steps_per_s=window_steps / (now - window_start))
                 window_start, window_steps = now, 0
                 for name, value in record.items():
@@ -295,7 +316,8 @@ def fit(
     model.eval()
     _check_converged(history)
     if writer is not None:
-        _log_mesh(writer, world_field, steps)
+        if image_every or mesh_every:  # previews of the field (none for models without one, e.g. OccNet)
+            _log_mesh(writer, world_field, steps)
         writer.close()
     return FitResult(model, normalization, world_field.eval(), history, max(done, start_step),
                      seconds_before + time.perf_counter() - started)

@@ -18,13 +18,14 @@ A collection lives in its own unit frame (each shape in [-0.5, 0.5]^3): fit with
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 
+from neuralsurf.distributed import rank_and_world
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.losses import clamped_l1
 from neuralsurf.observations.base import Observation, Sampler, check_weights
@@ -104,17 +105,39 @@ def auto_decoder_terms(model: nn.Module, batch: ShapeSDFBatch, weights: Mapping[
     return terms
 
 
+def rank_rows(batch, rank: int, world: int):
+    """The rows `rank::world` of every tensor of a batch dataclass: this process's share of a global
+    batch that every rank drew alike (see `neuralsurf.distributed`)."""
+    if world == 1:
+        return batch
+    return type(batch)(**{f.name: getattr(batch, f.name)[rank::world] for f in fields(batch)})
+
+
+def global_shapes(shapes_per_batch: int, count: int, world: int, owner: str) -> int:
+    """Shapes per step over all processes: `shapes_per_batch`, or all `count` when fewer, which
+    must split evenly over `world` processes."""
+    from neuralsurf.distributed import shard_rows
+
+    shapes = min(shapes_per_batch, count)
+    shard_rows(shapes, world, f"{owner} (shapes_per_batch={shapes_per_batch}, {count} shapes)")
+    return shapes
+
+
 @dataclass(frozen=True)
 class CollectionSDFSampler(Sampler):
     points: Tensor
     values: Tensor
     weights: dict[str, float]
     shapes_per_batch: int
+    """Over all processes."""
     samples_per_shape: int
     clamp: float
+    rank: int = 0
+    world: int = 1
 
     def sample(self, generator: torch.Generator) -> ShapeSDFBatch:
-        return draw_shape_sdf(self.points, self.values, self.shapes_per_batch, self.samples_per_shape, generator)
+        batch = draw_shape_sdf(self.points, self.values, self.shapes_per_batch, self.samples_per_shape, generator)
+        return rank_rows(batch, self.rank, self.world)
 
     def losses(self, model: nn.Module, batch: ShapeSDFBatch) -> dict[str, Tensor]:
         codes = getattr(model, "codes", None)
@@ -134,7 +157,7 @@ class CollectionSDF(Observation):
     weights: Mapping[str, float] = field(default_factory=lambda: {"sdf": 1.0, "code": 1e-4})
     """Term weights: sdf (clamped L1), code (DeepSDF's code regularisation, 1e-4 there)."""
     shapes_per_batch: int = 16
-    """Shapes per step (DeepSDF: 64 scenes)."""
+    """Shapes per step, over all processes under torchrun (DeepSDF: 64 scenes)."""
     samples_per_shape: int = 2048
     """SDF samples per shape per step (DeepSDF: 16384)."""
     clamp: float = 0.1
@@ -146,6 +169,11 @@ class CollectionSDF(Observation):
         if min(self.shapes_per_batch, self.samples_per_shape) < 1 or not self.clamp > 0:
             raise ConfigError(f"CollectionSDF needs shapes_per_batch, samples_per_shape >= 1 and clamp > 0, got "
                               f"{self.shapes_per_batch}, {self.samples_per_shape}, {self.clamp}")
+
+    @classmethod
+    def from_collection(cls, collection, **options) -> CollectionSDF:
+        """The training split of a built `neuralsurf.priors.ShapeCollection`, with these options."""
+        return cls(collection.folder, **options)
 
     @property
     def paths(self) -> list[Path]:
@@ -159,8 +187,10 @@ class CollectionSDF(Observation):
         arrays = _load(self.paths, ("sdf_points", "sdf_values"))
         points = _to_unit(arrays["sdf_points"], normalization, device)
         values = torch.from_numpy(arrays["sdf_values"]).float().to(device) / normalization.scale
-        return CollectionSDFSampler(points, values, self.weights, self.shapes_per_batch, self.samples_per_shape,
-                                    self.clamp)
+        rank, world = rank_and_world()
+        shapes = global_shapes(self.shapes_per_batch, len(values), world, "CollectionSDF")
+        return CollectionSDFSampler(points, values, self.weights, shapes, self.samples_per_shape, self.clamp,
+                                    rank, world)
 
 
 # ----------------------------------------------------------------------------- occupancy network
@@ -224,10 +254,13 @@ class CollectionOccupancySampler(Sampler):
     cloud_noise: float
     partial: float
     query_points: int
+    rank: int = 0
+    world: int = 1
 
     def sample(self, generator: torch.Generator) -> OccupancyBatch:
-        return draw_occupancy(self.surface, self.normals, self.points, self.inside, self.shapes_per_batch,
-                              self.cloud_points, self.cloud_noise, self.partial, self.query_points, generator)
+        batch = draw_occupancy(self.surface, self.normals, self.points, self.inside, self.shapes_per_batch,
+                               self.cloud_points, self.cloud_noise, self.partial, self.query_points, generator)
+        return rank_rows(batch, self.rank, self.world)
 
     def losses(self, model: nn.Module, batch: OccupancyBatch) -> dict[str, Tensor]:
         logits = model.logits(batch.points, model.encode(batch.clouds))
@@ -244,7 +277,7 @@ class CollectionOccupancy(Observation):
     split: str = "train"
     weights: Mapping[str, float] = field(default_factory=lambda: {"occupancy": 1.0})
     shapes_per_batch: int = 32
-    """Shapes per step (OccNet: 64)."""
+    """Shapes per step, over all processes under torchrun (OccNet: 64)."""
     query_points: int = 2048
     """Labelled points per shape per step (OccNet: 2048)."""
     cloud_points: int = 300
@@ -264,6 +297,11 @@ class CollectionOccupancy(Observation):
             raise ConfigError(f"CollectionOccupancy needs shapes_per_batch, query_points, cloud_points >= 1, "
                               f"partial and near_fraction in [0, 1] and cloud_noise >= 0, got {self}")
 
+    @classmethod
+    def from_collection(cls, collection, **options) -> CollectionOccupancy:
+        """The training split of a built `neuralsurf.priors.ShapeCollection`, with these options."""
+        return cls(collection.folder, **options)
+
     def bounds(self) -> Tensor:
         return UNIT_BOUNDS.clone()
 
@@ -278,12 +316,14 @@ class CollectionOccupancy(Observation):
                                  arrays["occ_near_points"][:, :n_near]], axis=1)
         inside = np.concatenate([arrays["occ_uniform_inside"][:, : n - n_near],
                                  arrays["occ_near_inside"][:, :n_near]], axis=1)
+        rank, world = rank_and_world()
+        shapes = global_shapes(self.shapes_per_batch, len(points), world, "CollectionOccupancy")
         return CollectionOccupancySampler(
             _to_unit(arrays["surface_points"], normalization, device),
             torch.from_numpy(arrays["surface_normals"]).float().to(device),
             _to_unit(points, normalization, device), torch.from_numpy(inside).to(device), self.weights,
-            self.shapes_per_batch, self.cloud_points, self.cloud_noise / normalization.scale, self.partial,
-            self.query_points)
+            shapes, self.cloud_points, self.cloud_noise / normalization.scale, self.partial,
+            self.query_points, rank, world)
 
 
 # ----------------------------------------------------------------------------- one shape

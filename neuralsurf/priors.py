@@ -1,0 +1,268 @@
+"""Learned shape priors end to end, without Hydra: the collection a run trains on, the models built
+for it, the trained prior read back from a checkpoint, and shape completion with it.
+
+- `ShapeCollection`: a procedural collection (`neuralsurf.shapes`) as plain settings; `build()` writes
+  its caches (or finds them) under `root`, by default `<cache>/shapes/<hash of the settings>`.
+- `deepsdf(n_shapes, ...)`, `occupancy_network(n_shapes, ...)`: the two priors, sized for a collection
+  of `n_shapes` training shapes (one latent code each for DeepSDF; the encoder gives OccNet its codes).
+- `load_prior(path)`: the trained model of a run's checkpoint, rebuilt from the allowlist of
+  `neuralsurf.models.spec` (weights_only; nothing in the file chooses code to run).
+- `complete_cloud`, `complete_view`: a test shape's field from a (noisy, partial) cloud or one depth
+  view; `score_completions`: mean metrics over test shapes from noisy clouds (train.py's metrics).
+
+Everything lives in the collection's unit frame (each shape in [-0.5, 0.5]^3).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import warnings
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from neuralsurf.errors import CheckpointError, ConfigError, NeuralsurfError
+from neuralsurf.models import SDFMLP, AutoDecoder, CBNDecoder, LatentCodes, OccupancyNetwork, PointNetEncoder
+from neuralsurf.shapes.cache import CacheRecipe, build_collection, cache_path, load_cache
+from neuralsurf.shapes.procedural import ShapeRecord, collection_records
+from neuralsurf.structures import DepthFrames, Mesh, PointCloud
+
+UNIT_BOUNDS = np.array([[-0.55] * 3, [0.55] * 3])
+"""Extraction box of a prior's shapes: the unit cube plus the caches' padding."""
+
+
+@dataclass(frozen=True)
+class TestShape:
+    """One held-out shape: its name, ground-truth mesh and exact surface samples (unit frame)."""
+
+    name: str
+    mesh: Mesh
+    surface: Tensor
+    """Float[Tensor, "n 3"]: points on the analytic surface."""
+
+
+@dataclass(frozen=True)
+class ShapeCollection:
+    """A procedural shape collection as plain settings (train.py's `data` for the prior experiments)."""
+
+    classes: tuple[str, ...] = ("chair", "mug", "lamp")
+    n_train: int = 64
+    """Training shapes per class (one latent code each)."""
+    n_val: int = 0
+    n_test: int = 8
+    """Test shapes per class (never trained on)."""
+    seed: int = 0
+    """Collection seed; a shape's own seed depends on it, its split, class and index only, so the test
+    shapes are the same whatever n_train is."""
+    n_sdf: int = 100_000
+    n_occ: int = 50_000
+    n_surface: int = 20_000
+    mesh_resolution: int = 128
+    root: str | None = None
+    """Folder of the caches; None: `<$NEURALSURF_CACHE or ~/.cache/neuralsurf>/shapes/<settings hash>`."""
+    workers: int = 2
+    """Processes that build missing caches (0: this one)."""
+    name: str = "shapes"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "classes", tuple(self.classes))
+        collection_records(self.classes, self.n_train, self.n_val, self.n_test, self.seed)  # checks the counts
+        self.recipe  # noqa: B018 - checks the recipe
+
+    @property
+    def recipe(self) -> CacheRecipe:
+        return CacheRecipe(n_sdf=self.n_sdf, n_occ=self.n_occ, n_surface=self.n_surface,
+                           mesh_resolution=self.mesh_resolution)
+
+    @property
+    def description(self) -> str:
+        return (f"{len(self.classes)} procedural classes ({', '.join(self.classes)}): {self.n_train} train, "
+                f"{self.n_val} val, {self.n_test} test shapes per class, seed {self.seed}")
+
+    @property
+    def folder(self) -> Path:
+        if self.root is not None:
+            return Path(self.root).expanduser()
+        from neuralsurf.data import cache_dir
+
+        key = {k: v for k, v in asdict(self).items() if k not in ("root", "workers", "name")}
+        digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
+        return cache_dir() / "shapes" / digest
+
+    def records(self, split: str | None = None) -> list[ShapeRecord]:
+        """The shapes of `split` (all when None), in latent-code order."""
+        records = collection_records(self.classes, self.n_train, self.n_val, self.n_test, self.seed)
+        return [r for r in records if split is None or r.split == split]
+
+    def count(self, split: str) -> int:
+        return len(self.records(split))
+
+    def build(self, progress: bool = True) -> Path:
+        """Write every missing cache (resumable; shapes already cached are skipped); returns the folder."""
+        build_collection(self.folder, self.records(), self.recipe, workers=self.workers, progress=progress)
+        return self.folder
+
+    def test_shapes(self, limit: int | None = None) -> list[TestShape]:
+        """The first `limit` test shapes (all when None), read from the built caches."""
+        shapes = []
+        for record in self.records("test")[:limit]:
+            arrays = load_cache(cache_path(self.folder, record))
+            mesh = Mesh(torch.from_numpy(arrays["mesh_vertices"]).double(), torch.from_numpy(arrays["mesh_faces"]))
+            shapes.append(TestShape(record.name, mesh, torch.from_numpy(arrays["surface_points"]).double()))
+        if not shapes:
+            raise ConfigError(f"{self.description}: no test shapes; set n_test >= 1")
+        return shapes
+
+
+# ----------------------------------------------------------------------------- models
+
+
+def deepsdf(n_shapes: int, latent_dim: int = 64, width: int = 256, depth: int = 8, skip_layers=(4,),
+            weight_norm: bool = True, activation: str = "relu", init_radius: float = 0.25,
+            code_std: float = 0.01) -> AutoDecoder:
+    """A DeepSDF auto-decoder for `n_shapes` training shapes: an SDFMLP decoder taking codes of
+    `latent_dim` entries (DeepSDF: 8 x 512, skip at layer 4, weight norm) and one code per shape,
+    initialised N(0, code_std^2)."""
+    decoder = SDFMLP(width=width, depth=depth, skip_layers=tuple(skip_layers), weight_norm=weight_norm,
+                     activation=activation, latent_dim=latent_dim, init_radius=init_radius)
+    return AutoDecoder(decoder, LatentCodes(n_shapes, latent_dim, init_std=code_std))
+
+
+def occupancy_network(n_shapes: int, latent_dim: int = 128, encoder_hidden: int = 128, hidden: int = 256,
+                      blocks: int = 5, threshold: float = 0.2) -> OccupancyNetwork:
+    """An Occupancy Network (PointNet encoder with ResNet blocks, CBN decoder), codes of `latent_dim`
+    entries, its field's zero level at occupancy probability `threshold` (the paper's 0.2).
+    `n_shapes` is unused: the encoder computes each shape's code (the argument keeps one signature
+    for both priors)."""
+    return OccupancyNetwork(PointNetEncoder(latent_dim, encoder_hidden), CBNDecoder(latent_dim, hidden, blocks),
+                            threshold=threshold)
+
+
+def load_prior(path: str | Path, device: str | torch.device = "cpu") -> nn.Module:
+    """The trained prior (an AutoDecoder or OccupancyNetwork, unit frame, eval mode) of a run's
+    `checkpoints/last.pt`. Rebuilt from the allowlist of model classes (`models.spec`)."""
+    from neuralsurf.models.spec import build_model
+    from neuralsurf.training import load_checkpoint
+
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"prior checkpoint {path} not found; pass the checkpoints/last.pt of a "
+                              f"train.py experiment=shapes_* run")
+    state = load_checkpoint(path)
+    if not isinstance(state.get("model_spec"), dict) or "model" not in state:
+        raise CheckpointError(f"{path} holds no rebuildable model; it was not written by a neuralsurf fit")
+    model = build_model(state["model_spec"])
+    if not isinstance(model, (AutoDecoder, OccupancyNetwork)):
+        raise CheckpointError(f"{path} holds a {type(model).__name__}, not a learned prior (AutoDecoder or "
+                              f"OccupancyNetwork); load single-shape fits with neuralsurf.load_field")
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as error:
+        raise CheckpointError(f"{path} does not match its model: {error}") from None
+    return model.to(device).eval()
+
+
+# ----------------------------------------------------------------------------- completion
+
+
+def complete_cloud(prior: nn.Module, points: Tensor, *, latent_steps: int = 200, lr: float = 1e-2,
+                   seed: int = 0, device: str = "cpu") -> nn.Module:
+    """The unit-frame world field (negative inside) of the shape whose surface points (noisy, possibly
+    partial) are `points` (Float[Tensor, "n 3"]): DeepSDF fits a code under the frozen decoder
+    (`PointSamples`: surface and near-surface terms + code prior); OccNet encodes the cloud."""
+    from neuralsurf.observations import PointSamples
+    from neuralsurf.shapes.completion import reconstruct_latent
+
+    if isinstance(prior, OccupancyNetwork):
+        return prior.to(device).field_from_cloud(points)
+    if isinstance(prior, AutoDecoder):
+        observation = PointSamples(PointCloud(points.double()), weights={"surface": 1.0, "sdf": 1.0},
+                                   normals="estimate", batch_size=2048, n_near=60_000, n_free=15_000)
+        return reconstruct_latent(prior.decoder, [observation], steps=latent_steps, lr=lr, seed=seed,
+                                  device=device).field
+    raise ConfigError(f"complete_cloud takes an AutoDecoder or OccupancyNetwork, got {type(prior).__name__}")
+
+
+def complete_view(prior: nn.Module, frames: DepthFrames, points: Tensor, *, latent_steps: int = 200,
+                  lr: float = 1e-2, cloud_points: int = 3000, sigma: float = 0.002, seed: int = 0,
+                  device: str = "cpu") -> nn.Module:
+    """The field of a shape seen in one depth view: DeepSDF fits a code to the view's rays (surface,
+    band and free space, `DepthRays`, constant noise `sigma`); OccNet encodes `cloud_points` of the
+    back-projected `points` (Float[Tensor, "n 3"])."""
+    from neuralsurf.observations import DepthRays
+    from neuralsurf.shapes.completion import reconstruct_latent
+
+    if isinstance(prior, OccupancyNetwork):
+        pick = torch.randperm(len(points), generator=torch.Generator().manual_seed(seed))[:cloud_points]
+        return prior.to(device).field_from_cloud(points[pick])
+    if isinstance(prior, AutoDecoder):
+        rays = DepthRays(frames, noise_model="constant", sigma=sigma, n_rays=1024)
+        return reconstruct_latent(prior.decoder, [rays], steps=latent_steps, lr=lr, seed=seed, device=device).field
+    raise ConfigError(f"complete_view takes an AutoDecoder or OccupancyNetwork, got {type(prior).__name__}")
+
+
+def noisy_cloud(surface: Tensor, n_points: int, noise: float, seed: int) -> Tensor:
+    """`n_points` of `surface` (Float[Tensor, "m 3"]) at random plus N(0, noise^2) on each coordinate."""
+    generator = torch.Generator().manual_seed(seed)
+    pick = torch.randperm(len(surface), generator=generator)[:n_points]
+    return surface[pick] + noise * torch.randn(len(pick), 3, generator=generator, dtype=surface.dtype)
+
+
+def clipped_to_cube(field: nn.Module, half: float = 0.525):
+    """x[..., 3] -> max(field(x), box(x)): the field intersected with the cube [-half, half]^3, inside
+    the extraction box. A prior's shapes lie in the unit cube by construction; a field still negative
+    at the box's faces (far from any training sample) would leave the mesh open there."""
+    from neuralsurf.shapes import csg
+
+    def clipped(x: Tensor) -> Tensor:
+        return torch.maximum(field(x), csg.box(x, (0.0, 0.0, 0.0), (half,) * 3).to(x.dtype))
+
+    return clipped
+
+
+def extract_unit(field: nn.Module, resolution: int) -> Mesh:
+    """A prior's shape as a closed mesh: coarse-to-fine marching cubes of the field clipped to the
+    cube (`clipped_to_cube`) over the padded unit cube."""
+    from neuralsurf.extract import extract_mesh
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return extract_mesh(clipped_to_cube(field), resolution=resolution, bounds=UNIT_BOUNDS)
+
+
+def score_completions(prior: nn.Module, shapes: list[TestShape], *, n_points: int = 3000, noise: float = 0.005,
+                      latent_steps: int = 200, resolution: int = 64, n_samples: int = 20_000, seed: int = 0,
+                      device: str = "cpu") -> tuple[dict[str, float], list[dict], Mesh | None]:
+    """Complete each shape from `n_points` noisy surface points and score its mesh (`evaluate_mesh`).
+    Returns (means of the numeric metrics, with "shapes" and "failed" counts; per-shape metrics; the
+    first shape's mesh). A shape without a surface counts with IoU 0 and F-scores 0."""
+    from neuralsurf.metrics import evaluate_mesh
+
+    per_shape, first = [], None
+    for i, shape in enumerate(shapes):
+        cloud = noisy_cloud(shape.surface, n_points, noise, seed + i)
+        try:
+            mesh = extract_unit(complete_cloud(prior, cloud, latent_steps=latent_steps, seed=seed, device=device),
+                                resolution)
+            metrics = {k: float(v) for k, v in evaluate_mesh(mesh, shape.mesh, n_samples=n_samples, seed=seed).items()}
+            first = mesh if first is None else first
+        except NeuralsurfError as error:
+            metrics = {"iou": 0.0, "fscore_1%": 0.0, "fscore_0.5%": 0.0, "failed": str(error)[:200]}
+        per_shape.append({"shape": shape.name, **metrics})
+    return mean_metrics(per_shape), per_shape, first
+
+
+def mean_metrics(per_shape: list[dict]) -> dict[str, float]:
+    """Means of every numeric metric over the shapes that have it (NaN skipped), plus "shapes" and
+    "failed" counts."""
+    keys = {k for row in per_shape for k, v in row.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+    means = {}
+    for key in sorted(keys):
+        values = [row[key] for row in per_shape if isinstance(row.get(key), (int, float)) and not math.isnan(row[key])]
+        means[key] = float(np.mean(values)) if values else math.nan
+    return {**means, "shapes": len(per_shape), "failed": sum("failed" in row for row in per_shape)}
