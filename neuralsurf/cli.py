@@ -152,7 +152,7 @@ def train_prior(cfg: DictConfig, collection, run_dir: Path, config: dict, device
     clouds (cfg.score) and write mesh.ply (the first test shape), metrics.json (means and per-shape
     values) and checkpoints/last.pt (read back with neuralsurf.priors.load_prior). Under torchrun
     every rank trains; rank 0 alone builds, scores and writes."""
-    from neuralsurf.distributed import barrier, is_main_process
+    from neuralsurf.distributed import barrier, is_main_process, leave_process_group
     from neuralsurf.io import write_mesh
     from neuralsurf.models import OccupancyNetwork
     from neuralsurf.priors import score_completions
@@ -170,7 +170,9 @@ def train_prior(cfg: DictConfig, collection, run_dir: Path, config: dict, device
         trainer.update(image_every=0, mesh_every=0)
     result = fit(model, build_observations(cfg, collection), optimizer=instantiate(cfg.optimizer), device=device,
                  seed=cfg.seed, run_dir=run_dir, config=config, normalization=Normalization(), **trainer)
-    if not is_main_process():
+    main = is_main_process()
+    leave_process_group()  # training is over: rank 0 scores alone (its latent fits are single-process)
+    if not main:
         return {}
     score = dict(config.get("score") or {})
     limit = score.pop("shapes", None)

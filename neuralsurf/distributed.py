@@ -49,6 +49,13 @@ def init_from_environment(device: str = "auto") -> str:
     return f"cuda:{local_rank}" if cuda else device
 
 
+def leave_process_group() -> None:
+    """Every rank: end the process group (no-op without one); later fits are single-process."""
+    if dist.is_available() and dist.is_initialized():
+        dist.barrier()
+        dist.destroy_process_group()
+
+
 def barrier() -> None:
     if rank_and_world()[1] > 1:
         dist.barrier()
