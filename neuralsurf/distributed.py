@@ -72,7 +72,7 @@ def broadcast_object(value):
 
 def mean_over_ranks(values: dict[str, float]) -> dict[str, float]:
     """The mean of each value over the ranks (the values themselves without a process group)."""
-    rank, world = rank_and_world()
+    world = rank_and_world()[1]
     if world == 1 or not values:
         return values
     backend_cuda = dist.get_backend() == "nccl"
