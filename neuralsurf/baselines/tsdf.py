@@ -84,8 +84,11 @@ _MESH_CHUNK_BLOCKS = 8
 _PIN = 1e-4
 """A surface crossing closer than this fraction of an edge to a grid point is placed on the point."""
 _TILE = 8
+"""Pixels per side of the largest tiles of `candidate_blocks`' quadtree (a power of two)."""
 _SPAN = 2
-"""Pixels per side of the tiles whose frustum pieces stand for their pixels' in `candidate_blocks`."""
+"""A tile's frustum piece stands for its pixels where its box spans at most _SPAN + 1 blocks per axis
+(measured on 7-Scenes at 1 cm: 1 -> 2,330 blocks in 13.7 ms, 2 -> 2,615 in 7.9 ms, 3 -> 2,690 in
+6.7 ms; the voxel pass costs about 3 ms per 1,000 blocks)."""
 _MAX_KEYS = 1 << 24
 """Candidate block keys enumerated at a time (bounds memory when boxes are large)."""
 _BITMAP_LIMIT = 1 << 27
@@ -188,28 +191,28 @@ def _unique_keys(keys: Tensor, total: int) -> Tensor:
 
 
 def frustum_boxes(
-    rect: Tensor, near: Tensor, far: Tensor, K: Tensor, rotation: Tensor, translation: Tensor
+    rect: Tensor, near: Tensor, far: Tensor, pixel_to_grid: Tensor, translation: Tensor
 ) -> tuple[Tensor, Tensor]:
     """Grid-frame boxes of frustum pieces: the points whose pixel coordinates lie in a rectangle and
-    whose z lies in [near, far]. Exact: such a piece is the convex hull of its 8 corners.
+    whose z lies in [near, far]. Exact: along each axis a point is z times an affine function of
+    (u, v) plus a constant, so its extremes lie at the rectangle's corners and at z = near or far.
 
     Args:
         rect: Float[Tensor, "n 4"] pixel-coordinate extents (u0, u1, v0, v1); pixel centres are whole
             numbers, so pixel (u, v) alone is (u - 0.5, u + 0.5, v - 0.5, v + 0.5).
         near, far: Float[Tensor, "n"] z range in metres, 0 < near <= far.
-        K: Float[Tensor, "n 3 3"]; rotation, translation: Float[Tensor, "n 3 3"] and Float[Tensor,
-            "n 3"], camera -> grid, x_grid = rotation @ x_camera + translation (grid units = voxels).
+        pixel_to_grid: Float[Tensor, "n 3 3"] (or "1 3 3") rotation @ K^-1: (u, v, 1) -> grid units per
+            metre of z; translation: Float[Tensor, "n 3"] (or "1 3"), the camera centre in grid units.
     Returns:
         lo, hi: Float[Tensor, "n 3"] corners of each piece's box in grid units.
     """
-    fx, fy, cx, cy, skew = (K[:, i, j, None] for i, j in ((0, 0), (1, 1), (0, 2), (1, 2), (0, 1)))
     u, v = rect[:, [0, 1, 0, 1]], rect[:, [2, 2, 3, 3]]  # (n, 4) rectangle corners
-    y = (v - cy) / fy
-    x = (u - cx - skew * y) / fx
-    rays = torch.stack([x, y, torch.ones_like(x)], -1) @ rotation.transpose(1, 2)  # grid units per metre of z
-    corners = torch.stack([near, far], 1)[:, :, None, None] * rays[:, None] + translation[:, None, None]
-    corners = corners.flatten(1, 2)  # (n, 8, 3)
-    return corners.amin(1), corners.amax(1)
+    rays = torch.stack([u, v, torch.ones_like(u)], -1) @ pixel_to_grid.transpose(1, 2)  # (n, 4, 3)
+    low, high = rays.amin(1), rays.amax(1)
+    near, far = near[:, None], far[:, None]
+    lo = torch.minimum(low * near, low * far) + translation
+    hi = torch.maximum(high * near, high * far) + translation
+    return lo, hi
 
 
 def box_keys(lo: Tensor, hi: Tensor, block_counts: Tensor, tags: Tensor | None = None) -> Tensor:
@@ -263,13 +266,14 @@ def candidate_blocks(
 
     A quadtree over the image: a tile's frustum piece between its smallest depth minus
     (truncation + free_space) and its largest depth plus truncation (`frustum_boxes`) stands for
-    its pixels where its box spans at most two blocks per axis (most of a smooth surface); other
+    its pixels where its box spans at most _SPAN + 1 blocks per axis (most of a smooth surface); other
     tiles (depth edges, grazing views) are split in four, down to single pixels. So the candidates
     hold every block that a pixel's segment meets, and few more.
 
     Args:
         depth: Float[Tensor, "f h w"] z-depth (0 = invalid); K: Float[Tensor, "f 3 3"];
-        rotation, translation: camera -> grid (see `frustum_boxes`), Float[Tensor, "f 3 3"], "f 3";
+        rotation, translation: camera -> grid, x_grid = rotation @ x_camera + translation, Float[Tensor,
+            "f 3 3"] and "f 3" (grid units = voxels);
         truncation, free_space: metres; block_size: voxels per block side;
         block_counts: Int[Tensor, "3"] blocks per axis; tile: pixels per side of the largest tiles
         (a power of two).
@@ -289,6 +293,7 @@ def candidate_blocks(
         deepest.append(pool(deepest[-1], torch.amax))
     size = torch.tensor([width, height], device=depth.device)
     reach = truncation + free_space
+    pixel_to_grid = rotation @ torch.linalg.inv(K)
     per_frame = (lambda t: t) if frames == 1 else (lambda t: t[frame])  # one frame: broadcast
     level = len(nearest) - 1
     frame, row, col = (deepest[level] > 0).nonzero(as_tuple=True)
@@ -301,8 +306,7 @@ def candidate_blocks(
         flat = (frame * deepest[level].shape[1] + row) * deepest[level].shape[2] + col
         near, far = nearest[level].view(-1)[flat], deepest[level].view(-1)[flat]
         lo, hi = frustum_boxes(
-            rect, (near - reach).clamp_min(1e-6), far + truncation, per_frame(K), per_frame(rotation),
-            per_frame(translation),
+            rect, (near - reach).clamp_min(1e-6), far + truncation, per_frame(pixel_to_grid), per_frame(translation)
         )
         lo, hi = torch.floor(lo / block_size), torch.floor(hi / block_size)
         if level == 0:
@@ -332,13 +336,6 @@ def pad_image(image: Tensor) -> Tensor:
     depth): pixel lookups clamped into the border need no bounds test."""
     border = [0, 0] * (image.ndim - 3) + [1, 1, 1, 1]
     return torch.nn.functional.pad(image, border)
-
-
-def step(x: Tensor) -> Tensor:
-    """Float[Tensor, "..."] -> 1.0 where x >= 0, else 0.0, in float arithmetic (on a CPU, comparisons
-    producing bool tensors and their conversion back cost several float ops each). Exact for float32
-    metric values: x * 1e30 + 1 is >= 1 for x >= 0 and < 0 for x <= -1e-30."""
-    return (x * 1e30).add_(1.0).clamp_(0.0, 1.0)
 
 
 def observe_blocks(
@@ -383,7 +380,9 @@ def observe_blocks(
     observed = padded.view(-1).index_select(0, pixel.view(-1)).view(z.shape)
     valid = observed > 0 if close else None
     sdf = observed.sub_(z)
-    seen = step(sdf + truncation)  # where the depth is invalid, sdf = -z < -truncation unless close
+    # 1 where sdf >= -truncation, else 0 (invalid depth: sdf = -z < -truncation), in float arithmetic:
+    # on a CPU, bool tensors cost several float ops each; (sdf + truncation) * 1e30 + 1 is >= 1 or < 0
+    seen = (sdf * 1e30).add_(truncation * 1e30 + 1.0).clamp_(0.0, 1.0)
     if close:
         seen *= valid & (z > 0)
     return seen, sdf.clamp_max_(truncation), pixel
@@ -1082,7 +1081,6 @@ __all__ = [
     "open3d_frame",
     "pad_image",
     "pixel_weights",
-    "step",
     "voxel_block_grid",
     "voxel_block_grid_inputs",
     "world_to_camera",
