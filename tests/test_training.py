@@ -61,8 +61,9 @@ def test_fit_learns_a_sphere_in_the_world_frame():
 def test_moving_the_point_maths_into_point_samples_changed_no_number():
     """The oracle of the move into neuralsurf.observations: this fit's loss history as the code before
     the move (7ae1b8d, fit(model, cloud, batch_size=256, sampling=...)) printed it on this machine.
-    The arithmetic is unchanged, so it was bit-identical here (x86_64, torch 2.13 CPU); other CPUs may
-    round differently in the last digits, hence the 1e-6 tolerance."""
+    The move left the arithmetic unchanged and was bit-identical here (x86_64, torch 2.13 CPU); since
+    then the hash grid interpolates by three lerps (same maths, other rounding: 1.3e-7 relative at
+    most here), and other CPUs may round differently in the last digits, hence the 1e-6 tolerance."""
     before = [0.25447213649749756, 0.1533888876438141, 0.11846824735403061, 0.1157514676451683]
     result = fit(tiny_model(), points(sphere_cloud()), steps=20, **TINY)
     assert result.history["total"] == pytest.approx(before, rel=1e-6)
