@@ -99,6 +99,68 @@ def test_recovers_rigid_motion_of_the_same_sample(bunny, target, method, seed):
     assert result.transform.dtype == torch.float64 and result.transform.shape == (4, 4)
 
 
+@pytest.mark.parametrize(
+    "method, kernel, pyramid",
+    [
+        ("point_to_point", None, False),
+        ("point_to_plane", None, False),
+        ("point_to_plane", "huber", False),
+        ("point_to_plane", "tukey", False),
+        ("point_to_point", None, True),
+        ("point_to_plane", None, True),
+    ],
+)
+def test_open3d_engine_agrees_with_the_reference_steps(bunny, target, method, kernel, pyramid):
+    """The wrapper around Open3D's ICP (the default engine) against our numpy reference loop, on a
+    known motion of another sample of the bunny (target normals estimated): both reach the truth,
+    and each other, with the same fitness and RMSE."""
+    _, size = bunny
+    truth = random_motion(7, 12.0, 0.04 * size, center=target.points.mean(0).numpy())
+    source = moved(cloud_from_mesh(bunny[0], 5000, seed=3), np.linalg.inv(truth))
+    bare = PointCloud(target.points)
+    v = 0.01 * size
+    options = dict(method=method, kernel=kernel, kernel_scale=None if kernel is None else 0.02 * size,
+                   max_iterations=200, relative_fitness=1e-10, relative_rmse=1e-10,
+                   voxel_sizes=(4 * v, 2 * v, v) if pyramid else None)
+    fast = register_icp(source, bare, 0.1 * size, engine="open3d", **options)
+    reference = register_icp(source, bare, 0.1 * size, engine="reference", **options)
+    for result in (fast, reference):
+        angle, shift = errors(result.transform, truth)
+        assert angle < 0.5 and shift < 5e-3 * size  # different samples: close to, not at, the truth
+    angle, shift = errors(fast.transform, reference.transform)
+    assert angle < 1e-3 and shift < 1e-5 * size
+    assert fast.fitness == pytest.approx(reference.fitness, abs=1e-3)
+    assert fast.inlier_rmse == pytest.approx(reference.inlier_rmse, rel=1e-3)
+    assert reference.iterations > 1 and fast.iterations is None
+
+
+@pytest.mark.parametrize("pyramid", [False, True])
+def test_open3d_tensor_pipeline_recovers_the_motion(bunny, target, pyramid):
+    """The GPU path (Open3D's tensor ICP / multi-scale ICP), run on the CPU here, against the
+    reference on an exact motion of the same sample."""
+    from neuralsurf.baselines.icp import _icp_open3d_tensor
+
+    _, size = bunny
+    truth = random_motion(8, 10.0, 0.03 * size, center=target.points.mean(0).numpy())
+    source = moved(target, np.linalg.inv(truth))
+    v = 0.01 * size
+    levels = [4 * v, 2 * v, v] if pyramid else [None]
+    transform, fitness, rmse, iterations = _icp_open3d_tensor(
+        source.points.numpy(), target.points.double().numpy(), target.normals.double().numpy(), np.eye(4), levels,
+        0.1 * size, "point_to_plane", None, None, 100, 1e-10, 1e-10, True, device="CPU:0",
+    )
+    angle, shift = errors(transform, truth)
+    assert angle < 0.01 and shift < 1e-4 * size
+    assert fitness == pytest.approx(1.0) and rmse < 1e-4 * size and iterations >= 1
+
+
+def test_engine_and_device_are_checked(target):
+    with pytest.raises(ConfigError, match="unknown ICP engine"):
+        register_icp(target, target, 0.01, engine="pcl")
+    with pytest.raises(ConfigError, match="device must be"):
+        register_icp(target, target, 0.01, device="tpu")
+
+
 @pytest.mark.parametrize("method", ["point_to_point", "point_to_plane"])
 def test_converges_to_open3d_transform(bunny, target, method):
     """Different samples of the surface (no exact answer): ours and Open3D's registration_icp run
@@ -189,19 +251,20 @@ def test_huber_point_to_point_recovers_motion(bunny, target):
     assert angle < 0.01 and shift < 1e-5 * size
 
 
-def test_voxel_pyramid_reaches_what_a_small_max_distance_cannot(bunny, target):
+@pytest.mark.parametrize("engine", ["open3d", "reference"])
+def test_voxel_pyramid_reaches_what_a_small_max_distance_cannot(bunny, target, engine):
     _, size = bunny
     truth = random_motion(6, 30.0, 0.1 * size, center=target.points.mean(0).numpy())
     source = moved(cloud_from_mesh(bunny[0], 5000, seed=1), np.linalg.inv(truth))
     v = 0.01 * size
-    single = register_icp(source, target, 1.5 * v, method="point_to_plane")
+    single = register_icp(source, target, 1.5 * v, method="point_to_plane", engine=engine)
     pyramid = register_icp(
-        source, target, 1.5 * v, method="point_to_plane", voxel_sizes=(8 * v, 4 * v, 2 * v, v)
+        source, target, 1.5 * v, method="point_to_plane", voxel_sizes=(8 * v, 4 * v, 2 * v, v), engine=engine
     )
     assert errors(single.transform, truth)[0] > 5.0  # stuck in a local minimum
     angle, shift = errors(pyramid.transform, truth)
     assert angle < 0.05 and shift < 1e-3 * size
-    assert pyramid.iterations > 4
+    assert pyramid.iterations > 4 if engine == "reference" else pyramid.iterations is None
 
 
 @pytest.mark.parametrize("degrees", [90.0, 180.0])
@@ -273,10 +336,11 @@ def test_fitness_and_rmse_definitions():
     target = torch.rand(1000, 3, generator=g, dtype=torch.float64)
     far = torch.rand(250, 3, generator=g, dtype=torch.float64) + 10
     source = torch.cat([target[:750] + torch.tensor([0.0, 0.0, 1e-3], dtype=torch.float64), far])
-    result = register_icp(source, target, 0.05, max_iterations=1)
-    assert isinstance(result, Registration)
-    assert result.fitness == pytest.approx(750 / 1000)
-    assert result.iterations == 1 and result.inlier_rmse < 1e-3
+    for engine, iterations in (("reference", 1), ("open3d", None)):  # Open3D's CPU ICP does not count
+        result = register_icp(source, target, 0.05, max_iterations=1, engine=engine)
+        assert isinstance(result, Registration)
+        assert result.fitness == pytest.approx(750 / 1000)
+        assert result.iterations == iterations and result.inlier_rmse < 1e-3
 
 
 def test_kabsch_weighted_exact():

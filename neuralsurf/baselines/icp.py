@@ -1,10 +1,12 @@
 """Rigid registration of point clouds: ICP, global registration and multiway registration.
 
-- `register_icp`: our own ICP in float64 numpy (point-to-point by weighted Kabsch, point-to-plane
-  by linearised least squares), robust kernels as IRLS weights, an optional voxel pyramid.
-  Correspondences are nearest neighbours within `max_distance` from a cached k-d tree of the
-  target; iteration and stopping follow Open3D's `registration_icp`, so both converge to the same
-  transform on the same input.
+- `register_icp`: ICP with robust kernels and an optional voxel pyramid, run on Open3D's engines
+  (engine="open3d", the default: its legacy `registration_icp` on the CPU, its tensor pipeline's
+  multi-scale ICP on CUDA) or on our own reference loop (engine="reference": float64 numpy,
+  point-to-point by weighted Kabsch, point-to-plane by linearised least squares, kernels as IRLS
+  weights, nearest neighbours from a cached k-d tree). The reference follows Open3D's iteration and
+  stopping rule, so both reach the same transform on the same input (tested); it also serves the
+  one case Open3D lacks, a robust kernel with point-to-point.
 - `register_global`: FPFH features (Open3D) matched and sampled by our own seeded RANSAC, so that
   runs repeat bit for bit; refine its result with `register_icp`.
 - `register_multiway`: pairwise ICP edges in a pose graph optimised by Open3D's
@@ -44,6 +46,7 @@ __all__ = [
 
 METHODS = ("point_to_point", "point_to_plane")
 KERNELS = (None, "huber", "tukey")
+ENGINES = ("open3d", "reference")
 
 
 @dataclass(frozen=True)
@@ -56,9 +59,9 @@ class Registration:
     """Share of source points whose nearest target point lies within max_distance (0..1)."""
     inlier_rmse: float
     """Root mean square distance of those correspondences (point to point, as in Open3D)."""
-    iterations: int
-    """ICP iterations performed (summed over pyramid levels); for `register_global`, the RANSAC
-    iteration budget."""
+    iterations: int | None
+    """ICP iterations performed (summed over pyramid levels); None where the engine does not report
+    them (Open3D's legacy CPU ICP); for `register_global`, the RANSAC iteration budget."""
 
 
 # ----------------------------------------------------------------------------- input checks
@@ -206,6 +209,14 @@ def kabsch(source: np.ndarray, target: np.ndarray, weights: np.ndarray) -> np.nd
     return matrix
 
 
+def _degenerate() -> InputError:
+    return InputError(
+        "point-to-plane ICP is degenerate: the matched target normals do not constrain all six "
+        "degrees of freedom (e.g. one plane, or too few correspondences); use "
+        "method='point_to_point' or a cloud with more varied geometry"
+    )
+
+
 def point_to_plane_step(
     source: np.ndarray, target: np.ndarray, normals: np.ndarray, weights: np.ndarray
 ) -> np.ndarray:
@@ -224,11 +235,7 @@ def point_to_plane_step(
     hessian = weighted.T @ jacobian
     eigenvalues = np.linalg.eigvalsh(hessian)
     if not eigenvalues[0] > 1e-12 * max(eigenvalues[-1], 1e-300):
-        raise InputError(
-            "point-to-plane ICP is degenerate: the matched target normals do not constrain all six "
-            "degrees of freedom (e.g. one plane, or too few correspondences); use "
-            "method='point_to_point' or a cloud with more varied geometry"
-        )
+        raise _degenerate()
     x = -np.linalg.solve(hessian, weighted.T @ residual)
     matrix = np.eye(4)
     matrix[:3, :3], matrix[:3, 3] = _axis_angle_to_matrix(x[:3]), x[3:]
@@ -320,6 +327,16 @@ def _icp(
     return transform, fitness, rmse, iterations
 
 
+def _require_estimation(estimate: bool) -> None:
+    """InputError for a target without normals when their estimation is off."""
+    if not estimate:
+        raise InputError(
+            "method='point_to_plane' needs target normals, but the target has none and "
+            "estimate_normals=False; pass target.with_normals(...), set estimate_normals=True, "
+            "or use method='point_to_point'"
+        )
+
+
 def _target_normals(
     points: np.ndarray, normals: np.ndarray | None, estimate: bool, radius: float | None
 ) -> np.ndarray:
@@ -327,12 +344,7 @@ def _target_normals(
     `radius` when given); InputError when absent and estimation is off."""
     if normals is not None:
         return normals
-    if not estimate:
-        raise InputError(
-            "method='point_to_plane' needs target normals, but the target has none and "
-            "estimate_normals=False; pass target.with_normals(...), set estimate_normals=True, "
-            "or use method='point_to_point'"
-        )
+    _require_estimation(estimate)
     if len(points) < 3:
         raise InputError(
             f"point-to-plane ICP needs at least 3 target points to estimate normals, got {len(points)}"
@@ -363,6 +375,8 @@ def register_icp(
     relative_rmse: float = 1e-6,
     voxel_sizes: Sequence[float] | None = None,
     estimate_normals: bool = True,
+    engine: str = "open3d",
+    device: str = "auto",
 ) -> Registration:
     """Align `source` to `target` by iterative closest points.
 
@@ -387,23 +401,65 @@ def register_icp(
             and `max_iterations` per level. Normals are then re-estimated per level within 2 s
             (or the given ones averaged per voxel).
         estimate_normals: estimate missing target normals for point-to-plane, else raise.
+        engine: "open3d" (default): Open3D's ICP, the same loop compiled (robust point-to-point,
+            which Open3D lacks, runs on the reference); "reference": our numpy loop.
+        device: "auto", "cpu" or "cuda", for engine="open3d": "cuda" runs Open3D's tensor pipeline
+            (multi-scale ICP) on the GPU and needs an Open3D built with CUDA; "auto" takes it when
+            there is one, else the CPU (Open3D's legacy ICP, the fastest there).
     Returns:
         Registration; fitness and inlier_rmse are measured on the full clouds at `max_distance`.
     Raises:
         InputError: empty clouds, a non-rigid init, no correspondence within max_distance, missing
             target normals with estimate_normals=False, or a degenerate point-to-plane system.
-        ConfigError: unknown method or kernel, a kernel without kernel_scale, bad distances.
+        ConfigError: unknown method, kernel, engine or device, a kernel without kernel_scale, bad
+            distances, device="cuda" without CUDA in Open3D.
     """
     _check_options(method, kernel, kernel_scale, max_distance, max_iterations)
+    if engine not in ENGINES:
+        raise ConfigError(f"unknown ICP engine {engine!r}; choose 'open3d' (compiled) or 'reference' (numpy)")
     source_points, _ = _cloud_arrays(source, "source")
     target_points, target_normals = _cloud_arrays(target, "target")
     transform = _check_transform(init)
-    full_target = _Target.build(target_points, target_normals)
     levels = list(voxel_sizes) if voxel_sizes is not None else [None]
     if voxel_sizes is not None and (not levels or not all(np.isfinite(s) and s > 0 for s in levels)):
         raise ConfigError(
             f"voxel_sizes must be positive sizes, coarse to fine, e.g. (4v, 2v, v); got {voxel_sizes}"
         )
+    on_gpu = _open3d_device(device) == "cuda"
+    if engine == "reference" or (kernel is not None and method == "point_to_point"):
+        run = _icp_reference
+    else:
+        run = _icp_open3d_tensor if on_gpu else _icp_open3d
+    transform, fitness, rmse, iterations = run(
+        source_points, target_points, target_normals, transform, levels, max_distance, method, kernel,
+        kernel_scale, max_iterations, relative_fitness, relative_rmse, estimate_normals,
+    )
+    return Registration(torch.from_numpy(transform), fitness, rmse, iterations)
+
+
+def _open3d_device(device: str) -> str:
+    """"cpu" or "cuda" for Open3D's ICP, from "auto", "cpu" or "cuda"."""
+    if device not in ("auto", "cpu", "cuda"):
+        raise ConfigError(f"device must be 'auto', 'cpu' or 'cuda', got {device!r}")
+    if device == "cpu":
+        return "cpu"
+    import open3d as o3d
+
+    has_cuda = o3d.core.cuda.is_available()
+    if device == "cuda" and not has_cuda:
+        raise ConfigError(
+            "device='cuda' needs Open3D built with CUDA and a GPU (open3d.core.cuda.is_available() is False); "
+            "use device='cpu' or 'auto'"
+        )
+    return "cuda" if has_cuda else "cpu"
+
+
+def _icp_reference(
+    source_points, target_points, target_normals, transform, levels, max_distance, method, kernel,
+    kernel_scale, max_iterations, relative_fitness, relative_rmse, estimate_normals,
+) -> tuple[np.ndarray, float, float, int]:
+    """register_icp on our numpy loop (arguments as there, checked; levels: [None] or voxel sizes)."""
+    full_target = _Target.build(target_points, target_normals)
     iterations = 0
     for size in levels:
         if size is None:
@@ -417,20 +473,125 @@ def register_icp(
                 tgt.points, tgt.normals, estimate_normals, None if size is None else 2 * size
             )
         transform, _, _, done = _icp(
-            src,
-            tgt,
-            transform,
-            distance,
-            method,
-            kernel,
-            kernel_scale,
-            max_iterations,
-            relative_fitness,
+            src, tgt, transform, distance, method, kernel, kernel_scale, max_iterations, relative_fitness,
             relative_rmse,
         )
         iterations += done
     fitness, rmse = _evaluate(source_points, full_target, transform, max_distance)
-    return Registration(torch.from_numpy(transform), fitness, rmse, iterations)
+    return transform, fitness, rmse, iterations
+
+
+def _check_plane_system(points: np.ndarray, normals: np.ndarray) -> None:
+    """InputError when the point-to-plane normal equations of the whole target are singular (one
+    plane, ...): then those of any subset of its points are too."""
+    jacobian = np.concatenate([np.cross(points - points.mean(0), normals), normals], axis=1)
+    eigenvalues = np.linalg.eigvalsh(jacobian.T @ jacobian)
+    if not eigenvalues[0] > 1e-12 * max(eigenvalues[-1], 1e-300):
+        raise _degenerate()
+
+
+def _open3d_kernel(kernel: str | None, scale: float | None):
+    """Open3D's robust kernel object for our kernel name (None: plain least squares)."""
+    import open3d as o3d
+
+    losses = {None: lambda: o3d.pipelines.registration.L2Loss(),
+              "huber": lambda: o3d.pipelines.registration.HuberLoss(k=scale),
+              "tukey": lambda: o3d.pipelines.registration.TukeyLoss(k=scale)}
+    return losses[kernel]()
+
+
+def _icp_open3d(
+    source_points, target_points, target_normals, transform, levels, max_distance, method, kernel,
+    kernel_scale, max_iterations, relative_fitness, relative_rmse, estimate_normals,
+) -> tuple[np.ndarray, float, float, None]:
+    """register_icp on Open3D's legacy registration_icp (CPU), level by level on the same pyramid and
+    target normals as the reference (our voxel centroids; normals given, averaged per voxel, or
+    estimated). Open3D does not report its iterations: None."""
+    import open3d as o3d
+
+    registration = o3d.pipelines.registration
+    if method == "point_to_point":
+        estimation = registration.TransformationEstimationPointToPoint()
+    else:
+        estimation = registration.TransformationEstimationPointToPlane(_open3d_kernel(kernel, kernel_scale))
+    criteria = registration.ICPConvergenceCriteria(relative_fitness, relative_rmse, max_iterations)
+    full_source, full_target = _open3d_cloud(source_points), _open3d_cloud(target_points, target_normals)
+    for size in levels:
+        if size is None:
+            src, distance = full_source, max_distance
+            tgt_points, tgt_normals = target_points, target_normals
+        else:
+            src = _open3d_cloud(voxel_downsample(source_points, None, size)[0])
+            tgt_points, tgt_normals = voxel_downsample(target_points, target_normals, size)
+            distance = max_distance * size / levels[-1]
+        if method == "point_to_plane":
+            tgt_normals = _target_normals(tgt_points, tgt_normals, estimate_normals, None if size is None else 2 * size)
+            _check_plane_system(tgt_points, tgt_normals)
+        tgt = full_target if size is None and tgt_normals is target_normals else _open3d_cloud(tgt_points, tgt_normals)
+        result = registration.registration_icp(src, tgt, distance, transform, estimation, criteria)
+        if result.fitness == 0:
+            raise _too_far(distance, len(src.points))
+        transform = np.asarray(result.transformation).copy()
+    if levels[-1] is not None:  # fitness and RMSE on the full clouds
+        result = registration.evaluate_registration(full_source, full_target, max_distance, transform)
+    return transform, float(result.fitness), float(result.inlier_rmse), None
+
+
+def _open3d_cloud(points: np.ndarray, normals: np.ndarray | None = None):
+    """A legacy Open3D PointCloud of float64 (n, 3) points and normals."""
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    if normals is not None:
+        cloud.normals = o3d.utility.Vector3dVector(normals)
+    return cloud
+
+
+def _icp_open3d_tensor(
+    source_points, target_points, target_normals, transform, levels, max_distance, method, kernel,
+    kernel_scale, max_iterations, relative_fitness, relative_rmse, estimate_normals, device: str = "CUDA:0",
+) -> tuple[np.ndarray, float, float, int]:
+    """register_icp on Open3D's tensor pipeline (multi_scale_icp with Open3D's own voxel pyramid and
+    normals averaged per voxel; plain icp without a pyramid), on `device` (CUDA:0; CPU:0 works too)."""
+    import open3d as o3d
+    import open3d.core as o3c
+
+    registration, where = o3d.t.pipelines.registration, o3c.Device(device)
+
+    def cloud(points, normals=None):
+        tensor = o3d.t.geometry.PointCloud(o3c.Tensor(points, device=where))
+        if normals is not None:
+            tensor.point.normals = o3c.Tensor(normals, device=where)
+        return tensor
+
+    if method == "point_to_plane":
+        target_normals = _target_normals(target_points, target_normals, estimate_normals, None)
+        _check_plane_system(target_points, target_normals)
+    source, target = cloud(source_points), cloud(target_points, target_normals)
+    if method == "point_to_point":
+        estimation = registration.TransformationEstimationPointToPoint()
+    else:
+        loss = {None: "L2Loss", "huber": "HuberLoss", "tukey": "TukeyLoss"}[kernel]
+        robust = registration.robust_kernel.RobustKernel(
+            getattr(registration.robust_kernel.RobustKernelMethod, loss), 1.0 if kernel_scale is None else kernel_scale
+        )
+        estimation = registration.TransformationEstimationPointToPlane(robust)
+    init = o3c.Tensor(transform)
+    if levels[0] is None:
+        criteria = registration.ICPConvergenceCriteria(relative_fitness, relative_rmse, max_iterations)
+        result = registration.icp(source, target, max_distance, init, estimation, criteria)
+    else:
+        criteria = [registration.ICPConvergenceCriteria(relative_fitness, relative_rmse, max_iterations)] * len(levels)
+        distances = [max_distance * size / levels[-1] for size in levels]
+        result = registration.multi_scale_icp(
+            source, target, o3d.utility.DoubleVector(levels), criteria, o3d.utility.DoubleVector(distances), init,
+            estimation,
+        )
+    transform = result.transformation.cpu().numpy().astype(np.float64)
+    final = registration.evaluate_registration(source, target, max_distance, o3c.Tensor(transform, device=where))
+    if final.fitness == 0:
+        raise _too_far(max_distance, len(source_points))
+    return transform, float(final.fitness), float(final.inlier_rmse), int(result.num_iterations)
 
 
 # ----------------------------------------------------------------------------- global
