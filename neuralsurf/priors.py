@@ -19,6 +19,7 @@ import hashlib
 import json
 import math
 import warnings
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -28,7 +29,7 @@ from torch import Tensor, nn
 
 from neuralsurf.errors import CheckpointError, ConfigError, NeuralsurfError
 from neuralsurf.models import SDFMLP, AutoDecoder, CBNDecoder, LatentCodes, OccupancyNetwork, PointNetEncoder
-from neuralsurf.shapes.cache import CacheRecipe, build_collection, cache_path, load_cache
+from neuralsurf.shapes.cache import CacheRecipe, build_collection, cache_path, load_cache, read_manifest
 from neuralsurf.shapes.procedural import ShapeRecord, collection_records
 from neuralsurf.structures import DepthFrames, Mesh, PointCloud
 
@@ -103,7 +104,13 @@ class ShapeCollection:
         return len(self.records(split))
 
     def build(self, progress: bool = True) -> Path:
-        """Write every missing cache (resumable; shapes already cached are skipped); returns the folder."""
+        """Write every missing cache (resumable; shapes already cached are skipped); returns the folder.
+        A folder holding another collection (other shapes or recipe) is a ConfigError."""
+        if (self.folder / "collection.json").is_file():
+            records, recipe = read_manifest(self.folder)
+            if records != self.records() or recipe != self.recipe:
+                raise ConfigError(f"{self.folder} holds another shape collection ({len(records)} shapes, {recipe}); "
+                                  f"give this one another root (or root=null: a folder per settings)")
         build_collection(self.folder, self.records(), self.recipe, workers=self.workers, progress=progress)
         return self.folder
 
@@ -141,6 +148,26 @@ def occupancy_network(n_shapes: int, latent_dim: int = 128, encoder_hidden: int 
     for both priors)."""
     return OccupancyNetwork(PointNetEncoder(latent_dim, encoder_hidden), CBNDecoder(latent_dim, hidden, blocks),
                             threshold=threshold)
+
+
+def train_prior(run_dir: str | Path, collection: ShapeCollection, model: Callable[..., nn.Module],
+                observations: list[Callable], *, optimizer: Callable | None = None, trainer: dict | None = None,
+                seed: int = 0, device: str = "cpu", config: dict | None = None) -> Path:
+    """Train `model(n_shapes=...)` over `collection` (built here if needed) with the observations
+    `observations[i](collection)` and `fit`'s `trainer` options, into `run_dir` (resumed there; a
+    finished run is reused as it is). Returns its checkpoint, for `load_prior`."""
+    from neuralsurf.structures import Normalization
+    from neuralsurf.training import CHECKPOINT_NAME, default_optimizer, fit, load_checkpoint
+
+    trainer = {"progress": False, "image_every": 0, "mesh_every": 0, **(trainer or {})}
+    path = Path(run_dir) / "checkpoints" / CHECKPOINT_NAME
+    if path.is_file() and load_checkpoint(path).get("step", 0) >= trainer.get("steps", 2000):
+        return path
+    collection.build(progress=False)
+    fit(model(n_shapes=collection.count("train")), [build(collection) for build in observations],
+        optimizer=optimizer or default_optimizer, device=device, seed=seed, run_dir=run_dir, config=config,
+        normalization=Normalization(), **trainer)
+    return path
 
 
 def load_prior(path: str | Path, device: str | torch.device = "cpu") -> nn.Module:

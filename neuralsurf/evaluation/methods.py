@@ -7,6 +7,8 @@ provenance, e.g. in the neural checkpoints).
 
 from __future__ import annotations
 
+import hashlib
+import json
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -90,3 +92,37 @@ def tsdf(scene: Scene, *, voxel_fraction: float = 1 / 256, truncation_voxels: fl
 def broken(scene: Scene, *, message: str = "this method always fails", **_: Any) -> Mesh:
     """A method that raises: checks that a failing method becomes a "failed" row (tests, demos)."""
     raise RuntimeError(message)
+
+
+def learned_prior(scene: Scene, *, checkpoint: str | None = None, collection=None, model: Callable | None = None,
+                  observation: dict[str, Callable] | None = None, optimizer: Callable | None = None,
+                  trainer: dict[str, Any] | None = None, latent_steps: int = 200, resolution: int = 128,
+                  device: str = "auto", seed: int = 0, run_dir: str | Path | None = None,
+                  config: dict | None = None) -> Mesh:
+    """Complete a shape with a learned prior (DeepSDF auto-decoder or Occupancy Network): from its one
+    depth view (`scene.frames`, depth scenes) or its cloud. The scene must be in the prior's unit
+    frame and canonical pose (the test shapes of `suite=priors`).
+
+    The prior is `checkpoint` (a train.py experiment=shapes_* run's last.pt), or else trained once per
+    evaluation (`model(n_shapes)` over `collection` with the `observation` builders, `optimizer`,
+    `trainer`) into `<run_dir>/../prior_<hash of those settings>` and reused by every later call."""
+    from neuralsurf.devices import resolve_device
+    from neuralsurf.priors import complete_cloud, complete_view, extract_unit, load_prior, train_prior
+
+    device = str(resolve_device(device))
+    if checkpoint is None:
+        if None in (collection, model, observation, trainer, run_dir):
+            raise NeuralsurfError("learned_prior needs a checkpoint, or collection, model, observation and "
+                                  "trainer settings (configs/method/deepsdf.yaml) to train one")
+        settings = {k: (config or {}).get(k) for k in ("collection", "model", "observation", "optimizer", "trainer")}
+        digest = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()[:10]
+        checkpoint = train_prior(Path(run_dir).parent / f"prior_{digest}", collection, model,
+                                 list(observation.values()), optimizer=optimizer, trainer=trainer, seed=seed,
+                                 device=device, config=settings)
+    prior = load_prior(checkpoint, device=device)
+    options = {"latent_steps": latent_steps, "seed": seed, "device": device}
+    if scene.frames is not None and scene.depth_input:
+        field = complete_view(prior, scene.frames, scene.cloud.points, **options)
+    else:
+        field = complete_cloud(prior, scene.cloud.points, **options)
+    return extract_unit(field, resolution)

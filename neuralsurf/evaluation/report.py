@@ -47,10 +47,10 @@ def write_tables(rows: list[dict[str, Any]], run_dir: Path, extra: dict[str, Any
     """results.csv (one line per row, union of the columns) and results.json ({"rows", ...extra})."""
     run_dir.mkdir(parents=True, exist_ok=True)
     columns: list[str] = []
-    for row in rows:
-        columns += [key for key in row if key not in columns]
+    for row in rows:  # lists (a scene set's per-shape values) go to results.json only
+        columns += [key for key in row if key not in columns and not isinstance(row[key], list)]
     with open(run_dir / "results.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=columns)
+        writer = csv.DictWriter(handle, fieldnames=columns, extrasaction="ignore")
         writer.writeheader()
         writer.writerows(rows)
     clean = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}

@@ -24,6 +24,7 @@ from neuralsurf.errors import ConfigError
 from neuralsurf.evaluation.methods import NotApplicable
 from neuralsurf.evaluation.photometric import NormalMapResult, normal_map_picture, score_normal_maps
 from neuralsurf.scenes import Scene, SceneUnavailable
+from neuralsurf.scenes.recipes import SceneSet
 from neuralsurf.structures import Mesh
 
 SceneFactory = Callable[[], Scene]
@@ -147,7 +148,11 @@ def run_benchmark(
             started = time.perf_counter()
             try:
                 method = make_method()
-                output = method(scene, seed=seed, run_dir=run_dir / "fits" / f"{scene_name}__{method_name}")
+                fits = run_dir / "fits" / f"{scene_name}__{method_name}"
+                if isinstance(scene, SceneSet):  # a split of shapes: one row, the means of their metrics
+                    output, set_metrics, row["per_shape"] = run_scene_set(scene, method, seed, fits, n_samples)
+                else:
+                    output = method(scene, seed=seed, run_dir=fits)
                 if isinstance(output, NormalMapResult):  # photometric stereo: scored by angular error
                     row["seconds"] = time.perf_counter() - started
                     row["peak_rss_mb"], row["cuda_peak_mb"] = peak_memory_mb()
@@ -161,11 +166,13 @@ def run_benchmark(
                 row["seconds"] = time.perf_counter() - started
                 row["peak_rss_mb"], row["cuda_peak_mb"] = peak_memory_mb()
                 metrics = {}
-                if scene.ground_truth is not None:
+                if isinstance(scene, SceneSet):
+                    metrics = set_metrics
+                elif scene.ground_truth is not None:
                     metrics = evaluate_mesh(mesh, scene.ground_truth, n_samples=n_samples, seed=seed)
                     if not math.isfinite(metrics["chamfer_l1"]):
                         raise ValueError(f"the metrics are not finite (chamfer_l1 = {metrics['chamfer_l1']})")
-                if scene.held_out is not None:
+                if getattr(scene, "held_out", None) is not None:
                     metrics.update(depth_metrics(mesh, scene.held_out))
             except NotApplicable as error:
                 row["status"], row["reason"] = "skipped", str(error)
@@ -185,10 +192,11 @@ def run_benchmark(
                 path = Path("meshes") / f"{scene_name}__{method_name}.ply"
                 write_mesh(run_dir / path, mesh)
                 row["mesh"] = str(path)
-            if render and scene.ground_truth is not None:
+            shown = shown_scene(scene)  # of a scene set: its first scene
+            if render and shown.ground_truth is not None:
                 try:
-                    gt_image = gt_image if gt_image is not None else _gt_render(scene, run_dir, render_size)
-                    row["render"] = _render_row(scene, mesh, method_name, gt_image, run_dir, render_size)
+                    gt_image = gt_image if gt_image is not None else _gt_render(shown, run_dir, render_size)
+                    row["render"] = _render_row(shown, mesh, method_name, gt_image, run_dir, render_size)
                 except Exception as error:  # noqa: BLE001 - a render problem must not lose the numbers
                     row["render_error"] = f"{type(error).__name__}: {error}"
             log(f"  {method_name:>12} on {scene_name}: chamfer_l1 {row.get('chamfer_l1', math.nan):.5f}  "
@@ -196,6 +204,38 @@ def run_benchmark(
                 f"completeness {row.get('depth_completeness', math.nan):.3f}  {row['seconds']:.1f} s  "
                 f"{row['peak_rss_mb']:.0f} MiB  {row['n_faces']} faces")
     return rows
+
+
+def run_scene_set(scenes: SceneSet, method: Callable[..., Mesh], seed: int, run_dir: Path,
+                  n_samples: int) -> tuple[Mesh, dict[str, float], list[dict[str, Any]]]:
+    """`method` on every scene of a set, each mesh scored against its ground truth (`evaluate_mesh`).
+    Returns (the first scene's mesh, the means of the metrics with "shapes" and "seconds_per_shape"
+    (median), the per-scene metrics with their names and seconds). The first failure fails the row."""
+    from neuralsurf.metrics import evaluate_mesh
+    from neuralsurf.priors import mean_metrics
+
+    first, per_scene = None, []
+    for member in scenes.scenes:
+        started = time.perf_counter()
+        mesh = check_mesh(method(member, seed=seed, run_dir=run_dir))
+        seconds = time.perf_counter() - started
+        metrics = evaluate_mesh(mesh, member.ground_truth, n_samples=n_samples, seed=seed)
+        metrics = {k: None if math.isnan(float(v)) else float(v) for k, v in metrics.items()}  # JSON: null
+        per_scene.append({"shape": member.name, **metrics, "seconds": seconds,
+                          "watertight": float(mesh.is_watertight)})
+        first = mesh if first is None else first
+    means = mean_metrics(per_scene)
+    means["seconds_per_shape"] = float(np.median([row["seconds"] for row in per_scene]))
+    return first, {k: v for k, v in means.items() if k not in ("seconds", "watertight", "failed")}, per_scene
+
+
+def shown_scene(scene: Scene | SceneSet) -> Scene:
+    """The scene whose render represents a row: the scene, or a set's first (named after the set)."""
+    if isinstance(scene, SceneSet):
+        import dataclasses
+
+        return dataclasses.replace(scene.scenes[0], name=f"{scene.name}_{scene.scenes[0].name}")
+    return scene
 
 
 def _write_traceback(run_dir: Path, name: str) -> None:

@@ -290,3 +290,67 @@ def rig_fusion(name: str = "rig_fusion", n_views: int = 8, width: int = 320, hei
                         f"{stereo} photometric stereo normals at {width}x{height} from {n_lights} lights "
                         f"(highlights, cast shadows)")
     return replace(scene, photometric=tuple(captures), normal_maps=results)
+
+
+@dataclass(frozen=True)
+class SceneSet:
+    """Several scenes scored as one row of an evaluation (e.g. the test split of a shape collection):
+    the method runs on each, the row holds the means of their metrics and the per-scene values."""
+
+    name: str
+    scenes: tuple[Scene, ...]
+    description: str = ""
+
+
+def _test_shapes(collection, limit: int | None):
+    """The built collection's first `limit` test shapes (a `neuralsurf.priors.ShapeCollection`)."""
+    collection.build(progress=False)
+    return collection.test_shapes(limit)
+
+
+@lru_cache(maxsize=4)
+def shapes_cloud(collection, name: str = "shapes_cloud", n_points: int = 3000, noise: float = 0.005,
+                 limit: int | None = None, seed: int = 0) -> SceneSet:
+    """`n_points` surface points of each test shape of `collection` with N(0, noise^2) noise (unit
+    frame: the shape's longest side is 1), no normals."""
+    from neuralsurf.priors import noisy_cloud
+
+    scenes = tuple(Scene(shape.name, PointCloud(noisy_cloud(shape.surface, n_points, noise, seed + i)), shape.mesh,
+                         description=f"{n_points} points, noise {noise:g}")
+                   for i, shape in enumerate(_test_shapes(collection, limit)))
+    return SceneSet(name, scenes, f"{len(scenes)} test shapes of {collection.description}; {n_points} surface "
+                                  f"points each, Gaussian noise {noise:g} (longest side 1)")
+
+
+def one_view_camera(seed: int, distance: float = 1.6) -> torch.Tensor:
+    """Float64[Tensor, "4 4"] cam_to_world looking at the origin from a random azimuth and an elevation
+    of 0.2 to 0.6 rad (from above, as a person sees a chair, mug or lamp) at `distance`."""
+    import math
+
+    import numpy as np
+
+    from neuralsurf.scenes.scanner import look_at
+
+    rng = np.random.default_rng(seed)
+    azimuth, elevation = rng.uniform(0, 2 * math.pi), rng.uniform(0.2, 0.6)
+    eye = distance * np.array([math.cos(azimuth) * math.cos(elevation), math.sin(elevation),
+                               math.sin(azimuth) * math.cos(elevation)])
+    return torch.as_tensor(look_at(eye, (0.0, 0.0, 0.0)), dtype=torch.float64)
+
+
+@lru_cache(maxsize=4)
+def shapes_one_view(collection, name: str = "shapes_one_view", width: int = 160, height: int = 120,
+                    fov_deg: float = 50.0, distance: float = 1.6, noise: float = 0.001, limit: int | None = None,
+                    seed: int = 0) -> SceneSet:
+    """One synthetic depth view (Gaussian noise `noise`, unit frame) of each test shape of
+    `collection`, from a random side (`one_view_camera`); point methods get its back-projection."""
+    from neuralsurf.scenes.scanner import scan_depth
+
+    scenes = []
+    for i, shape in enumerate(_test_shapes(collection, limit)):
+        frames = scan_depth(shape.mesh, cam_to_world=one_view_camera(seed + i, distance)[None], width=width,
+                            height=height, fov_deg=fov_deg, noise="gaussian" if noise > 0 else "none",
+                            sigma=noise if noise > 0 else None, seed=seed + i)
+        scenes.append(depth_scene(shape.name, frames, shape.mesh, description=f"noise {noise:g}"))
+    return SceneSet(name, tuple(scenes), f"{len(scenes)} test shapes of {collection.description}; one "
+                                         f"{width}x{height} depth view each, Gaussian noise {noise:g}")
