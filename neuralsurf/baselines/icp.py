@@ -79,12 +79,10 @@ def _cloud_arrays(cloud: PointCloud | Tensor, name: str) -> tuple[np.ndarray, np
             )
     if len(points) == 0:
         raise InputError(f"{name} has no points; registration needs a non-empty cloud on both sides")
-    if not torch.isfinite(points).all():
+    points = points.detach().cpu().double().numpy()  # checked in numpy: one thread, no torch dispatch
+    if not np.isfinite(points).all():
         raise InputError(f"{name} contains NaN or inf coordinates; remove them before registering")
-    return (
-        points.detach().cpu().double().numpy(),
-        None if normals is None else normals.detach().cpu().double().numpy(),
-    )
+    return points, None if normals is None else normals.detach().cpu().double().numpy()
 
 
 def _check_transform(init, name: str = "init", tolerance: float = 1e-5) -> np.ndarray:
@@ -504,9 +502,9 @@ def _icp_open3d(
     source_points, target_points, target_normals, transform, levels, max_distance, method, kernel,
     kernel_scale, max_iterations, relative_fitness, relative_rmse, estimate_normals,
 ) -> tuple[np.ndarray, float, float, None]:
-    """register_icp on Open3D's legacy registration_icp (CPU), level by level on the same pyramid and
-    target normals as the reference (our voxel centroids; normals given, averaged per voxel, or
-    estimated). Open3D does not report its iterations: None."""
+    """register_icp on Open3D's legacy registration_icp (CPU), level by level on Open3D's voxel
+    centroids (normals given and averaged per voxel, or estimated as the reference does). Open3D
+    does not report its iterations: None."""
     import open3d as o3d
 
     registration = o3d.pipelines.registration
@@ -516,18 +514,20 @@ def _icp_open3d(
         estimation = registration.TransformationEstimationPointToPlane(_open3d_kernel(kernel, kernel_scale))
     criteria = registration.ICPConvergenceCriteria(relative_fitness, relative_rmse, max_iterations)
     full_source, full_target = _open3d_cloud(source_points), _open3d_cloud(target_points, target_normals)
-    for size in levels:
+    for level, size in enumerate(levels):
         if size is None:
-            src, distance = full_source, max_distance
-            tgt_points, tgt_normals = target_points, target_normals
+            src, tgt, distance = full_source, full_target, max_distance
         else:
-            src = _open3d_cloud(voxel_downsample(source_points, None, size)[0])
-            tgt_points, tgt_normals = voxel_downsample(target_points, target_normals, size)
+            src, tgt = full_source.voxel_down_sample(size), full_target.voxel_down_sample(size)
             distance = max_distance * size / levels[-1]
         if method == "point_to_plane":
-            tgt_normals = _target_normals(tgt_points, tgt_normals, estimate_normals, None if size is None else 2 * size)
-            _check_plane_system(tgt_points, tgt_normals)
-        tgt = full_target if size is None and tgt_normals is target_normals else _open3d_cloud(tgt_points, tgt_normals)
+            if tgt.has_normals():
+                tgt.normalize_normals()  # voxel averages
+            else:
+                normals = _target_normals(np.asarray(tgt.points), None, estimate_normals, size and 2 * size)
+                tgt.normals = o3d.utility.Vector3dVector(normals)
+            if level == 0:  # the coarsest system: singular there, singular everywhere in practice
+                _check_plane_system(np.asarray(tgt.points), np.asarray(tgt.normals))
         result = registration.registration_icp(src, tgt, distance, transform, estimation, criteria)
         if result.fitness == 0:
             raise _too_far(distance, len(src.points))
