@@ -12,10 +12,13 @@ printed: frames/s on each and their ratio, and how far the GPU and CPU meshes ar
 distance of the GPU mesh's vertices to the CPU mesh, in voxels).
 
 7-Scenes (redkitchen, 100 frames 640 x 480, `--data` or $NEURALSURF_DATA or ../shared/data): sparse
-1 cm and 2 cm volumes on the GPU and the CPU: ms/frame, blocks, peak GPU memory.
+1 cm and 2 cm volumes, truncation 3 voxels, on the GPU and the CPU: ms/frame, blocks, peak GPU
+memory; beside them Open3D's VoxelBlockGrid on CUDA (its fastest path: compute_unique_block_coordinates
+then integrate per frame, after one warm-up run) on the same frames and grid, with the ratio of our
+GPU time to its time, the vertex counts and the median gap of our mesh to its mesh in voxels. That
+row needs an Open3D wheel built with CUDA (open3d.core.cuda.is_available()); else it says so.
 
-The CPU side is ours, not Open3D's (Open3D's CPU figures: benchmarks/bench_tsdf.py); the GPU
-machine need not have Open3D. Without a GPU the script says so and exits.
+Open3D's CPU figures: benchmarks/bench_tsdf.py. Without a CUDA GPU the script says so and exits.
 """
 
 from __future__ import annotations
@@ -86,8 +89,8 @@ def bench_bunny(args) -> None:
               f"{'GPU/CPU':>8} {'mesh gap':>9}")
     print(header + "\n" + "-" * len(header))
     for sparse in (False, True):
-        make = lambda device, n=None: TSDFVolume(bounds, voxel, 3 * voxel, device=device, sparse=sparse,
-                                                 frames_per_pass=n)
+        make = lambda device, n=None, sparse=sparse: TSDFVolume(bounds, voxel, 3 * voxel, device=device,
+                                                                sparse=sparse, frames_per_pass=n)
         cpu_seconds = timed_integration(cpu := make("cpu"), cpu_frames)
         gap = mesh_gap_voxels(make("cuda").integrate(gpu_frames[: args.cpu_views]), cpu)
         cpu_fps = len(cpu_frames) / cpu_seconds
@@ -103,7 +106,34 @@ def bench_bunny(args) -> None:
           f"voxels")
 
 
-def bench_kitchen(data: Path, frames_per_pass: list[int]) -> None:
+def voxel_block_grid_cuda(frames: DepthFrames, voxel: float) -> tuple[float, np.ndarray] | None:
+    """Open3D's VoxelBlockGrid on CUDA: (seconds for all frames, mesh vertices), or None without CUDA
+    in Open3D."""
+    import open3d as o3d
+
+    from neuralsurf.baselines.tsdf import (
+        integrate_voxel_block_grid,
+        voxel_block_grid,
+        voxel_block_grid_inputs,
+    )
+
+    if not o3d.core.cuda.is_available():
+        return None
+    inputs = voxel_block_grid_inputs(frames, "CUDA:0")
+    integrate_voxel_block_grid(voxel_block_grid(voxel, device="CUDA:0"), inputs, voxel, 3 * voxel)  # warm-up
+    grid = voxel_block_grid(voxel, device="CUDA:0")
+    o3d.core.cuda.synchronize()
+    started = time.perf_counter()
+    integrate_voxel_block_grid(grid, inputs, voxel, 3 * voxel)
+    o3d.core.cuda.synchronize()
+    seconds = time.perf_counter() - started
+    mesh = grid.extract_triangle_mesh(weight_threshold=0.0).to_legacy()
+    return seconds, np.asarray(mesh.vertices)
+
+
+def bench_kitchen(data: Path, frames_per_pass: list[int], threads: int | None) -> None:
+    from scipy.spatial import cKDTree
+
     from neuralsurf.io import read_rgbd_folder
 
     folder = data / "7scenes_redkitchen_every10"
@@ -113,24 +143,36 @@ def bench_kitchen(data: Path, frames_per_pass: list[int]) -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         frames = read_rgbd_folder(folder, format="7scenes", with_color=False)
-    bounds = depth_bounds(frames, margin=0.05)
-    print(f"\n7-Scenes redkitchen: {len(frames)} frames 640x480, sparse, truncation 4 voxels")
+    print(f"\n7-Scenes redkitchen: {len(frames)} frames 640x480, sparse, truncation 3 voxels")
     header = (f"{'voxel':6} {'per pass':>9} {'GPU ms/frame':>13} {'CPU ms/frame':>13} {'GPU/CPU':>8} {'blocks':>8} "
-              f"{'GPU peak MB':>12} {'faces':>9}")
+              f"{'GPU peak MB':>12} {'vertices':>9} {'VBG ms/frame':>13} {'ours/VBG':>9} {'VBG vertices':>13} "
+              f"{'gap (vox)':>10}")
     print(header + "\n" + "-" * len(header))
     for voxel in (0.02, 0.01):
-        make = lambda device, n=None: TSDFVolume(bounds, voxel, 4 * voxel, device=device, sparse=True,
-                                                 frames_per_pass=n)
+        bounds = depth_bounds(frames, margin=0.05)
+        bounds = torch.stack([torch.floor(bounds[0] / voxel) * voxel, bounds[1]])  # on Open3D's grid
+        make = lambda device, n=None, bounds=bounds, voxel=voxel: TSDFVolume(
+            bounds, voxel, 3 * voxel, device=device, sparse=True, frames_per_pass=n, threads=threads)
         cpu_seconds = timed_integration(make("cpu"), frames)
+        theirs = voxel_block_grid_cuda(frames, voxel)
         for n in frames_per_pass:
             timed_integration(make("cuda", n), on(frames, "cuda"))  # warm-up
             torch.cuda.reset_peak_memory_stats()
             gpu_seconds = timed_integration(gpu := make("cuda", n), on(frames, "cuda"))
             peak = torch.cuda.max_memory_allocated() / 2**20
-            faces = len(gpu.extract_mesh().faces)
-            print(f"{voxel * 100:.0f} cm {n:>9} {gpu_seconds / len(frames) * 1e3:>13.2f} "
-                  f"{cpu_seconds / len(frames) * 1e3:>13.1f} {cpu_seconds / gpu_seconds:>7.0f}x "
-                  f"{gpu.n_blocks:>8} {peak:>12.0f} {faces:>9,}")
+            vertices = gpu.extract_mesh().vertices.double().numpy()
+            row = (f"{voxel * 100:.0f} cm {n:>9} {gpu_seconds / len(frames) * 1e3:>13.2f} "
+                   f"{cpu_seconds / len(frames) * 1e3:>13.1f} {cpu_seconds / gpu_seconds:>7.0f}x "
+                   f"{gpu.n_blocks:>8} {peak:>12.0f} {len(vertices):>9,}")
+            if theirs is None:
+                row += f" {'(no CUDA in Open3D)':>13}"
+            else:
+                gap = float(np.median(cKDTree(theirs[1]).query(vertices)[0]) / voxel)
+                row += (f" {theirs[0] / len(frames) * 1e3:>13.2f} {gpu_seconds / theirs[0]:>8.2f}x "
+                        f"{len(theirs[1]):>13,} {gap:>10.2f}")
+            print(row)
+    print("VBG: Open3D's VoxelBlockGrid on CUDA, same frames and grid; ours/VBG < 1: ours faster; gap: median "
+          "distance of our vertices to its vertices")
 
 
 def main() -> None:
@@ -143,21 +185,20 @@ def main() -> None:
     parser.add_argument("--frames", help="load the bunny views from this .npz (from --save-frames)")
     parser.add_argument("--save-frames", help="render the bunny views, save them here, and go on")
     parser.add_argument("--data", default=os.environ.get("NEURALSURF_DATA", ROOT.parent / "shared" / "data"))
-    parser.add_argument("--threads", type=int, default=None, help="CPU threads of torch")
+    parser.add_argument("--threads", type=int, default=1, help="CPU threads of our CPU runs (TSDFVolume(threads=...))")
     parser.add_argument("--frames-per-pass", type=int, nargs="+", default=[1, 8, 16, 32],
                         help="GPU: frames fused per pass (TSDFVolume.frames_per_pass), one row each")
     args = parser.parse_args()
-    if args.threads:
-        torch.set_num_threads(args.threads)
     if not torch.cuda.is_available():
         if args.save_frames:
             bunny_views(args)
             print(f"saved {args.views} views to {args.save_frames}")
-        print("no CUDA GPU: this benchmark needs one (CPU figures: benchmarks/bench_tsdf.py)")
+        print("no CUDA GPU: this benchmark (ours and Open3D's VoxelBlockGrid on CUDA) needs one; skipped. "
+              "CPU figures, VoxelBlockGrid included: benchmarks/bench_tsdf.py")
         return
     print(f"torch {torch.__version__}, {torch.cuda.get_device_name(0)}, {os.cpu_count()} CPU cores")
     bench_bunny(args)
-    bench_kitchen(Path(args.data), args.frames_per_pass)
+    bench_kitchen(Path(args.data), args.frames_per_pass, args.threads)
 
 
 if __name__ == "__main__":
