@@ -248,3 +248,26 @@ def test_occupancy_network_trained_on_two_shapes_recovers_them_from_their_clouds
         points, inside = _uniform_labels(collection, record)
         with torch.no_grad():
             assert _label_iou(field(points.double()), inside) > 0.6
+
+
+def test_load_prior_rebuilds_a_trained_prior_and_refuses_other_checkpoints(tmp_path, auto_decoder):
+    from neuralsurf.errors import CheckpointError
+    from neuralsurf.priors import load_prior
+    from neuralsurf.training import FitResult, load_checkpoint, save_checkpoint
+
+    path = tmp_path / "prior.pt"
+    auto_decoder.save(path)
+    prior = load_prior(path)
+    x = torch.rand(20, 3) - 0.5
+    code = auto_decoder.model.codes.weight[0].detach()
+    assert isinstance(prior, AutoDecoder) and not prior.training
+    assert torch.equal(prior(x, code), auto_decoder.model.eval()(x, code))
+    state = load_checkpoint(path)
+    state["model_spec"]["arguments"]["codes"] = {"class": "os.system", "arguments": {"command": "echo"}}
+    save_checkpoint(tmp_path / "crafted.pt", state)
+    with pytest.raises(CheckpointError, match="not a neuralsurf model"):
+        load_prior(tmp_path / "crafted.pt")
+    single = SDFMLP(width=16, depth=2, skip_layers=())
+    FitResult(single, Normalization(), auto_decoder.field).save(tmp_path / "single.pt")
+    with pytest.raises(CheckpointError, match="not a learned prior"):
+        load_prior(tmp_path / "single.pt")
