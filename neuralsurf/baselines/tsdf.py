@@ -7,8 +7,8 @@ The volume
     Grid points ("voxels") sit at `bounds[0] + (i, j, k) * voxel_size` and are stored in blocks of
     `block_size`^3 voxels: `tsdf` and `weight` are (slots, block_size^3) tensors (plus `color`,
     (slots, block_size^3, 3)). Dense mode allocates every block of the box up front (slot = linear
-    block index); sparse mode allocates a block the first time a frame updates one of its voxels
-    and finds slots through a sorted tensor of block keys (`torch.searchsorted`), so memory follows
+    block index); sparse mode allocates a block the first time a frame's band touches it (see
+    below) and finds slots through a sorted tensor of block keys (`torch.searchsorted`), so memory follows
     the observed surfaces, not the box.
 
 Integration, a pass of `frames_per_pass` frames at a time (one on a CPU, 32 on a GPU)
@@ -29,7 +29,8 @@ Integration, a pass of `frames_per_pass` frames at a time (one on a CPU, 32 on a
        Why the free space in the band's blocks matters: a surface seen at a grazing angle has
        voxels just in front of it whose projective distances are many truncations (1 / cos of the
        angle); an update limited to sdf <= some margin leaves them unobserved and their cells
-       unmeshed, which cost most of the surface of 7-Scenes at a margin of one truncation. Behind the
+       unmeshed (that update, with a margin of half a voxel, kept 0.64 of VoxelBlockGrid's mesh
+       vertices on 10 frames of 7-Scenes at 1 cm; the band's blocks keep 0.98-1.0). Behind the
        surface the band ends at -truncation along the ray, as in Open3D: a single grazing view
        still leaves stripes there, which other views fill. `free_space` > 0 carves further towards
        the camera (removes floating outliers, closes holes seen from afar), at a cost.
