@@ -21,26 +21,22 @@ import functools
 import json
 import math
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from neuralsurf.baselines import reconstruct_poisson
 from neuralsurf.errors import NeuralsurfError
-from neuralsurf.extract import extract_mesh
 from neuralsurf.metrics import evaluate_mesh
 from neuralsurf.models import SDFMLP, AutoDecoder, CBNDecoder, LatentCodes, OccupancyNetwork, PointNetEncoder
-from neuralsurf.observations import DepthRays, PointSamples
 from neuralsurf.observations.collection import CollectionOccupancy, CollectionSDF
-from neuralsurf.shapes import collection_records
-from neuralsurf.shapes.cache import CacheRecipe, build_collection, cache_path, load_cache
-from neuralsurf.shapes.completion import reconstruct_latent
-from neuralsurf.structures import Mesh, Normalization, PointCloud
+from neuralsurf.priors import ShapeCollection, complete_cloud, complete_view, extract_unit, noisy_cloud
+from neuralsurf.scenes.recipes import shapes_one_view
+from neuralsurf.structures import Mesh, Normalization
 from neuralsurf.training import default_optimizer, fit
 
 KEYS = ("iou", "chamfer_l1_exact", "normal_consistency", "fscore_1%", "pred_watertight")
-BOUNDS = np.array([[-0.55] * 3, [0.55] * 3])
 
 
 def train_for(model, observation, minutes: float, max_steps: int, lr: float, label: str):
@@ -63,39 +59,13 @@ def train_for(model, observation, minutes: float, max_steps: int, lr: float, lab
 
 def score(field_or_mesh, gt: Mesh, resolution: int) -> dict[str, float]:
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            mesh = field_or_mesh if isinstance(field_or_mesh, Mesh) else extract_mesh(
-                field_or_mesh, resolution=resolution, bounds=BOUNDS)
-            metrics = evaluate_mesh(mesh, gt, n_samples=20_000)
+        mesh = field_or_mesh if isinstance(field_or_mesh, Mesh) else extract_unit(field_or_mesh, resolution)
+        metrics = evaluate_mesh(mesh, gt, n_samples=20_000)
     except NeuralsurfError as error:  # no surface: the worst score, counted
         print(f"    no mesh: {str(error)[:80]}", flush=True)
         return {"iou": 0.0, "chamfer_l1_exact": math.nan, "normal_consistency": math.nan, "fscore_1%": 0.0,
                 "pred_watertight": 0.0}
     return {key: float(metrics[key]) for key in KEYS}
-
-
-def one_view(gt: Mesh, seed: int, width: int, height: int, noise: float):
-    from neuralsurf.geometry import backproject_depth
-    from neuralsurf.scenes.scanner import look_at, scan_depth
-
-    rng = np.random.default_rng(seed)
-    azimuth, elevation = rng.uniform(0, 2 * math.pi), rng.uniform(0.2, 0.6)
-    eye = 1.6 * np.array([math.cos(azimuth) * math.cos(elevation), math.sin(elevation),
-                          math.sin(azimuth) * math.cos(elevation)])
-    pose = look_at(eye, (0.0, 0.0, 0.0))
-    frames = scan_depth(gt, cam_to_world=pose[None], width=width, height=height, fov_deg=50.0,
-                        noise="gaussian" if noise > 0 else "none", sigma=noise if noise > 0 else None, seed=seed)
-    points = backproject_depth(frames)[frames.depth > 0]
-    return frames, points, torch.as_tensor(eye, dtype=torch.float64)
-
-
-def poisson_one_view(points: torch.Tensor, eye: torch.Tensor) -> Mesh:
-    from neuralsurf.baselines.poisson import reconstruct_poisson
-    from neuralsurf.geometry import estimate_normals, orient_normals
-
-    normals = orient_normals(points, estimate_normals(points, 30), 30, method="camera", camera=eye.to(points))
-    return reconstruct_poisson(PointCloud(points.double(), normals.double()), depth=7)
 
 
 def main() -> None:
@@ -119,12 +89,12 @@ def main() -> None:
     out = Path(args.out)
 
     started = time.perf_counter()
-    records = collection_records(tuple(args.classes.split(",")), args.n_train, 0, args.n_test, args.seed)
-    recipe = CacheRecipe(n_sdf=100_000, n_occ=50_000, n_surface=20_000, mesh_resolution=128)
-    counts = build_collection(out, records, recipe, workers=args.workers, progress=False)
-    n_train = sum(r.split == "train" for r in records)
-    print(f"collection: {len(records)} shapes ({n_train} train, {len(records) - n_train} test), {counts}, "
-          f"{time.perf_counter() - started:.0f} s; torch threads {threads}", flush=True)
+    collection = ShapeCollection(tuple(args.classes.split(",")), args.n_train, 0, args.n_test, args.seed,
+                                 root=str(out), workers=args.workers)
+    collection.build(progress=False)
+    n_train, n_test = collection.count("train"), collection.count("test")
+    print(f"collection: {n_train} train and {n_test} test shapes, {time.perf_counter() - started:.0f} s; "
+          f"torch threads {threads}", flush=True)
 
     decoder = SDFMLP(width=args.width, depth=6, skip_layers=(3,), latent_dim=args.latent_dim, init_radius=0.25)
     deepsdf = AutoDecoder(decoder, LatentCodes(n_train, args.latent_dim))
@@ -148,40 +118,24 @@ def main() -> None:
         print(f"  {row:28s} {name:16s} iou {metrics['iou']:.3f} chamfer_l1_exact {metrics['chamfer_l1_exact']:.4f} "
               f"({seconds:.1f} s)", flush=True)
 
-    for record in [r for r in records if r.split == "test"]:
-        arrays = load_cache(cache_path(out, record))
-        gt = Mesh(torch.from_numpy(arrays["mesh_vertices"]).double(), torch.from_numpy(arrays["mesh_faces"]))
-        generator = torch.Generator().manual_seed(args.seed)
-        pick = torch.randperm(len(arrays["surface_points"]), generator=generator)[:3000]
-        cloud = torch.from_numpy(arrays["surface_points"])[pick]
-        cloud = cloud + args.noise * torch.randn(cloud.shape, generator=generator)
-
-        t = time.perf_counter()
-        points = PointSamples(PointCloud(cloud), weights={"surface": 1.0, "sdf": 1.0}, normals="estimate",
-                              batch_size=2048, n_near=60_000, n_free=15_000)
-        fitted = reconstruct_latent(deepsdf.decoder, [points], steps=args.latent_steps, lr=1e-2)
-        add("cloud/deepsdf", record.name, score(fitted.field, gt, args.resolution), time.perf_counter() - t)
-        t = time.perf_counter()
-        add("cloud/occupancy_network", record.name, score(onet.field_from_cloud(cloud), gt, args.resolution),
-            time.perf_counter() - t)
-
-        frames, view_points, eye = one_view(gt, args.seed + record.index, 160, 120, noise=0.001)
-        t = time.perf_counter()
-        rays = DepthRays(frames, noise_model="constant", sigma=0.002, n_rays=1024)
-        fitted = reconstruct_latent(deepsdf.decoder, [rays], steps=args.latent_steps, lr=1e-2)
-        add("one_view/deepsdf", record.name, score(fitted.field, gt, args.resolution), time.perf_counter() - t)
-        t = time.perf_counter()
-        subset = view_points[torch.randperm(len(view_points), generator=generator)[:3000]]
-        add("one_view/occupancy_network", record.name, score(onet.field_from_cloud(subset), gt, args.resolution),
-            time.perf_counter() - t)
+    views = shapes_one_view(collection, seed=args.seed).scenes  # one depth view per test shape
+    for i, (shape, view) in enumerate(zip(collection.test_shapes(), views)):
+        cloud = noisy_cloud(shape.surface, 3000, args.noise, args.seed + i)
+        for name, prior in (("deepsdf", deepsdf), ("occupancy_network", onet)):
+            t = time.perf_counter()
+            field = complete_cloud(prior, cloud, latent_steps=args.latent_steps, seed=args.seed)
+            add(f"cloud/{name}", shape.name, score(field, shape.mesh, args.resolution), time.perf_counter() - t)
+        for name, prior in (("deepsdf", deepsdf), ("occupancy_network", onet)):
+            t = time.perf_counter()
+            field = complete_view(prior, view.frames, view.cloud.points, latent_steps=args.latent_steps, seed=args.seed)
+            add(f"one_view/{name}", shape.name, score(field, shape.mesh, args.resolution), time.perf_counter() - t)
         t = time.perf_counter()
         try:
-            mesh = poisson_one_view(view_points, eye)
-            add("one_view/poisson", record.name, score(mesh, gt, args.resolution), time.perf_counter() - t)
+            mesh = reconstruct_poisson(view.cloud, depth=7)
+            add("one_view/poisson", shape.name, score(mesh, shape.mesh, args.resolution), time.perf_counter() - t)
         except NeuralsurfError as error:
-            print(f"  poisson failed on {record.name}: {error}", flush=True)
+            print(f"  poisson failed on {shape.name}: {error}", flush=True)
 
-    n_test = len(records) - n_train
     print(f"\n{n_test} test shapes ({args.classes}), trained on {n_train} "
           f"shapes: deepsdf {deepsdf_steps} steps / {deepsdf_s:.0f} s, occupancy_network {onet_steps} steps / "
           f"{onet_s:.0f} s, {threads} torch threads")
