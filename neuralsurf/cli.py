@@ -151,11 +151,12 @@ def train_prior(cfg: DictConfig, collection, run_dir: Path, config: dict, device
     shapes) over `collection` (built here, or found cached), then complete its test shapes from noisy
     clouds (cfg.score) and write mesh.ply (the first test shape), metrics.json (means and per-shape
     values) and checkpoints/last.pt (read back with neuralsurf.priors.load_prior). Under torchrun
-    every rank trains; rank 0 alone builds, scores and writes."""
+    every rank trains; rank 0 alone builds, scores and writes. An auto-decoder also writes
+    interpolation.png: the shapes between the codes of its first and last training shapes."""
     from neuralsurf.distributed import barrier, is_main_process, leave_process_group
     from neuralsurf.io import write_mesh
-    from neuralsurf.models import OccupancyNetwork
-    from neuralsurf.priors import score_completions
+    from neuralsurf.models import AutoDecoder, OccupancyNetwork
+    from neuralsurf.priors import interpolation_picture, score_completions
     from neuralsurf.structures import Normalization
 
     if is_main_process():
@@ -180,6 +181,9 @@ def train_prior(cfg: DictConfig, collection, run_dir: Path, config: dict, device
                                                device=device, resolution=cfg.extract.resolution, **score)
     if mesh is not None:
         write_mesh(run_dir / "mesh.ply", mesh)
+    if isinstance(result.model, AutoDecoder) and len(result.model.codes) >= 2:  # the first and last training shapes
+        interpolation_picture(result.model, 0, len(result.model.codes) - 1, run_dir / "interpolation.png",
+                              resolution=cfg.extract.resolution)
     metrics = {**means, "fit_seconds": result.seconds, "steps": result.steps}
     (run_dir / "metrics.json").write_text(json.dumps({**metrics, "per_shape": per_shape}, indent=2, default=float))
     _log_hparams(run_dir, cfg, metrics)

@@ -233,6 +233,27 @@ def complete_view(prior: nn.Module, frames: DepthFrames, points: Tensor, *, late
     raise ConfigError(f"complete_view takes an AutoDecoder or OccupancyNetwork, got {type(prior).__name__}")
 
 
+def interpolation_picture(prior: AutoDecoder, first: int, second: int, path: str | Path, steps: int = 5,
+                          resolution: int = 64, size: int = 160) -> Path:
+    """A PNG of the shapes of codes (1 - t) z_first + t z_second for `steps` values of t in [0, 1]
+    (training shapes `first` and `second` of an auto-decoder): DeepSDF's latent interpolation."""
+    from neuralsurf.evaluation.render import default_view, labelled_row, shade
+    from neuralsurf.models import LatentConditioned
+
+    codes = prior.codes.weight.detach()
+    view = default_view(UNIT_BOUNDS)
+    images, labels = [], []
+    for t in np.linspace(0.0, 1.0, steps):
+        code = (1 - t) * codes[first] + t * codes[second]
+        field = LatentConditioned.from_code(prior.decoder, code.cpu()).to(codes.device).eval()
+        with torch.no_grad():
+            images.append(shade(extract_unit(field, resolution), view, size, size))
+        labels.append(f"t = {t:.2f}")
+    path = Path(path)
+    labelled_row(images, labels).save(path)
+    return path
+
+
 def noisy_cloud(surface: Tensor, n_points: int, noise: float, seed: int) -> Tensor:
     """`n_points` of `surface` (Float[Tensor, "m 3"]) at random plus N(0, noise^2) on each coordinate."""
     generator = torch.Generator().manual_seed(seed)

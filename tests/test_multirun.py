@@ -8,8 +8,8 @@ from neuralsurf.training import load_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = ["trainer.steps=4", "trainer.progress=false", "trainer.checkpoint_every=4", "device=cpu",
-        "data.classes=[lamp]", "data.n_train=1", "data.n_test=1", "data.n_sdf=2000", "data.n_occ=500",
-        "data.n_surface=3000", "data.mesh_resolution=32", "data.workers=0", "observation.shapes.shapes_per_batch=1",
+        "data.classes=[lamp]", "data.n_train=2", "data.n_test=1", "data.n_sdf=2000", "data.n_occ=500",
+        "data.n_surface=3000", "data.mesh_resolution=32", "data.workers=0", "observation.shapes.shapes_per_batch=2",
         "observation.shapes.samples_per_shape=64", "score.n_points=500", "score.latent_steps=2", "extract.resolution=32"]
 
 
@@ -27,5 +27,6 @@ def test_multirun_gives_one_run_directory_per_job(tmp_path):
         assert f"model.latent_dim={latent_dim}" in (job / ".hydra" / "overrides.yaml").read_text()
         assert (job / "metrics.json").is_file() and (job / "mesh.ply").is_file() and (job / "train.log").is_file()
         state = load_checkpoint(job / "checkpoints" / "last.pt")
-        assert state["step"] == 4 and state["model"]["codes.weight"].shape == (1, latent_dim)
+        assert state["step"] == 4 and state["model"]["codes.weight"].shape == (2, latent_dim)
+        assert (job / "interpolation.png").is_file()  # the shapes between the two training codes
         assert state["config"]["model"]["latent_dim"] == latent_dim
