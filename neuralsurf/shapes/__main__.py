@@ -1,4 +1,6 @@
-"""Build a procedural shape collection's caches: `python -m neuralsurf.shapes build --out <dir> ...`.
+"""Build a procedural shape collection's caches: `python -m neuralsurf.shapes build --out <dir> ...`
+(the defaults are those of train.py's data=shapes: `python train.py experiment=shapes_deepsdf
+data.root=<dir>` then trains on it).
 
 Interrupt it at any time and run the same command again: shapes already cached are skipped.
 """
@@ -20,14 +22,15 @@ def main(argv: list[str] | None = None) -> int:
     build.add_argument("--out", required=True, help="output folder (created; reused to resume)")
     build.add_argument("--classes", default=",".join(SHAPE_CLASSES), help="comma-separated shape classes")
     build.add_argument("--n-train", type=int, default=64, help="training shapes per class")
-    build.add_argument("--n-val", type=int, default=8, help="validation shapes per class")
+    build.add_argument("--n-val", type=int, default=0, help="validation shapes per class")
     build.add_argument("--n-test", type=int, default=8, help="test shapes per class")
     build.add_argument("--seed", type=int, default=0, help="collection seed (splits draw disjoint streams)")
     build.add_argument("--workers", type=int, default=2, help="processes (0: this one)")
+    # the defaults of train.py's data=shapes, so that data.root=<out> finds this collection
+    build.add_argument("--n-sdf", type=int, default=100_000, help="SDF samples per shape")
+    build.add_argument("--n-occ", type=int, default=50_000, help="occupancy points per kind per shape")
+    build.add_argument("--n-surface", type=int, default=20_000, help="surface samples per shape")
     defaults = CacheRecipe()
-    build.add_argument("--n-sdf", type=int, default=defaults.n_sdf, help="SDF samples per shape")
-    build.add_argument("--n-occ", type=int, default=defaults.n_occ, help="occupancy points per kind per shape")
-    build.add_argument("--n-surface", type=int, default=defaults.n_surface, help="surface samples per shape")
     build.add_argument("--mesh-resolution", type=int, default=defaults.mesh_resolution,
                        help="marching-cubes resolution of the ground-truth meshes")
     args = parser.parse_args(argv)
