@@ -79,10 +79,15 @@ def _cloud_arrays(cloud: PointCloud | Tensor, name: str) -> tuple[np.ndarray, np
             )
     if len(points) == 0:
         raise InputError(f"{name} has no points; registration needs a non-empty cloud on both sides")
-    points = points.detach().cpu().double().numpy()  # checked in numpy: one thread, no torch dispatch
+    # converted and checked in numpy: torch's threaded kernels stall on a busy machine
+    def as_array(t: Tensor) -> np.ndarray:
+        t = t.detach().cpu()
+        return np.asarray((t if t.dtype in (torch.float32, torch.float64) else t.double()).numpy(), np.float64)
+
+    points = as_array(points)
     if not np.isfinite(points).all():
         raise InputError(f"{name} contains NaN or inf coordinates; remove them before registering")
-    return points, None if normals is None else normals.detach().cpu().double().numpy()
+    return points, None if normals is None else as_array(normals)
 
 
 def _check_transform(init, name: str = "init", tolerance: float = 1e-5) -> np.ndarray:
