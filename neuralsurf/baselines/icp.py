@@ -538,7 +538,10 @@ def _icp_open3d(
             raise _too_far(distance, len(src.points))
         transform = np.asarray(result.transformation).copy()
     if levels[-1] is not None:  # fitness and RMSE on the full clouds
-        result = registration.evaluate_registration(full_source, full_target, max_distance, transform)
+        moved = _transform(source_points, transform)
+        near = o3d.geometry.AxisAlignedBoundingBox(moved.min(0) - max_distance, moved.max(0) + max_distance)
+        nearby = full_target.crop(near)  # exact: no farther target point is within max_distance of a source point
+        result = registration.evaluate_registration(full_source, nearby, max_distance, transform)
     return transform, float(result.fitness), float(result.inlier_rmse), None
 
 
