@@ -142,6 +142,36 @@ def estimate_normals(
     return orient_normals(points, result, 30 if k is None else k, orient, camera, direction)
 
 
+def project_to_quadrics(points: Tensor, normals: Tensor, k: int = 30) -> Tensor:
+    """Move each point along its normal onto the quadric height field h(u, v) = a u^2 + b uv +
+    c v^2 + d u + e v + f fitted by least squares to its k nearest neighbours, in the frame of its
+    tangent plane (one step of moving least squares with second-order polynomials): removes noise
+    across the surface, keeps the sampling along it, and, unlike a plane, does not flatten curved
+    parts (a plane's bias is of order curvature x neighbourhood radius^2).
+
+    Args:
+        points: Float[Tensor, "n 3"]; normals: Float[Tensor, "n 3"] unit (e.g. `estimate_normals`);
+        k: neighbours, at least 6 (the quadric's unknowns) and at most n.
+    Returns:
+        Float[Tensor, "n 3"]: the projected points, points + f n.
+    """
+    if not 6 <= k <= len(points):
+        raise ConfigError(f"projection onto local quadrics needs 6 <= k <= {len(points)} (points), got k={k}")
+    _, index = knn(points, points, k)
+    offset = points[index] - points[:, None]  # [n, k, 3]
+    helper = torch.where(normals[:, :1].abs() < 0.9, 1.0, 0.0) * torch.tensor([1.0, 0, 0], dtype=points.dtype)
+    helper = helper + (1 - helper[:, :1]) * torch.tensor([0, 1.0, 0], dtype=points.dtype)
+    t1 = torch.nn.functional.normalize(torch.cross(normals, helper, dim=-1), dim=-1)
+    t2 = torch.cross(normals, t1, dim=-1)
+    u, v, h = ((offset * axis[:, None]).sum(-1) for axis in (t1, t2, normals))  # [n, k] each
+    scale = (u.square() + v.square()).mean(1, keepdim=True).sqrt().clamp_min(1e-12)  # conditioning
+    u, v = u / scale, v / scale
+    design = torch.stack([u * u, u * v, v * v, u, v, torch.ones_like(u)], -1)  # [n, k, 6]
+    gram = design.transpose(1, 2) @ design + 1e-9 * torch.eye(6, dtype=points.dtype)
+    coefficients = torch.linalg.solve(gram, (design.transpose(1, 2) @ h[..., None]))[..., 0]
+    return points + coefficients[:, 5:] * normals
+
+
 def _check_orientation(method: str | None, camera, direction) -> None:
     """ConfigError unless the orientation method and its reference (camera / direction) match."""
     if method not in (None, "mst", "camera", "direction"):

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from neuralsurf.errors import ConfigError, InputError, NeuralsurfError
-from neuralsurf.geometry import _mst_flips, cloud_from_mesh, estimate_normals, orient_normals
+from neuralsurf.geometry import _mst_flips, cloud_from_mesh, estimate_normals, orient_normals, project_to_quadrics
 from neuralsurf.structures import PointCloud
 
 CENTER = torch.tensor([5.0, -3.0, 1.0], dtype=torch.float64)
@@ -177,3 +177,21 @@ def test_too_few_points_or_bad_shape():
         estimate_normals(torch.zeros(2, 3))
     with pytest.raises(NeuralsurfError, match=r"shape \(n, 3\)"):
         estimate_normals(torch.zeros(10, 2))
+
+
+def test_projection_onto_local_quadrics_removes_noise_across_a_sphere_without_shrinking_it():
+    """Oracle: the sphere's radius. 20k points with Gaussian noise 1% of the radius: after one
+    projection the radial error is less than half, its mean stays about 0 (a plane would pull the
+    points inwards by about r_k^2 / 2R), and the points move along their normals only."""
+    clean = sphere_points(20_000)
+    g = torch.Generator().manual_seed(1)
+    noisy = clean + 0.02 * torch.randn(clean.shape, generator=g, dtype=torch.float64)
+    normals = estimate_normals(noisy, k=30)
+    projected = project_to_quadrics(noisy, normals, k=30)
+    radial = lambda p: (p - CENTER).norm(dim=1) - 2.0  # noqa: E731
+    assert radial(projected).abs().mean() < radial(noisy).abs().mean() / 2.5
+    assert radial(projected).mean().abs() < 0.002
+    tangential = projected - noisy - ((projected - noisy) * normals).sum(-1, keepdim=True) * normals
+    assert tangential.abs().max() < 1e-12
+    with pytest.raises(ConfigError, match="6 <= k"):
+        project_to_quadrics(noisy, normals, k=5)

@@ -152,3 +152,21 @@ def test_a_fit_sums_the_terms_of_two_observations():
     with pytest.raises(ConfigError, match="distinct names"):
         fit(tiny_model(), [observations[1], observations[1]], steps=1, device="cpu", progress=False)
     assert math.isfinite(history["total"][-1])
+
+
+def test_an_unoriented_noisy_cloud_is_projected_onto_its_local_quadrics_and_an_oriented_one_is_not():
+    """Oracle: the sphere's radius. Without normals, `denoise` (the default) moves the noisy points
+    towards the sphere; with given normals the points are kept as they are."""
+    from neuralsurf.observations.points import prepare_cloud
+    from neuralsurf.structures import PointCloud
+
+    g = torch.Generator().manual_seed(0)
+    direction = torch.nn.functional.normalize(torch.randn(20_000, 3, generator=g, dtype=torch.float64), dim=1)
+    noisy = CENTER + direction * (RADIUS + 0.005 * torch.randn(20_000, 1, generator=g, dtype=torch.float64))
+    error = lambda cloud: ((cloud.points - CENTER).norm(dim=1) - RADIUS).abs().mean()  # noqa: E731
+    projected = prepare_cloud(PointCloud(noisy), "estimate", 30, denoise=True)
+    assert error(projected) < error(PointCloud(noisy)) / 2
+    assert ((projected.normals * direction).sum(1) > 0.9).all()  # outward, like the sphere's
+    kept = prepare_cloud(PointCloud(noisy, normals=direction), "estimate", 30, denoise=True)
+    assert torch.equal(kept.points, noisy)
+    assert PointSamples(PointCloud(noisy)).denoise  # the default for unoriented input

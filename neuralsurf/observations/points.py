@@ -11,7 +11,7 @@ import torch
 from torch import Tensor, nn
 
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.geometry import estimate_normals, orient_normals
+from neuralsurf.geometry import estimate_normals, orient_normals, project_to_quadrics
 from neuralsurf.losses import clamped_l1, eikonal_loss, normal_loss, off_surface_loss, surface_loss
 from neuralsurf.observations.base import Observation, Sampler, check_weights
 from neuralsurf.sampling import SDFBatch, SDFSamples, draw_batch, make_sdf_samples
@@ -21,9 +21,11 @@ POINT_TERMS = ("surface", "sdf", "normal", "eikonal", "off_surface")
 DEFAULT_POINT_WEIGHTS = {"surface": 3.0, "sdf": 1.0, "normal": 0.1, "eikonal": 0.1, "off_surface": 0.0}
 
 
-def prepare_cloud(cloud: PointCloud, normals: str, normal_k: int) -> PointCloud:
+def prepare_cloud(cloud: PointCloud, normals: str, normal_k: int, denoise: bool = False) -> PointCloud:
     """Check the input and supply normals: "given" (must be there), "estimate" (when absent:
-    PCA + MST orientation), "ignore" (drop them: fit with surface, eikonal and off-surface terms)."""
+    PCA + MST orientation), "ignore" (drop them: fit with surface, eikonal and off-surface terms).
+    With `denoise`, a cloud whose normals are estimated here is also projected onto its local
+    quadrics (`geometry.project_to_quadrics`, the same k): unoriented scans are the noisy ones."""
     if not isinstance(cloud, PointCloud):
         raise InputError(f"PointSamples expects a neuralsurf.PointCloud, got {type(cloud).__name__}")
     if len(cloud) < 3:
@@ -63,6 +65,10 @@ def prepare_cloud(cloud: PointCloud, normals: str, normal_k: int) -> PointCloud:
             return cloud.with_normals(torch.where(zero[:, None], estimated, given))
         return cloud.with_normals(torch.nn.functional.normalize(cloud.normals, dim=-1))
     estimated = estimate_normals(cloud.points, normal_k)
+    if denoise and len(cloud) >= 6:  # a quadric has 6 unknowns
+        k = min(max(normal_k, 6), len(cloud))
+        cloud = PointCloud(project_to_quadrics(cloud.points, estimated, k), colors=cloud.colors)
+        estimated = estimate_normals(cloud.points, normal_k)
     return cloud.with_normals(orient_normals(cloud.points, estimated, normal_k))
 
 
@@ -142,6 +148,8 @@ class PointSamples(Observation):
     """"given" (must be there), "estimate" (PCA + MST orientation when absent), "ignore"."""
     normal_k: int = 30
     """Neighbours for normal estimation."""
+    denoise: bool = True
+    """Project a cloud without normals onto its local quadrics before fitting (see `prepare_cloud`)."""
     batch_size: int = 8192
     """Surface and near-surface samples per step (each)."""
     free_fraction: float = 0.25
@@ -179,7 +187,7 @@ class PointSamples(Observation):
         return torch.stack([points.min(0).values, points.max(0).values])
 
     def prepare(self, normalization: Normalization, box: float, device: torch.device, seed: int) -> PointSampler:
-        cloud = prepare_cloud(self.cloud, self.normals, self.normal_k)
+        cloud = prepare_cloud(self.cloud, self.normals, self.normal_k, self.denoise)
         samples = make_sdf_samples(normalization.cloud_to_unit(cloud), n_near=self.n_near, n_free=self.n_free,
                                    near_sigmas=self.near_sigmas, box=box, winding_points=self.winding_points,
                                    seed=seed)
