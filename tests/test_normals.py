@@ -6,7 +6,13 @@ import pytest
 import torch
 
 from neuralsurf.errors import ConfigError, InputError, NeuralsurfError
-from neuralsurf.geometry import _mst_flips, cloud_from_mesh, estimate_normals, orient_normals, project_to_quadrics
+from neuralsurf.geometry import (
+    _mst_flips,
+    cloud_from_mesh,
+    estimate_normals,
+    orient_normals,
+    project_to_quadrics,
+)
 from neuralsurf.structures import PointCloud
 
 CENTER = torch.tensor([5.0, -3.0, 1.0], dtype=torch.float64)
@@ -188,7 +194,7 @@ def test_projection_onto_local_quadrics_removes_noise_across_a_sphere_without_sh
     noisy = clean + 0.02 * torch.randn(clean.shape, generator=g, dtype=torch.float64)
     normals = estimate_normals(noisy, k=30)
     projected = project_to_quadrics(noisy, normals, k=30)
-    radial = lambda p: (p - CENTER).norm(dim=1) - 2.0  # noqa: E731
+    radial = lambda p: (p - CENTER).norm(dim=1) - 2.0
     assert radial(projected).abs().mean() < radial(noisy).abs().mean() / 2.5
     assert radial(projected).mean().abs() < 0.002
     tangential = projected - noisy - ((projected - noisy) * normals).sum(-1, keepdim=True) * normals

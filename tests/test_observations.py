@@ -163,7 +163,7 @@ def test_an_unoriented_noisy_cloud_is_projected_onto_its_local_quadrics_and_an_o
     g = torch.Generator().manual_seed(0)
     direction = torch.nn.functional.normalize(torch.randn(20_000, 3, generator=g, dtype=torch.float64), dim=1)
     noisy = CENTER + direction * (RADIUS + 0.005 * torch.randn(20_000, 1, generator=g, dtype=torch.float64))
-    error = lambda cloud: ((cloud.points - CENTER).norm(dim=1) - RADIUS).abs().mean()  # noqa: E731
+    error = lambda cloud: ((cloud.points - CENTER).norm(dim=1) - RADIUS).abs().mean()
     projected = prepare_cloud(PointCloud(noisy), "estimate", 30, denoise=True)
     assert error(projected) < error(PointCloud(noisy)) / 2
     assert ((projected.normals * direction).sum(1) > 0.9).all()  # outward, like the sphere's
