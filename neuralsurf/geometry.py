@@ -159,8 +159,8 @@ def project_to_quadrics(points: Tensor, normals: Tensor, k: int = 30) -> Tensor:
         raise ConfigError(f"projection onto local quadrics needs 6 <= k <= {len(points)} (points), got k={k}")
     _, index = knn(points, points, k)
     offset = points[index] - points[:, None]  # [n, k, 3]
-    helper = torch.where(normals[:, :1].abs() < 0.9, 1.0, 0.0) * torch.tensor([1.0, 0, 0], dtype=points.dtype)
-    helper = helper + (1 - helper[:, :1]) * torch.tensor([0, 1.0, 0], dtype=points.dtype)
+    x_axis, y_axis = torch.eye(3, dtype=points.dtype)[:2]
+    helper = torch.where(normals[:, :1].abs() < 0.9, x_axis, y_axis)  # any direction not along the normal
     t1 = torch.nn.functional.normalize(torch.cross(normals, helper, dim=-1), dim=-1)
     t2 = torch.cross(normals, t1, dim=-1)
     u, v, h = ((offset * axis[:, None]).sum(-1) for axis in (t1, t2, normals))  # [n, k] each
