@@ -116,7 +116,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
 
     started = time.perf_counter()
     extract = dict(config["extract"])
-    near = extract.pop("near_distance", None)
+    near = extract.pop("near_distance", None) or scene.near_distance  # rooms: mesh only near the input
     field = result.field if near is None else NearPointsField(result.field, scene.cloud.points, near)
     mesh = extract_mesh(field, **extract)
     extract_seconds = time.perf_counter() - started

@@ -175,6 +175,16 @@ def test_7scenes_layout_geometry(tmp_path, inside_frames):
     assert len(read_rgbd_folder(tmp_path, max_frames=1, with_color=False)) == 1
 
 
+def test_rooms_are_meshed_near_their_input_and_objects_everywhere(tmp_path):
+    from neuralsurf.scenes.recipes import depth_scene, rgbd_scene
+
+    make_7scenes(tmp_path)
+    room = rgbd_scene(str(tmp_path), hold_out_every=0)
+    assert room.depth_input and room.near_distance == 0.05  # a room's unseen space stays empty
+    # an object's inside lies farther than 5 cm from its surface: a mask would hollow it out
+    assert depth_scene("object", room.frames).near_distance is None
+
+
 def test_7scenes_colour_is_resized_to_the_depth(tmp_path):
     make_7scenes(tmp_path, n=1)
     save_color(tmp_path / "frames" / "frame-000000.color.png", 0, h=H * 2, w=W * 2)

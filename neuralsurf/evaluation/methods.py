@@ -38,7 +38,7 @@ def neural_sdf(scene: Scene, *, model: nn.Module | None = None, points: Callable
     from neuralsurf.training import default_optimizer, fit, load_field
 
     extract = dict(extract or {})
-    near = extract.pop("near_distance", None)
+    near = extract.pop("near_distance", None) or scene.near_distance  # rooms: mesh only near the input
 
     def mesh_of(field):
         return extract_mesh(field if near is None else NearPointsField(field, scene.cloud.points, near), **extract)

@@ -30,7 +30,7 @@ from neuralsurf.observations.base import NotObserved, Observation, Sampler, chec
 from neuralsurf.structures import DepthFrames, Normalization
 
 RAY_TERMS = ("surface", "band", "free", "carve", "eikonal")
-DEFAULT_RAY_WEIGHTS = {"surface": 1.0, "band": 1.0, "free": 1.0, "carve": 1.0, "eikonal": 0.1}
+DEFAULT_RAY_WEIGHTS = {"surface": 3.0, "band": 1.0, "free": 30.0, "carve": 1.0, "eikonal": 0.03}
 
 
 @dataclass(frozen=True)

@@ -52,6 +52,9 @@ class Scene:
     normal_maps: tuple[PhotometricStereoResult, ...] | None = None
     """The photometric stereo estimate of each capture (normals, confidence, mask) that fusion methods
     take as their input normals (NormalMaps, Nehab fusion)."""
+    near_distance: float | None = None
+    """Rooms: neural fields are meshed only this close to the input points (world units), so space no
+    camera saw stays empty; None for objects (a mask would hollow out their insides)."""
 
 
 def data_root(root: str | Path | None = None) -> Path:
@@ -101,7 +104,7 @@ def file_scene(path: str | Path, ground_truth: str | Path | None = None, name: s
 
 
 def depth_scene(name: str, frames: DepthFrames, ground_truth: Mesh | None = None, hold_out_every: int = 0,
-                cloud_stride: int = 1, description: str = "") -> Scene:
+                cloud_stride: int = 1, description: str = "", near_distance: float | None = None) -> Scene:
     """A scene of depth frames: every `hold_out_every`-th frame (the 10th, 20th, ... for 10; 0 = none)
     is held out for scoring, the others are the input, also back-projected into a cloud (every
     `cloud_stride`-th pixel, image-space normals) for methods that take points."""
@@ -116,7 +119,7 @@ def depth_scene(name: str, frames: DepthFrames, ground_truth: Mesh | None = None
     text = (f"{len(frames)} depth views {frames.width}x{frames.height}"
             + (f" (+{len(held_out)} held out)" if held_out is not None else "")
             + f", {len(cloud)} back-projected points" + (f"; {description}" if description else ""))
-    return Scene(name, cloud, ground_truth, frames, text, held_out, depth_input=True)
+    return Scene(name, cloud, ground_truth, frames, text, held_out, depth_input=True, near_distance=near_distance)
 
 
 @lru_cache(maxsize=8)
@@ -132,14 +135,17 @@ def bunny_depth(name: str = "bunny_depth", n_views: int = 24, width: int = 320, 
 
 @lru_cache(maxsize=4)
 def rgbd_scene(path: str, name: str | None = None, stride: int = 1, max_frames: int | None = None,
-               hold_out_every: int = 10, cloud_stride: int = 4, ground_truth: str | None = None) -> Scene:
+               hold_out_every: int = 10, cloud_stride: int = 4, ground_truth: str | None = None,
+               near_distance: float | None = 0.05) -> Scene:
     """A 7-Scenes, TUM or Redwood folder (`read_rgbd_folder`, every `stride`-th frame) as a depth scene
-    with every `hold_out_every`-th frame held out; an optional ground-truth mesh file."""
+    with every `hold_out_every`-th frame held out; an optional ground-truth mesh file. A room: neural
+    fields are meshed within `near_distance` metres of the input (None: everywhere)."""
     from neuralsurf.io import read_mesh, read_rgbd_folder
 
     frames = read_rgbd_folder(path, stride=stride, max_frames=max_frames, with_color=False)
     mesh = read_mesh(ground_truth) if ground_truth else None
-    return depth_scene(name or Path(path).name, frames, mesh, hold_out_every, cloud_stride, f"real RGB-D {path}")
+    return depth_scene(name or Path(path).name, frames, mesh, hold_out_every, cloud_stride, f"real RGB-D {path}",
+                       near_distance)
 
 
 def redkitchen(name: str = "redkitchen", root: str | None = None, folder: str = "7scenes_redkitchen_every10",
