@@ -39,9 +39,9 @@ def sphere_frames(eyes, width: int = 64, height: int = 48) -> DepthFrames:
 class ExactSphere(torch.nn.Module):
     """The sphere's SDF in a unit frame."""
 
-    def __init__(self, normalization: Normalization, radius: float = RADIUS):
+    def __init__(self, normalization: Normalization, radius: float = RADIUS, shift=(0.0, 0.0, 0.0)):
         super().__init__()
-        self.center = normalization.to_unit(CENTER).float()
+        self.center = normalization.to_unit(CENTER + torch.tensor(shift, dtype=torch.float64)).float()
         self.radius = radius / normalization.scale
 
     def forward(self, x):
@@ -66,6 +66,13 @@ def test_rays_hit_the_sphere_where_ray_sphere_intersection_says():
     expected = (normal * rays.directions.double()).sum(-1).abs()
     interior = rays.cosine > 0.3  # away from the limb, where one-sided differences are coarse
     assert (rays.cosine.double() - expected)[interior].abs().median() < 0.01
+    # the normals themselves point outwards, their length is the confidence 1 / (1 + (sigma / spacing)^2)^2
+    length = rays.normals.norm(dim=-1)
+    known = length > 0  # isolated pixels have no normal
+    assert (length <= 1).all() and known.float().mean() > 0.95
+    assert (length[interior & known] > 0.9).all()  # 1 mm noise against ~3 cm pixels
+    outward = (rays.normals.double() / length[:, None].clamp_min(1e-12) * normal).sum(-1)
+    assert outward[interior & known].median() > 0.999
 
 
 AROUND = [(2.2, 0.3, 0.1), (-1.8, 0.1, 0.4), (0.3, 2.0, 0.2), (0.1, -2.0, 0.5), (0.4, 0.2, 2.1), (-0.2, -0.3, -1.6)]
@@ -89,8 +96,11 @@ def test_each_ray_term_is_about_zero_for_the_exact_sdf_and_positive_for_a_wrong_
     observation, normalization, sampler = prepared(frames)
     batch = sampler.sample(torch.Generator().manual_seed(0))
     exact = ray_terms(ExactSphere(normalization), batch, observation.weights)
-    assert set(exact) == {"surface", "band", "free", "carve", "eikonal"}
+    assert set(exact) == {"surface", "band", "free", "carve", "normal", "eikonal"}
     assert exact["surface"] < 1e-5 and exact["free"] < 1e-6 and exact["eikonal"] < 1e-6
+    assert exact["normal"] < 2e-3  # finite-difference normals of the depth map vs the sphere's
+    shifted = ray_terms(ExactSphere(normalization, shift=(0.0, 0.05, 0.0)), batch, observation.weights)
+    assert shifted["normal"] > 5 * exact["normal"]
     assert exact["carve"] < 1e-4  # only labels within a pixel footprint of the limb can be off
     assert exact["band"] < 0.02 * float(sampler.band.mean())  # projected-distance target vs. a curved surface
     wrong = ray_terms(ExactSphere(normalization, radius=0.45), batch, observation.weights)

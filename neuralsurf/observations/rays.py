@@ -11,6 +11,8 @@ Per step, a batch of rays with samples along each (iSDF, Ortiz et al. 2022; Azin
   front of a reading in some view is free (f >= 0); a point behind the readings of every view that
   sees it (at least two, no missing pixel among them) is inside (f <= 0); others are unknown.
   Without it the field is free inside the object and in corners no ray crosses, and grows pockets;
+- `normal`: grad f at the hit along the depth map's normal there (1 - cos), weighted by the normal's
+  confidence (depth noise against pixel spacing: finite differences of far Kinect depth are noise);
 - `eikonal`: |grad f| = 1 on every sample and on the uniform points.
 Missing pixels (depth 0) are skipped, never fitted as surface.
 """
@@ -29,8 +31,8 @@ from neuralsurf.losses import eikonal_loss
 from neuralsurf.observations.base import NotObserved, Observation, Sampler, check_weights
 from neuralsurf.structures import DepthFrames, Normalization
 
-RAY_TERMS = ("surface", "band", "free", "carve", "eikonal")
-DEFAULT_RAY_WEIGHTS = {"surface": 3.0, "band": 1.0, "free": 30.0, "carve": 1.0, "eikonal": 0.03}
+RAY_TERMS = ("surface", "band", "free", "carve", "normal", "eikonal")
+DEFAULT_RAY_WEIGHTS = {"surface": 3.0, "band": 1.0, "free": 100.0, "carve": 1.0, "normal": 0.5, "eikonal": 0.03}
 
 
 @dataclass(frozen=True)
@@ -47,6 +49,9 @@ class Rays:
     """Float[Tensor, "r"]: sensor noise standard deviation along the ray at the hit."""
     cosine: Tensor
     """Float[Tensor, "r"]: |cos| between the ray and the depth map's normal at the hit (1 where unknown)."""
+    normals: Tensor
+    """Float[Tensor, "r 3"]: the depth map's normal at the hit, facing the camera, of length its confidence
+    1 / (1 + (sigma / pixel spacing)^2) (0 where unknown)."""
 
 
 def depth_rays(frames: DepthFrames, sigma_of_depth=kinect_sigma, max_depth_jump: float = 0.05,
@@ -72,9 +77,13 @@ def depth_rays(frames: DepthFrames, sigma_of_depth=kinect_sigma, max_depth_jump:
         cosine = torch.where(has_normal, (normals * directions).sum(-1).abs(), torch.ones_like(length))
         pose = frames.cam_to_world[start : start + chunk].to(depth)
         world = torch.einsum("nij,nhwj->nhwi", pose[:, :3, :3], directions)
+        # a finite-difference normal is as good as the depth noise is small against the pixel spacing
+        spacing = depth / K[:, 0, 0, None, None]
+        confidence = has_normal / (1 + (sigma_of_depth(depth) / spacing.clamp_min(1e-12)) ** 2) ** 2
+        world_normals = torch.einsum("nij,nhwj->nhwi", pose[:, :3, :3], normals) * confidence[..., None]
         origins = pose[:, None, None, :3, 3].expand_as(world)
         parts.append(Rays(origins[valid], world[valid], (depth * length)[valid],
-                          (sigma_of_depth(depth) * length)[valid], cosine[valid]))
+                          (sigma_of_depth(depth) * length)[valid], cosine[valid], world_normals[valid]))
     return Rays(*(torch.cat([getattr(p, name) for p in parts]) for name in Rays.__dataclass_fields__))
 
 
@@ -145,6 +154,8 @@ class RayBatch:
     """Float[Tensor, "r"]: sensor noise sigma along the ray."""
     cosine: Tensor
     """Float[Tensor, "r"]: |cos| between ray and surface normal (projects ray distances on the normal)."""
+    normals: Tensor
+    """Float[Tensor, "r 3"]: depth-map normal at the hit, of length its confidence (0 where unknown)."""
     free_t: Tensor
     """Float[Tensor, "r f"]: distances of free-space samples, between box entry and band."""
     free_valid: Tensor
@@ -174,18 +185,20 @@ def draw_rays(rays: Rays, entry: Tensor, n_rays: int, n_free: int, n_band: int, 
     strata = (torch.arange(n_free, device=device) + u_free) / max(n_free, 1)
     free_t = start[:, None] + strata * (stop - start).clamp_min(0)[:, None]
     band_t = hit[:, None] + half[:, None] * (2 * u_band - 1)
-    return RayBatch(rays.origins[pick], rays.directions[pick], hit, rays.sigma[pick], rays.cosine[pick], free_t,
+    return RayBatch(rays.origins[pick], rays.directions[pick], hit, rays.sigma[pick], rays.cosine[pick],
+                    rays.normals[pick], free_t,
                     (stop > start)[:, None].expand_as(free_t), band_t, carved[0][chosen], carved[1][chosen])
 
 
 def ray_terms(model: nn.Module, batch: RayBatch, weights: Mapping[str, float]) -> dict[str, Tensor]:
-    """Unweighted ray loss terms (surface, band, free, carve, eikonal; those with a positive weight) of the
+    """Unweighted ray loss terms (surface, band, free, carve, normal, eikonal; those with a positive weight) of the
     unit-frame `model` on `batch`, from one forward pass over all samples."""
     r, f = batch.free_t.shape
     b = batch.band_t.shape[1]
     t = torch.cat([batch.hit[:, None], batch.band_t, batch.free_t], dim=1)  # (r, 1 + b + f)
     points = batch.origins[:, None] + t[..., None] * batch.directions[:, None]
-    points = torch.cat([points.reshape(-1, 3), batch.uniform]).requires_grad_(bool(weights.get("eikonal")))
+    need_gradient = bool(weights.get("eikonal") or weights.get("normal"))
+    points = torch.cat([points.reshape(-1, 3), batch.uniform]).requires_grad_(need_gradient)
     values = model(points)
     along = values[: r * (1 + b + f)].reshape(r, 1 + b + f)
     noise_weight = 1.0 / batch.sigma
@@ -205,8 +218,14 @@ def ray_terms(model: nn.Module, batch: RayBatch, weights: Mapping[str, float]) -
         label = batch.uniform_label.to(values.dtype)
         violation = torch.relu(-label * values[r * (1 + b + f) :])
         terms["carve"] = violation.sum() / (label != 0).sum().clamp_min(1)
-    if weights.get("eikonal"):
+    if need_gradient:
         (gradient,) = torch.autograd.grad(values.sum(), points, create_graph=True)
+    if weights.get("normal"):
+        confidence = batch.normals.norm(dim=-1)
+        at_hit = gradient[: r * (1 + b + f)].reshape(r, 1 + b + f, 3)[:, 0]
+        cosine = torch.nn.functional.cosine_similarity(at_hit, batch.normals, dim=-1)
+        terms["normal"] = (confidence * (1 - cosine)).mean()
+    if weights.get("eikonal"):
         terms["eikonal"] = eikonal_loss(gradient)
     if not terms:
         raise ConfigError("every ray loss term is switched off; give a positive weight to surface, band, free or carve")
@@ -240,7 +259,7 @@ class DepthRays(Observation):
     frames: DepthFrames
     """Depth maps (metres, 0 = missing) with intrinsics and camera-to-world poses, world frame."""
     weights: Mapping[str, float] = field(default_factory=lambda: dict(DEFAULT_RAY_WEIGHTS))
-    """Term weights: surface, band, free, carve, eikonal."""
+    """Term weights: surface, band, free, carve, normal, eikonal."""
     n_rays: int = 1024
     """Rays per step."""
     n_free: int = 6
@@ -302,7 +321,7 @@ class DepthRays(Observation):
             rays = Rays(*(getattr(rays, name)[keep.sort().values] for name in Rays.__dataclass_fields__))
         scale = normalization.scale
         unit = Rays(normalization.to_unit(rays.origins.double()).float(), rays.directions, rays.hit / scale,
-                    rays.sigma / scale, rays.cosine.clamp_min(0.05))
+                    rays.sigma / scale, rays.cosine.clamp_min(0.05), rays.normals)
         unit = Rays(*(getattr(unit, name).to(device) for name in Rays.__dataclass_fields__))
         entry = box_entry(unit.origins, unit.directions, box)
         band = torch.clamp(3 * unit.sigma, min=self.truncation)
