@@ -228,7 +228,7 @@ def ray_terms(model: nn.Module, batch: RayBatch, weights: Mapping[str, float]) -
     if weights.get("eikonal"):
         terms["eikonal"] = eikonal_loss(gradient)
     if not terms:
-        raise ConfigError("every ray loss term is switched off; give a positive weight to surface, band, free or carve")
+        raise ConfigError("every ray loss term is switched off; give a positive weight to surface, band, free, carve or normal")
     return terms
 
 
