@@ -51,7 +51,7 @@ class Rays:
     """Float[Tensor, "r"]: |cos| between the ray and the depth map's normal at the hit (1 where unknown)."""
     normals: Tensor
     """Float[Tensor, "r 3"]: the depth map's normal at the hit, facing the camera, of length its confidence
-    1 / (1 + (sigma / pixel spacing)^2) (0 where unknown)."""
+    1 / (1 + (sigma / pixel spacing)^2)^2, pixel spacing = depth / fx (0 where unknown)."""
 
 
 def depth_rays(frames: DepthFrames, sigma_of_depth=kinect_sigma, max_depth_jump: float = 0.05,
