@@ -78,12 +78,12 @@ def depth_rays(frames: DepthFrames, sigma_of_depth=kinect_sigma, max_depth_jump:
         pose = frames.cam_to_world[start : start + chunk].to(depth)
         world = torch.einsum("nij,nhwj->nhwi", pose[:, :3, :3], directions)
         # a finite-difference normal is as good as the depth noise is small against the pixel spacing
-        spacing = depth / K[:, 0, 0, None, None]
-        confidence = has_normal / (1 + (sigma_of_depth(depth) / spacing.clamp_min(1e-12)) ** 2) ** 2
+        sigma, spacing = sigma_of_depth(depth), depth / K[:, 0, 0, None, None]
+        confidence = has_normal / (1 + (sigma / spacing.clamp_min(1e-12)) ** 2) ** 2
         world_normals = torch.einsum("nij,nhwj->nhwi", pose[:, :3, :3], normals) * confidence[..., None]
         origins = pose[:, None, None, :3, 3].expand_as(world)
         parts.append(Rays(origins[valid], world[valid], (depth * length)[valid],
-                          (sigma_of_depth(depth) * length)[valid], cosine[valid], world_normals[valid]))
+                          (sigma * length)[valid], cosine[valid], world_normals[valid]))
     return Rays(*(torch.cat([getattr(p, name) for p in parts]) for name in Rays.__dataclass_fields__))
 
 
