@@ -96,7 +96,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     <run dir>/mesh.ply, metrics.json, checkpoints/last.pt and TensorBoard events."""
     from neuralsurf.devices import resolve_device
     from neuralsurf.distributed import init_from_environment
-    from neuralsurf.extract import NearPointsField, extract_mesh
+    from neuralsurf.evaluation.methods import extract_scene_mesh
     from neuralsurf.io import write_mesh
     from neuralsurf.metrics import depth_metrics, evaluate_mesh
     from neuralsurf.priors import ShapeCollection
@@ -115,10 +115,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
                  seed=cfg.seed, run_dir=run_dir, config=config, **config["trainer"])
 
     started = time.perf_counter()
-    extract = dict(config["extract"])
-    near = extract.pop("near_distance", None) or scene.near_distance  # rooms: mesh only near the input
-    field = result.field if near is None else NearPointsField(result.field, scene.cloud.points, near)
-    mesh = extract_mesh(field, **extract)
+    mesh = extract_scene_mesh(result.field, scene, config["extract"])
     extract_seconds = time.perf_counter() - started
     mesh_path = run_dir / "mesh.ply"
     write_mesh(mesh_path, mesh)

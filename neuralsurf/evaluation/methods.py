@@ -25,6 +25,16 @@ class NotApplicable(NeuralsurfError):
     """This method does not take this scene's kind of input; the row is skipped with the reason."""
 
 
+def extract_scene_mesh(field: nn.Module, scene: Scene, extract: dict[str, Any] | None = None) -> Mesh:
+    """`extract_mesh(field, **extract)` for a world-frame field fitted to `scene`; a room (the scene's
+    `near_distance`, or a `near_distance` option) is meshed only that close to its input points."""
+    from neuralsurf.extract import NearPointsField, extract_mesh
+
+    options = dict(extract or {})
+    near = options.pop("near_distance", None) or scene.near_distance
+    return extract_mesh(field if near is None else NearPointsField(field, scene.cloud.points, near), **options)
+
+
 def neural_sdf(scene: Scene, *, model: nn.Module | None = None, points: Callable | None = None,
                rays: Callable | None = None, optimizer: Callable | None = None, trainer: dict[str, Any] | None = None,
                extract: dict[str, Any] | None = None, device: str = "auto", checkpoint: str | None = None,
@@ -33,18 +43,11 @@ def neural_sdf(scene: Scene, *, model: nn.Module | None = None, points: Callable
     """Fit a neural SDF with `neuralsurf.fit` (as train.py does) and extract it: from the depth frames as
     rays (`rays(scene)`) when the scene is a depth capture and `rays` is given, else from its point cloud
     (`points(scene)`); or, with `checkpoint`, score an existing fit (`load_field`)."""
-    from neuralsurf.extract import NearPointsField, extract_mesh
     from neuralsurf.observations import NotObserved
     from neuralsurf.training import default_optimizer, fit, load_field
 
-    extract = dict(extract or {})
-    near = extract.pop("near_distance", None) or scene.near_distance  # rooms: mesh only near the input
-
-    def mesh_of(field):
-        return extract_mesh(field if near is None else NearPointsField(field, scene.cloud.points, near), **extract)
-
     if checkpoint is not None:
-        return mesh_of(load_field(checkpoint, device=device))
+        return extract_scene_mesh(load_field(checkpoint, device=device), scene, extract)
     if model is None or points is None:
         raise NeuralsurfError("neural_sdf needs a model and a points observation (configs), or a checkpoint")
     try:
@@ -55,7 +58,7 @@ def neural_sdf(scene: Scene, *, model: nn.Module | None = None, points: Callable
     fit_dir = Path(run_dir) if (run_dir is not None and save_checkpoint) else None
     result = fit(model, [observation], optimizer=optimizer or default_optimizer, device=device, seed=seed,
                  run_dir=fit_dir, config=config or {}, **trainer)
-    return mesh_of(result.field)
+    return extract_scene_mesh(result.field, scene, extract)
 
 
 def poisson(scene: Scene, *, depth: int = 9, density_trim: float | None = None, scale: float = 1.1,

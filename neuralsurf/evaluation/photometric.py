@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from neuralsurf.evaluation.methods import NotApplicable
+from neuralsurf.evaluation.methods import NotApplicable, extract_scene_mesh
 from neuralsurf.scenes import Scene
 from neuralsurf.structures import Mesh
 
@@ -154,7 +154,6 @@ def neural_fusion(scene: Scene, *, model: nn.Module | None = None, rays: Callabl
     and, when `normals` is given, to its photometric normal maps (`normals(scene)`, a NormalMaps
     partial), summed in one `fit`; then `extract_mesh`. Scenes without depth frames (or without
     normal maps, when `normals` is given) are NotApplicable."""
-    from neuralsurf.extract import extract_mesh
     from neuralsurf.observations import NotObserved
     from neuralsurf.training import default_optimizer, fit
 
@@ -168,8 +167,7 @@ def neural_fusion(scene: Scene, *, model: nn.Module | None = None, rays: Callabl
     fit_dir = Path(run_dir) if (run_dir is not None and save_checkpoint) else None
     result = fit(model, observations, optimizer=optimizer or default_optimizer, device=device, seed=seed,
                  run_dir=fit_dir, config=config or {}, **trainer)
-    extract = {k: v for k, v in (extract or {}).items() if k != "near_distance"}
-    return extract_mesh(result.field, **extract)
+    return extract_scene_mesh(result.field, scene, extract)
 
 
 def nehab_tsdf(scene: Scene, *, position_weight: float = 0.1, max_depth_jump: float = 0.05,
