@@ -83,6 +83,8 @@ def main() -> None:
     print(f"  -> {result.steps / fit_seconds:.2f} steps/s overall (sampling included); "
           f"{result.history['steps_per_s'][-1]:.2f} steps/s in the last logging window")
 
+    extract = OmegaConf.to_container(cfg.extract)  # the experiment's chunks, as train.py extracts
+    extract = {k: v for k, v in extract.items() if k not in ("resolution", "coarse_to_fine", "near_distance")}
     meshes = {}
     for resolution in args.resolutions:
         for coarse_to_fine in (False, True):
@@ -90,7 +92,8 @@ def main() -> None:
                 continue
             mode = "coarse-to-fine" if coarse_to_fine else "dense"
             meshes[resolution, mode], _ = timed(f"extract {resolution}^3 {mode}", rows, ns.extract_mesh,
-                                                result.field, resolution=resolution, coarse_to_fine=coarse_to_fine)
+                                                result.field, resolution=resolution, coarse_to_fine=coarse_to_fine,
+                                                **extract)
     for resolution in args.resolutions:
         dense = next((s for label, s, _ in rows if label == f"extract {resolution}^3 dense"), None)
         fine = next(s for label, s, _ in rows if label == f"extract {resolution}^3 coarse-to-fine")

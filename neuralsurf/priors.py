@@ -215,8 +215,9 @@ def complete_cloud(prior: nn.Module, points: Tensor, *, latent_steps: int = 200,
     raise ConfigError(f"complete_cloud takes an AutoDecoder or OccupancyNetwork, got {type(prior).__name__}")
 
 
-# the ray term weights the one-view completion figures (README, priors) were measured with
+# the ray term weights and options the one-view completion figures (README, priors) were measured with
 COMPLETION_RAY_WEIGHTS = {"surface": 1.0, "band": 1.0, "free": 1.0, "carve": 1.0, "eikonal": 0.1}
+COMPLETION_RAY_OPTIONS = {"hit_fraction": 0.0, "carve_margin": 0.0, "winding_points": 0}
 
 
 def complete_view(prior: nn.Module, frames: DepthFrames, points: Tensor, *, latent_steps: int = 200,
@@ -232,7 +233,8 @@ def complete_view(prior: nn.Module, frames: DepthFrames, points: Tensor, *, late
         pick = torch.randperm(len(points), generator=torch.Generator().manual_seed(seed))[:cloud_points]
         return prior.to(device).field_from_cloud(points[pick])
     if isinstance(prior, AutoDecoder):
-        rays = DepthRays(frames, weights=COMPLETION_RAY_WEIGHTS, noise_model="constant", sigma=sigma, n_rays=1024)
+        rays = DepthRays(frames, weights=COMPLETION_RAY_WEIGHTS, noise_model="constant", sigma=sigma, n_rays=1024,
+                         **COMPLETION_RAY_OPTIONS)
         return reconstruct_latent(prior.decoder, [rays], steps=latent_steps, lr=lr, seed=seed, device=device).field
     raise ConfigError(f"complete_view takes an AutoDecoder or OccupancyNetwork, got {type(prior).__name__}")
 

@@ -8,7 +8,7 @@ import torch
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.models import SDFMLP, HashGrid
 from neuralsurf.observations import DepthRays, PointSamples, depth_rays
-from neuralsurf.observations.rays import box_entry, carve_labels, ray_terms
+from neuralsurf.observations.rays import box_entry, carve_labels, ray_terms, winding_labels
 from neuralsurf.scenes import Sphere, look_at
 from neuralsurf.structures import DepthFrames, Normalization
 from neuralsurf.training import fit
@@ -17,11 +17,15 @@ CENTER, RADIUS = torch.tensor([0.2, -0.1, 0.3], dtype=torch.float64), 0.5
 K = torch.tensor([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]])
 
 
-def sphere_frames(eyes, width: int = 64, height: int = 48) -> DepthFrames:
+def sphere_frames(eyes, width: int = 64, height: int = 48, targets=None, focal: float = 60.0) -> DepthFrames:
     """Closed-form z-depth of the sphere: the nearer root of |o + t d - c| = r along each pixel's ray
-    (K of a 64x48 image scaled to width x height)."""
-    poses = torch.stack([look_at(eye, CENTER) for eye in eyes])
-    K = torch.tensor([[60.0 * width / 64, 0, (width - 1) / 2], [0, 60.0 * width / 64, (height - 1) / 2], [0, 0, 1]])
+    (K of a 64x48 image with fx = fy = `focal`, scaled to width x height); from inside the sphere (a
+    room), the farther root.
+    Each camera looks at the sphere's centre, or at its entry of `targets`."""
+    poses = torch.stack([look_at(eye, CENTER if targets is None else target)
+                         for eye, target in zip(eyes, targets or eyes)])
+    f = focal * width / 64
+    K = torch.tensor([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]])
     v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64),
                           indexing="ij")
     camera = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], -1)
@@ -31,7 +35,8 @@ def sphere_frames(eyes, width: int = 64, height: int = 48) -> DepthFrames:
         o = pose[:3, 3] - CENTER
         a, b, c = (d * d).sum(-1), 2 * (d * o).sum(-1), float(o @ o) - RADIUS**2
         disc = b**2 - 4 * a * c
-        z = (-b - disc.clamp_min(0).sqrt()) / (2 * a)
+        inside = c < 0  # the camera is inside the sphere: it sees the far side
+        z = (-b + (1 if inside else -1) * disc.clamp_min(0).sqrt()) / (2 * a)
         depths.append(torch.where(disc > 0, z, 0.0))
     return DepthFrames(torch.stack(depths).float(), K, poses.float())
 
@@ -91,9 +96,35 @@ def test_space_carving_labels_agree_with_the_sphere():
     assert not ((distance < -0.01) & (labels == 1)).any()
 
 
-def test_each_ray_term_is_about_zero_for_the_exact_sdf_and_positive_for_a_wrong_radius():
+def test_winding_labels_agree_with_the_sphere_seen_from_outside_and_from_within():
+    points = CENTER + 1.2 * (2 * torch.rand(20000, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) - 1)
+    distance = (points - CENTER).norm(dim=-1) - RADIUS
+    rays = depth_rays(sphere_frames(AROUND), lambda z: torch.full_like(z, 0.001))
+    labels = winding_labels(points.float(), rays, 3000)
+    assert (labels[distance > 0] == 1).float().mean() > 0.8 and (labels[distance < 0] == -1).float().mean() > 0.5
+    assert not ((distance > 0) & (labels == -1)).any() and not ((distance < 0) & (labels == 1)).any()
+    # a room: cameras inside the sphere looking out at all of its wall (106 degree views along the six
+    # axes); their side, inside the sphere, is free
+    axes = torch.cat([torch.eye(3), -torch.eye(3)]).double()
+    eyes = [tuple((CENTER + 0.05 * a).tolist()) for a in axes]
+    targets = [tuple((CENTER + a + 0.01 * a.roll(1)).tolist()) for a in axes]
+    room = depth_rays(sphere_frames(eyes, 96, 96, targets, focal=24.0), lambda z: torch.full_like(z, 0.001))
+    labels = winding_labels(points.float(), room, 3000)
+    assert (labels[distance < 0] == 1).float().mean() > 0.5 and (labels[distance > 0] == -1).float().mean() > 0.5
+    assert not ((distance > 0) & (labels == 1)).any() and not ((distance < 0) & (labels == -1)).any()
+    # a part of the wall alone winds around nothing: no label
+    assert (winding_labels(points.float(), depth_rays(sphere_frames(eyes[:2], 96, 96, targets[:2], focal=24.0),
+                                                      lambda z: torch.full_like(z, 0.001)), 3000) == 0).all()
+
+
+@pytest.mark.parametrize("hit_fraction", [0.0, 1.0])
+def test_each_ray_term_is_about_zero_for_the_exact_sdf_and_positive_for_a_wrong_radius(hit_fraction):
     frames = sphere_frames(AROUND)
-    observation, normalization, sampler = prepared(frames)
+    # carve signs only: with a margin, the distance to the nearest hit overestimates the exact one (test below)
+    observation, normalization, sampler = prepared(frames, hit_fraction=hit_fraction, winding_points=2000,
+                                                    carve_margin=0.0)
+    expected_hits = max(min(round(hit_fraction * len(sampler.rays.hit)), 4096) - 1024, 0)  # beyond the 1024 rays
+    assert sampler.n_hits == expected_hits and (hit_fraction == 0 or expected_hits > 500)
     batch = sampler.sample(torch.Generator().manual_seed(0))
     exact = ray_terms(ExactSphere(normalization), batch, observation.weights)
     assert set(exact) == {"surface", "band", "free", "carve", "normal", "eikonal"}
@@ -126,6 +157,9 @@ def test_missing_pixels_are_skipped_and_all_missing_is_a_clear_error():
         DepthRays(empty).bounds()
     with pytest.raises(ConfigError, match="no loss term"):
         DepthRays(frames, weights={"surfaec": 1.0})
+    for bad in ({"hit_fraction": -0.1}, {"carve_margin": -1.0}, {"winding_points": 0.5}, {"max_hits": -1}):
+        with pytest.raises(ConfigError, match=next(iter(bad))):
+            DepthRays(frames, **bad)
 
 
 def tiny_model() -> SDFMLP:
@@ -180,3 +214,30 @@ def test_an_unoriented_noisy_cloud_is_projected_onto_its_local_quadrics_and_an_o
     kept = prepare_cloud(PointCloud(noisy, normals=direction), "estimate", 30, denoise=True)
     assert torch.equal(kept.points, noisy)
     assert PointSamples(PointCloud(noisy)).denoise  # the default for unoriented input
+
+
+class ScaledSDF(torch.nn.Module):
+    """A field of the right sign everywhere but `factor` times too flat: what lets bubbles pop up."""
+
+    def __init__(self, field: torch.nn.Module, factor: float):
+        super().__init__()
+        self.field, self.factor = field, factor
+
+    def forward(self, x):
+        return self.factor * self.field(x)
+
+
+def test_the_carve_margin_asks_labelled_points_for_distance_not_only_for_sign():
+    frames = sphere_frames(AROUND)
+    observation, normalization, sampler = prepared(frames, carve_margin=0.5)
+    signs_only = prepared(frames, carve_margin=0.0)[2]
+    batch = sampler.sample(torch.Generator().manual_seed(0))
+    plain = signs_only.sample(torch.Generator().manual_seed(0))
+    assert torch.equal(batch.uniform, plain.uniform) and (plain.uniform_margin == 0).all()
+    labelled = batch.uniform_label != 0
+    assert (batch.uniform_margin[labelled] > 0).float().mean() > 0.99 and (batch.uniform_margin[~labelled] == 0).all()
+    exact, flat = ExactSphere(normalization), ScaledSDF(ExactSphere(normalization), 0.1)
+    # the margin (half the distance to the nearest hit) is at most the true distance where hits are dense
+    assert ray_terms(exact, batch, observation.weights)["carve"] < 2e-4
+    assert ray_terms(flat, plain, observation.weights)["carve"] < 1e-4  # the signs alone are right
+    assert ray_terms(flat, batch, observation.weights)["carve"] > 0.02

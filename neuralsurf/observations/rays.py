@@ -140,9 +140,40 @@ def carve_labels(points: Tensor, frames: DepthFrames, band: float, sigma_of_dept
     return torch.where(free, 1, torch.where(inside, -1, 0)).to(torch.int8)
 
 
+def winding_labels(points: Tensor, rays: Rays, n_points: int, seed: int = 0, tolerance: float = 0.25) -> Tensor:
+    """Free / inside labels of points by the generalised winding number w of `n_points` hits with the
+    depth map's normals (facing their camera). The cameras lie on the free side of what they saw: a
+    point whose w is within `tolerance` of the cameras' is free, within `tolerance` of theirs + 1
+    inside (an object seen from outside: 0 and 1; a room seen from within: -1 and 0); other values
+    (thin parts) and points within the reach of the hits' spacing (`sampling.winding_signs`) stay
+    unknown, and so does every point when the cameras' w is not within `tolerance` / 2 of an integer
+    (the hits do not close around them: a room seen in part, as 7-Scenes redkitchen's -0.25).
+    points: Float[Tensor, "n 3"], same frame as `rays`. Returns Int8[Tensor, "n"]: +1 free, -1 inside, 0 unknown."""
+    from neuralsurf.geometry import knn
+    from neuralsurf.sampling import cloud_spacing, point_areas, winding_number
+
+    has_normal = rays.normals.norm(dim=-1) > 0
+    pick = torch.randperm(int(has_normal.sum()), generator=torch.Generator().manual_seed(seed))[:n_points]
+    hits = (rays.origins + rays.hit[:, None] * rays.directions)[has_normal][pick].double()
+    normals = torch.nn.functional.normalize(rays.normals[has_normal][pick].double(), dim=-1)
+    labels = torch.zeros(len(points), dtype=torch.int8)
+    if len(hits) < 2 or not len(points):
+        return labels
+    areas = point_areas(hits)
+    cameras = winding_number(rays.origins.unique(dim=0).double(), hits, normals, areas).median()
+    if (cameras - cameras.round()).abs() >= tolerance / 2:
+        return labels
+    far = knn(points.double(), hits, 1)[0][:, 0] > 3 * cloud_spacing(hits)
+    w = winding_number(points[far].double(), hits, normals, areas)
+    free, inside = (w - cameras).abs() < tolerance, (w - cameras - 1).abs() < tolerance
+    labels[far] = torch.where(free, 1, torch.where(inside, -1, 0)).to(labels)
+    return labels
+
+
 @dataclass(frozen=True)
 class RayBatch:
-    """Rays drawn for one step, with the distances of their samples (unit frame)."""
+    """Rays drawn for one step, with the distances of their samples (unit frame). The first r rays carry
+    free and band samples; the rest (hits only) add to the surface and normal terms."""
 
     origins: Tensor
     """Float[Tensor, "r 3"]: camera centres."""
@@ -166,17 +197,21 @@ class RayBatch:
     """Float[Tensor, "u 3"]: uniform points of the box (carve and eikonal terms)."""
     uniform_label: Tensor
     """Int8[Tensor, "u"]: their `carve_labels` (+1 free, -1 inside, 0 unknown)."""
+    uniform_margin: Tensor
+    """Float[Tensor, "u"]: how far from 0 the field must be on their labelled side (0 where unknown)."""
 
 
 def draw_rays(rays: Rays, entry: Tensor, n_rays: int, n_free: int, n_band: int, band: Tensor, n_uniform: int,
-              carved: tuple[Tensor, Tensor], generator: torch.Generator) -> RayBatch:
+              carved: tuple[Tensor, Tensor], generator: torch.Generator, n_hits: int = 0) -> RayBatch:
     """`n_rays` rays at random with `n_free` stratified free samples in [entry, hit - band] and `n_band`
-    uniform samples in [hit - band, hit + band] each, and `n_uniform` points of the `carved` pool
-    (points Float[Tensor, "p 3"], labels Int8[Tensor, "p"]). Random numbers are drawn on the CPU with
-    `generator` (a resumed fit draws the same batches) and moved to the rays' device.
-    band: Float[Tensor, "r"], half-width of each ray's band."""
+    uniform samples in [hit - band, hit + band] each, `n_hits` more rays with their hit only, and
+    `n_uniform` points of the `carved` pool (points Float[Tensor, "p 3"], labels Int8[Tensor, "p"], margins
+    Float[Tensor, "p"]).
+    Random numbers are drawn on the CPU with `generator` (a resumed fit draws the same batches) and moved
+    to the rays' device. band: Float[Tensor, "r"], half-width of each ray's band."""
     device = rays.hit.device
-    pick = torch.randint(len(rays.hit), (n_rays,), generator=generator).to(device)
+    every = torch.randint(len(rays.hit), (n_rays + n_hits,), generator=generator).to(device)
+    pick = every[:n_rays]
     u_free = torch.rand(n_rays, n_free, generator=generator).to(device)
     u_band = torch.rand(n_rays, n_band, generator=generator).to(device)
     chosen = torch.randint(len(carved[0]), (n_uniform,), generator=generator).to(device)
@@ -185,9 +220,9 @@ def draw_rays(rays: Rays, entry: Tensor, n_rays: int, n_free: int, n_band: int, 
     strata = (torch.arange(n_free, device=device) + u_free) / max(n_free, 1)
     free_t = start[:, None] + strata * (stop - start).clamp_min(0)[:, None]
     band_t = hit[:, None] + half[:, None] * (2 * u_band - 1)
-    return RayBatch(rays.origins[pick], rays.directions[pick], hit, rays.sigma[pick], rays.cosine[pick],
-                    rays.normals[pick], free_t,
-                    (stop > start)[:, None].expand_as(free_t), band_t, carved[0][chosen], carved[1][chosen])
+    return RayBatch(rays.origins[every], rays.directions[every], rays.hit[every], rays.sigma[every],
+                    rays.cosine[every], rays.normals[every], free_t,
+                    (stop > start)[:, None].expand_as(free_t), band_t, *(pool[chosen] for pool in carved))
 
 
 def ray_terms(model: nn.Module, batch: RayBatch, weights: Mapping[str, float]) -> dict[str, Tensor]:
@@ -195,34 +230,38 @@ def ray_terms(model: nn.Module, batch: RayBatch, weights: Mapping[str, float]) -
     unit-frame `model` on `batch`, from one forward pass over all samples."""
     r, f = batch.free_t.shape
     b = batch.band_t.shape[1]
-    t = torch.cat([batch.hit[:, None], batch.band_t, batch.free_t], dim=1)  # (r, 1 + b + f)
-    points = batch.origins[:, None] + t[..., None] * batch.directions[:, None]
+    t = torch.cat([batch.hit[:r, None], batch.band_t, batch.free_t], dim=1)  # (r, 1 + b + f)
+    points = batch.origins[:r, None] + t[..., None] * batch.directions[:r, None]
+    hits_only = batch.origins[r:] + batch.hit[r:, None] * batch.directions[r:]  # (h, 3)
     need_gradient = bool(weights.get("eikonal") or weights.get("normal"))
-    points = torch.cat([points.reshape(-1, 3), batch.uniform]).requires_grad_(need_gradient)
+    points = torch.cat([points.reshape(-1, 3), hits_only, batch.uniform]).requires_grad_(need_gradient)
     values = model(points)
-    along = values[: r * (1 + b + f)].reshape(r, 1 + b + f)
+    n_along, n_hits = r * (1 + b + f), len(hits_only)
+    along = values[:n_along].reshape(r, 1 + b + f)
+    at_hits = torch.cat([along[:, 0], values[n_along : n_along + n_hits]])  # every ray's hit, batch order
     noise_weight = 1.0 / batch.sigma
     noise_weight = noise_weight / noise_weight.mean()
     terms: dict[str, Tensor] = {}
     if weights.get("surface"):
-        terms["surface"] = (noise_weight * along[:, 0].abs()).mean()
+        terms["surface"] = (noise_weight * at_hits.abs()).mean()
     if weights.get("band"):
-        target = (batch.hit[:, None] - batch.band_t) * batch.cosine[:, None]
-        terms["band"] = (noise_weight[:, None] * (along[:, 1 : 1 + b] - target).abs()).mean()
+        target = (batch.hit[:r, None] - batch.band_t) * batch.cosine[:r, None]
+        terms["band"] = (noise_weight[:r, None] * (along[:, 1 : 1 + b] - target).abs()).mean()
     if weights.get("free") and f:
-        bound = batch.hit[:, None] - batch.free_t
+        bound = batch.hit[:r, None] - batch.free_t
         free = along[:, 1 + b :]
         violation = torch.relu(free - bound) + torch.relu(-free)
         terms["free"] = (violation * batch.free_valid).sum() / batch.free_valid.sum().clamp_min(1)
     if weights.get("carve"):
         label = batch.uniform_label.to(values.dtype)
-        violation = torch.relu(-label * values[r * (1 + b + f) :])
+        violation = torch.relu(batch.uniform_margin - label * values[n_along + n_hits :]) * (label != 0)
         terms["carve"] = violation.sum() / (label != 0).sum().clamp_min(1)
     if need_gradient:
         (gradient,) = torch.autograd.grad(values.sum(), points, create_graph=True)
     if weights.get("normal"):
         confidence = batch.normals.norm(dim=-1)
-        at_hit = gradient[: r * (1 + b + f)].reshape(r, 1 + b + f, 3)[:, 0]
+        at_hit = torch.cat([gradient[:n_along].reshape(r, 1 + b + f, 3)[:, 0],
+                            gradient[n_along : n_along + n_hits]])
         cosine = torch.nn.functional.cosine_similarity(at_hit, batch.normals, dim=-1)
         terms["normal"] = (confidence * (1 - cosine)).mean()
     if weights.get("eikonal"):
@@ -242,11 +281,12 @@ class RaySampler(Sampler):
     n_free: int
     n_band: int
     n_uniform: int
-    carved: tuple[Tensor, Tensor]
+    carved: tuple[Tensor, Tensor, Tensor]
+    n_hits: int = 0
 
     def sample(self, generator: torch.Generator) -> RayBatch:
         return draw_rays(self.rays, self.entry, self.n_rays, self.n_free, self.n_band, self.band, self.n_uniform,
-                         self.carved, generator)
+                         self.carved, generator, self.n_hits)
 
     def losses(self, model: nn.Module, batch: RayBatch) -> dict[str, Tensor]:
         return ray_terms(model, batch, self.weights)
@@ -261,7 +301,13 @@ class DepthRays(Observation):
     weights: Mapping[str, float] = field(default_factory=lambda: dict(DEFAULT_RAY_WEIGHTS))
     """Term weights: surface, band, free, carve, normal, eikonal."""
     n_rays: int = 1024
-    """Rays per step."""
+    """Rays per step with free and band samples."""
+    hit_fraction: float = 0.0125
+    """Hits per step (surface and normal terms), as a fraction of all rays: those beyond the `n_rays` come
+    without free and band samples. A fixed fraction draws every hit about as often however many views
+    there are (the noise of each hit averages out; drawn far more often, the fit follows it)."""
+    max_hits: int = 4096
+    """At most this many hits per step (rooms have millions of rays)."""
     n_free: int = 6
     """Stratified free-space samples per ray."""
     n_band: int = 6
@@ -279,20 +325,30 @@ class DepthRays(Observation):
     the square of the depth) or "constant" (`sigma` metres)."""
     sigma: float = 0.001
     """Noise sigma of the "constant" model, metres."""
+    carve_margin: float = 1.0
+    """Labelled carve points must lie on their side by this fraction of their distance to the nearest hit
+    (which bounds their true distance from above), not only by any amount: bubbles of the wrong sign
+    inside (or floaters outside) then cost more than a slightly wrong value; 0: sign only."""
+    winding_points: int = 5000
+    """Points carving leaves unknown are labelled by the winding number of this many hits (`winding_labels`:
+    interior pockets no pair of views reaches, corners no view sees); 0: carving alone."""
     name: str = "rays"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "weights", check_weights(self.weights, RAY_TERMS, "DepthRays"))
         if not isinstance(self.frames, DepthFrames):
             raise InputError(f"DepthRays expects neuralsurf.DepthFrames, got {type(self.frames).__name__}")
-        counts = {k: getattr(self, k) for k in ("n_rays", "n_free", "n_band", "n_uniform", "n_carve", "max_rays")}
+        counts = {k: getattr(self, k) for k in ("n_rays", "max_hits", "n_free", "n_band", "n_uniform", "n_carve",
+                                                 "max_rays", "winding_points")}
         if any(not isinstance(v, int) or v < 0 for v in counts.values()) or not all(
                 counts[k] for k in ("n_rays", "n_carve", "max_rays")):
             raise ConfigError(f"DepthRays needs integer sample counts (n_rays, n_carve, max_rays >= 1, others >= 0), "
                               f"got {counts}")
-        if not self.truncation > 0 or self.noise_model not in ("kinect", "constant") or not self.sigma > 0:
-            raise ConfigError(f"DepthRays needs truncation > 0, sigma > 0 and noise_model kinect or constant, got "
-                              f"truncation={self.truncation}, noise_model={self.noise_model!r}, sigma={self.sigma}")
+        amounts = {k: getattr(self, k) for k in ("hit_fraction", "carve_margin", "truncation", "sigma")}
+        if not (amounts["hit_fraction"] >= 0 and amounts["carve_margin"] >= 0 and amounts["truncation"] > 0
+                and amounts["sigma"] > 0 and self.noise_model in ("kinect", "constant")):
+            raise ConfigError(f"DepthRays needs hit_fraction >= 0, carve_margin >= 0, truncation > 0, sigma > 0 and "
+                              f"noise_model kinect or constant, got {amounts}, noise_model={self.noise_model!r}")
 
     @classmethod
     def from_scene(cls, scene, **options) -> DepthRays:
@@ -329,5 +385,17 @@ class DepthRays(Observation):
         pool = (2 * torch.rand(self.n_carve, 3, generator=generator, dtype=torch.float64) - 1) * box
         labels = carve_labels(normalization.to_world(pool), self.frames, self.truncation * scale, self._sigma_of_depth(),
                               self.bounds())
-        carved = (pool.float().to(device), labels.to(device))
-        return RaySampler(unit, entry, band, self.weights, self.n_rays, self.n_free, self.n_band, self.n_uniform, carved)
+        if self.winding_points:
+            unknown = labels == 0
+            labels[unknown] = winding_labels(normalization.to_world(pool[unknown]), rays, self.winding_points, seed)
+        margin = torch.zeros(len(pool), dtype=torch.float64)
+        if self.carve_margin:
+            from neuralsurf.geometry import knn
+
+            hits = unit.origins.cpu().double() + unit.hit.cpu().double()[:, None] * unit.directions.cpu().double()
+            labelled = labels != 0
+            margin[labelled] = self.carve_margin * knn(pool[labelled], hits, 1)[0][:, 0]
+        carved = (pool.float().to(device), labels.to(device), margin.float().to(device))
+        n_hits = max(min(round(self.hit_fraction * len(unit.hit)), self.max_hits) - self.n_rays, 0)
+        return RaySampler(unit, entry, band, self.weights, self.n_rays, self.n_free, self.n_band, self.n_uniform, carved,
+                          n_hits)
