@@ -1,6 +1,7 @@
 """Depth rays: every valid pixel of depth images is a ray from its camera to the surface it saw.
 
-Per step, a batch of rays with samples along each (iSDF, Ortiz et al. 2022; Azinovic et al. 2022):
+Per step, a batch of rays with samples along each (iSDF, Ortiz et al. 2022; Azinovic et al. 2022), and more
+hits alone (`hit_fraction`):
 - `surface`: f = 0 at the measured hit;
 - `band`: in a truncation band around the hit, f equals the signed distance to the hit along the
   ray, projected on the normal of the depth map there (exact for a plane), weighted by the inverse
@@ -9,8 +10,10 @@ Per step, a batch of rays with samples along each (iSDF, Ortiz et al. 2022; Azin
   distance to the hit along the ray (the hit is a surface point, so it bounds the distance);
 - `carve`: on uniform points of the box labelled by all views at once (space carving): a point in
   front of a reading in some view is free (f >= 0); a point behind the readings of every view that
-  sees it (at least two, no missing pixel among them) is inside (f <= 0); others are unknown.
-  Without it the field is free inside the object and in corners no ray crosses, and grows pockets;
+  sees it (at least two, no missing pixel among them) is inside (f <= 0); what carving leaves unknown takes
+  its side from the winding number of the hits (`winding_labels`). A labelled point must lie on its side by
+  its distance to the nearest hit (`carve_margin`), not by any small amount. Without this term the field is
+  free inside the object and in corners no ray crosses, and grows pockets and bubbles;
 - `normal`: grad f at the hit along the depth map's normal there (1 - cos), weighted by the normal's
   confidence (depth noise against pixel spacing: finite differences of far Kinect depth are noise);
 - `eikonal`: |grad f| = 1 on every sample and on the uniform points.
@@ -26,9 +29,10 @@ import torch
 from torch import Tensor, nn
 
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.geometry import _depth_normals, backproject_depth_to_camera, kinect_sigma
+from neuralsurf.geometry import _depth_normals, backproject_depth_to_camera, kinect_sigma, knn
 from neuralsurf.losses import eikonal_loss
 from neuralsurf.observations.base import NotObserved, Observation, Sampler, check_weights
+from neuralsurf.sampling import cloud_spacing, point_areas, winding_number
 from neuralsurf.structures import DepthFrames, Normalization
 
 RAY_TERMS = ("surface", "band", "free", "carve", "normal", "eikonal")
@@ -149,9 +153,6 @@ def winding_labels(points: Tensor, rays: Rays, n_points: int, seed: int = 0, tol
     unknown, and so does every point when the cameras' w is not within `tolerance` / 2 of an integer
     (the hits do not close around them: a room seen in part, as 7-Scenes redkitchen's -0.25).
     points: Float[Tensor, "n 3"], same frame as `rays`. Returns Int8[Tensor, "n"]: +1 free, -1 inside, 0 unknown."""
-    from neuralsurf.geometry import knn
-    from neuralsurf.sampling import cloud_spacing, point_areas, winding_number
-
     has_normal = rays.normals.norm(dim=-1) > 0
     pick = torch.randperm(int(has_normal.sum()), generator=torch.Generator().manual_seed(seed))[:n_points]
     hits = (rays.origins + rays.hit[:, None] * rays.directions)[has_normal][pick].double()
@@ -390,8 +391,6 @@ class DepthRays(Observation):
             labels[unknown] = winding_labels(normalization.to_world(pool[unknown]), rays, self.winding_points, seed)
         margin = torch.zeros(len(pool), dtype=torch.float64)
         if self.carve_margin:
-            from neuralsurf.geometry import knn
-
             hits = unit.origins.cpu().double() + unit.hit.cpu().double()[:, None] * unit.directions.cpu().double()
             labelled = labels != 0
             margin[labelled] = self.carve_margin * knn(pool[labelled], hits, 1)[0][:, 0]
