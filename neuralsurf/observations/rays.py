@@ -203,7 +203,7 @@ class RayBatch:
 
 
 def draw_rays(rays: Rays, entry: Tensor, n_rays: int, n_free: int, n_band: int, band: Tensor, n_uniform: int,
-              carved: tuple[Tensor, Tensor], generator: torch.Generator, n_hits: int = 0) -> RayBatch:
+              carved: tuple[Tensor, Tensor, Tensor], generator: torch.Generator, n_hits: int = 0) -> RayBatch:
     """`n_rays` rays at random with `n_free` stratified free samples in [entry, hit - band] and `n_band`
     uniform samples in [hit - band, hit + band] each, `n_hits` more rays with their hit only, and
     `n_uniform` points of the `carved` pool (points Float[Tensor, "p 3"], labels Int8[Tensor, "p"], margins
