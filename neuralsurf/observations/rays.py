@@ -153,10 +153,10 @@ def winding_labels(points: Tensor, rays: Rays, n_points: int, seed: int = 0, tol
     unknown, and so does every point when the cameras' w is not within `tolerance` / 2 of an integer
     (the hits do not close around them: a room seen in part, as 7-Scenes redkitchen's -0.25).
     points: Float[Tensor, "n 3"], same frame as `rays`. Returns Int8[Tensor, "n"]: +1 free, -1 inside, 0 unknown."""
-    has_normal = rays.normals.norm(dim=-1) > 0
-    pick = torch.randperm(int(has_normal.sum()), generator=torch.Generator().manual_seed(seed))[:n_points]
-    hits = (rays.origins + rays.hit[:, None] * rays.directions)[has_normal][pick].double()
-    normals = torch.nn.functional.normalize(rays.normals[has_normal][pick].double(), dim=-1)
+    with_normal = (rays.normals.norm(dim=-1) > 0).nonzero()[:, 0]
+    pick = with_normal[torch.randperm(len(with_normal), generator=torch.Generator().manual_seed(seed))[:n_points]]
+    hits = (rays.origins[pick] + rays.hit[pick, None] * rays.directions[pick]).double()
+    normals = torch.nn.functional.normalize(rays.normals[pick].double(), dim=-1)
     labels = torch.zeros(len(points), dtype=torch.int8)
     if len(hits) < 2 or not len(points):
         return labels
