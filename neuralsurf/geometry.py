@@ -25,12 +25,21 @@ def knn(query: Tensor, points: Tensor, k: int = 1) -> tuple[Tensor, Tensor]:
     Returns:
         distances Float[Tensor, "m k"] (query dtype) and indices Int[Tensor, "m k"] (int64).
     """
-    from scipy.spatial import cKDTree
-
     if not 1 <= k <= len(points):
         raise InputError(f"knn needs 1 <= k <= {len(points)} (number of points), got k={k}")
-    # sliding-midpoint splits: 3x faster queries far from the points (free space) than the balanced default
-    tree = cKDTree(points.detach().cpu().double().numpy(), balanced_tree=False, compact_nodes=False)
+    return _tree_knn(_kd_tree(points), query, k)
+
+
+def _kd_tree(points: Tensor):
+    """scipy k-d tree of Float[Tensor, "n 3"] with sliding-midpoint splits: 3x faster queries far from the
+    points (free space) than the balanced default."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(points.detach().cpu().double().numpy(), balanced_tree=False, compact_nodes=False)
+
+
+def _tree_knn(tree, query: Tensor, k: int) -> tuple[Tensor, Tensor]:
+    """`knn` of Float[Tensor, "m 3"] queries in a built `_kd_tree`."""
     dist, index = tree.query(query.detach().cpu().double().numpy(), k=k, workers=-1)
     dist, index = np.asarray(dist).reshape(len(query), k), np.asarray(index).reshape(len(query), k)
     return (
@@ -155,10 +164,23 @@ def project_to_quadrics(points: Tensor, normals: Tensor, k: int = 30) -> Tensor:
     Returns:
         Float[Tensor, "n 3"]: the projected points, points + f n.
     """
+    return points + quadric_heights(points, normals, k)[:, None] * normals
+
+
+def quadric_heights(points: Tensor, normals: Tensor, k: int = 30, chunk: int = 65_536) -> Tensor:
+    """Float[Tensor, "n"]: the height f along each point's unit normal of the quadric fitted to its k
+    nearest neighbours (`project_to_quadrics`); `chunk` points at a time (bounds memory, same result).
+    points, normals: Float[Tensor, "n 3"]."""
     if not 6 <= k <= len(points):
         raise ConfigError(f"projection onto local quadrics needs 6 <= k <= {len(points)} (points), got k={k}")
-    _, index = knn(points, points, k)
-    offset = points[index] - points[:, None]  # [n, k, 3]
+    tree = _kd_tree(points)
+    return torch.cat([_quadric_height(points, normals[part], _tree_knn(tree, points[part], k)[1], part)
+                      for part in (slice(i, i + chunk) for i in range(0, len(points), chunk))])
+
+
+def _quadric_height(points: Tensor, normals: Tensor, index: Tensor, part: slice) -> Tensor:
+    """Heights of points[part] (normals: theirs) over the quadric of their neighbours points[index]."""
+    offset = points[index] - points[part, None]  # [n, k, 3]
     x_axis, y_axis = torch.eye(3, dtype=points.dtype)[:2]
     helper = torch.where(normals[:, :1].abs() < 0.9, x_axis, y_axis)  # any direction not along the normal
     t1 = torch.nn.functional.normalize(torch.cross(normals, helper, dim=-1), dim=-1)
@@ -169,7 +191,7 @@ def project_to_quadrics(points: Tensor, normals: Tensor, k: int = 30) -> Tensor:
     design = torch.stack([u * u, u * v, v * v, u, v, torch.ones_like(u)], -1)  # [n, k, 6]
     gram = design.transpose(1, 2) @ design + 1e-9 * torch.eye(6, dtype=points.dtype)
     coefficients = torch.linalg.solve(gram, (design.transpose(1, 2) @ h[..., None]))[..., 0]
-    return points + coefficients[:, 5:] * normals
+    return coefficients[:, 5]
 
 
 def _check_orientation(method: str | None, camera, direction) -> None:

@@ -217,7 +217,7 @@ def complete_cloud(prior: nn.Module, points: Tensor, *, latent_steps: int = 200,
 
 # the ray term weights and options the one-view completion figures (README, priors) were measured with
 COMPLETION_RAY_WEIGHTS = {"surface": 1.0, "band": 1.0, "free": 1.0, "carve": 1.0, "eikonal": 0.1}
-COMPLETION_RAY_OPTIONS = {"hit_fraction": 0.0, "carve_margin": 0.0, "winding_points": 0}
+COMPLETION_RAY_OPTIONS = {"hit_fraction": 0.0, "carve_margin": 0.0, "winding_points": 0, "denoise_k": 0}
 
 
 def complete_view(prior: nn.Module, frames: DepthFrames, points: Tensor, *, latent_steps: int = 200,

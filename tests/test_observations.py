@@ -8,7 +8,7 @@ import torch
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.models import SDFMLP, HashGrid
 from neuralsurf.observations import DepthRays, PointSamples, depth_rays
-from neuralsurf.observations.rays import box_entry, carve_labels, ray_terms, winding_labels
+from neuralsurf.observations.rays import box_entry, carve_labels, denoise_hits, ray_terms, winding_labels
 from neuralsurf.scenes import Sphere, look_at
 from neuralsurf.structures import DepthFrames, Normalization
 from neuralsurf.training import fit
@@ -54,7 +54,8 @@ class ExactSphere(torch.nn.Module):
 
 
 def prepared(frames, **options):
-    observation = DepthRays(frames, noise_model="constant", sigma=0.001, **options)
+    """Rays of exact hits for the term oracles: no denoising (it has its own test) unless asked."""
+    observation = DepthRays(frames, noise_model="constant", sigma=0.001, **{"denoise_k": 0, **options})
     normalization = Normalization.from_points(observation.bounds())
     return observation, normalization, observation.prepare(normalization, 0.55, torch.device("cpu"), 0)
 
@@ -81,6 +82,25 @@ def test_rays_hit_the_sphere_where_ray_sphere_intersection_says():
 
 
 AROUND = [(2.2, 0.3, 0.1), (-1.8, 0.1, 0.4), (0.3, 2.0, 0.2), (0.1, -2.0, 0.5), (0.4, 0.2, 2.1), (-0.2, -0.3, -1.6)]
+
+
+def test_denoising_moves_noisy_hits_along_their_rays_onto_the_sphere():
+    from dataclasses import replace
+
+    rays = depth_rays(sphere_frames(AROUND[:4], width=128, height=96), lambda z: torch.full_like(z, 0.005))
+
+    def radial_error(rays):
+        hits = rays.origins.double() + rays.hit[:, None].double() * rays.directions.double()
+        return ((hits - CENTER).norm(dim=-1) - RADIUS).abs()
+
+    # exact hits stay where they are: a sphere is a quadric to fourth order in the neighbourhood's radius
+    assert radial_error(denoise_hits(rays, 30)).median() < 1e-4
+    noise = 0.005 * torch.randn(len(rays.hit), generator=torch.Generator().manual_seed(0))
+    noisy = replace(rays, hit=rays.hit + noise)
+    denoised = denoise_hits(noisy, 30)
+    assert radial_error(denoised).mean() < 0.4 * radial_error(noisy).mean()
+    assert torch.equal(denoised.origins, noisy.origins) and torch.equal(denoised.directions, noisy.directions)
+    assert ((denoised.hit - noisy.hit).abs() <= 3 * noisy.sigma + 1e-6).all()  # at most 3 sigmas along the ray
 
 
 def test_space_carving_labels_agree_with_the_sphere():
@@ -157,7 +177,8 @@ def test_missing_pixels_are_skipped_and_all_missing_is_a_clear_error():
         DepthRays(empty).bounds()
     with pytest.raises(ConfigError, match="no loss term"):
         DepthRays(frames, weights={"surfaec": 1.0})
-    for bad in ({"hit_fraction": -0.1}, {"carve_margin": -1.0}, {"winding_points": 0.5}, {"max_hits": -1}):
+    for bad in ({"hit_fraction": -0.1}, {"carve_margin": -1.0}, {"winding_points": 0.5}, {"max_hits": -1},
+                {"denoise_k": 3}):
         with pytest.raises(ConfigError, match=next(iter(bad))):
             DepthRays(frames, **bad)
 

@@ -23,13 +23,13 @@ Missing pixels (depth 0) are skipped, never fitted as surface.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 from torch import Tensor, nn
 
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.geometry import _depth_normals, backproject_depth_to_camera, kinect_sigma, knn
+from neuralsurf.geometry import _depth_normals, backproject_depth_to_camera, kinect_sigma, knn, quadric_heights
 from neuralsurf.losses import eikonal_loss
 from neuralsurf.observations.base import NotObserved, Observation, Sampler, check_weights
 from neuralsurf.sampling import cloud_spacing, point_areas, winding_number
@@ -169,6 +169,21 @@ def winding_labels(points: Tensor, rays: Rays, n_points: int, seed: int = 0, tol
     free, inside = (w - cameras).abs() < tolerance, (w - cameras - 1).abs() < tolerance
     labels[far] = torch.where(free, 1, torch.where(inside, -1, 0)).to(labels)
     return labels
+
+
+def denoise_hits(rays: Rays, k: int) -> Rays:
+    """`rays` with each hit moved along its ray onto the quadric fitted to its k nearest hits (of every view;
+    `geometry.quadric_heights`, in the frame of the depth map's normal, or of the ray where it has none):
+    averages the sensor noise, which lies along the ray, over the neighbourhood. The move is height / cos
+    (exact for noise along the ray), the cosine at least 0.2, and at most 3 noise sigmas of the reading."""
+    hits = (rays.origins + rays.hit[:, None] * rays.directions).double()
+    directions = rays.directions.double()
+    has_normal = rays.normals.norm(dim=-1, keepdim=True) > 0
+    normals = torch.where(has_normal, torch.nn.functional.normalize(rays.normals.double(), dim=-1), -directions)
+    cosine = (directions * normals).sum(-1)  # negative: the normals face the camera
+    move = quadric_heights(hits, normals, k) / cosine.clamp(max=-0.2)
+    limit = 3 * rays.sigma.double()
+    return replace(rays, hit=(rays.hit.double() + torch.maximum(torch.minimum(move, limit), -limit)).to(rays.hit.dtype))
 
 
 @dataclass(frozen=True)
@@ -333,6 +348,9 @@ class DepthRays(Observation):
     winding_points: int = 5000
     """Points carving leaves unknown are labelled by the winding number of this many hits (`winding_labels`:
     interior pockets no pair of views reaches, corners no view sees); 0: carving alone."""
+    denoise_k: int = 30
+    """Move each hit along its ray onto the quadric fitted to its this many nearest hits (`denoise_hits`:
+    averages the sensor noise before the fit); 0: off."""
     name: str = "rays"
 
     def __post_init__(self) -> None:
@@ -340,11 +358,11 @@ class DepthRays(Observation):
         if not isinstance(self.frames, DepthFrames):
             raise InputError(f"DepthRays expects neuralsurf.DepthFrames, got {type(self.frames).__name__}")
         counts = {k: getattr(self, k) for k in ("n_rays", "max_hits", "n_free", "n_band", "n_uniform", "n_carve",
-                                                 "max_rays", "winding_points")}
+                                                 "max_rays", "winding_points", "denoise_k")}
         if any(not isinstance(v, int) or v < 0 for v in counts.values()) or not all(
-                counts[k] for k in ("n_rays", "n_carve", "max_rays")):
-            raise ConfigError(f"DepthRays needs integer sample counts (n_rays, n_carve, max_rays >= 1, others >= 0), "
-                              f"got {counts}")
+                counts[k] for k in ("n_rays", "n_carve", "max_rays")) or 0 < self.denoise_k < 6:
+            raise ConfigError(f"DepthRays needs integer sample counts (n_rays, n_carve, max_rays >= 1, denoise_k 0 or "
+                              f">= 6, others >= 0), got {counts}")
         amounts = {k: getattr(self, k) for k in ("hit_fraction", "carve_margin", "truncation", "sigma")}
         if not (amounts["hit_fraction"] >= 0 and amounts["carve_margin"] >= 0 and amounts["truncation"] > 0
                 and amounts["sigma"] > 0 and self.noise_model in ("kinect", "constant")):
@@ -376,6 +394,8 @@ class DepthRays(Observation):
         if len(rays.hit) > self.max_rays:
             keep = torch.randperm(len(rays.hit), generator=torch.Generator().manual_seed(seed))[: self.max_rays]
             rays = Rays(*(getattr(rays, name)[keep.sort().values] for name in Rays.__dataclass_fields__))
+        if self.denoise_k:
+            rays = denoise_hits(rays, self.denoise_k)
         scale = normalization.scale
         unit = Rays(normalization.to_unit(rays.origins.double()).float(), rays.directions, rays.hit / scale,
                     rays.sigma / scale, rays.cosine.clamp_min(0.05), rays.normals)
