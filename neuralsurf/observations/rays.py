@@ -17,7 +17,8 @@ hits alone (`hit_fraction`):
 - `normal`: grad f at the hit along the depth map's normal there (1 - cos), weighted by the normal's
   confidence (depth noise against pixel spacing: finite differences of far Kinect depth are noise);
 - `eikonal`: |grad f| = 1 on every sample and on the uniform points.
-Missing pixels (depth 0) are skipped, never fitted as surface.
+Missing pixels (depth 0) are skipped, never fitted as surface. Before the fit, each hit moves along its ray
+onto the quadric of its nearest hits (`denoise_hits`): the sensor noise is averaged over a neighbourhood.
 """
 
 from __future__ import annotations
@@ -350,7 +351,7 @@ class DepthRays(Observation):
     interior pockets no pair of views reaches, corners no view sees); 0: carving alone."""
     denoise_k: int = 30
     """Move each hit along its ray onto the quadric fitted to its this many nearest hits (`denoise_hits`:
-    averages the sensor noise before the fit); 0: off."""
+    averages the sensor noise before the fit; at most all hits, none with fewer than 6); 0: off."""
     name: str = "rays"
 
     def __post_init__(self) -> None:
@@ -394,8 +395,8 @@ class DepthRays(Observation):
         if len(rays.hit) > self.max_rays:
             keep = torch.randperm(len(rays.hit), generator=torch.Generator().manual_seed(seed))[: self.max_rays]
             rays = Rays(*(getattr(rays, name)[keep.sort().values] for name in Rays.__dataclass_fields__))
-        if self.denoise_k:
-            rays = denoise_hits(rays, self.denoise_k)
+        if self.denoise_k and len(rays.hit) >= 6:  # a quadric needs 6 hits
+            rays = denoise_hits(rays, min(self.denoise_k, len(rays.hit)))
         scale = normalization.scale
         unit = Rays(normalization.to_unit(rays.origins.double()).float(), rays.directions, rays.hit / scale,
                     rays.sigma / scale, rays.cosine.clamp_min(0.05), rays.normals)
