@@ -1,6 +1,12 @@
 """Classical baselines: same inputs (neuralsurf.structures), same Mesh out, same metrics."""
 
-from neuralsurf.baselines.icp import Registration, register_global, register_icp, register_multiway
+from neuralsurf.baselines.icp import (
+    Registration,
+    evaluate_registration,
+    register_global,
+    register_icp,
+    register_multiway,
+)
 from neuralsurf.baselines.poisson import reconstruct_poisson
 from neuralsurf.baselines.tsdf import TSDFVolume, depth_bounds, fuse_open3d
 
@@ -8,6 +14,7 @@ __all__ = [
     "Registration",
     "TSDFVolume",
     "depth_bounds",
+    "evaluate_registration",
     "fuse_open3d",
     "reconstruct_poisson",
     "register_global",
