@@ -30,7 +30,13 @@ import torch
 from torch import Tensor, nn
 
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.geometry import _depth_normals, backproject_depth_to_camera, kinect_sigma, knn, quadric_heights
+from neuralsurf.geometry import (
+    _depth_normals,
+    backproject_depth_to_camera,
+    kinect_sigma,
+    knn,
+    quadric_heights,
+)
 from neuralsurf.losses import eikonal_loss
 from neuralsurf.observations.base import NotObserved, Observation, Sampler, check_weights
 from neuralsurf.sampling import cloud_spacing, point_areas, winding_number
