@@ -164,7 +164,7 @@ def cells_near_level(values: Tensor, level: float, threshold: float) -> Tensor:
 def _points_of_cells(cells: Tensor) -> Tensor:
     """Bool[Tensor, "X-1 Y-1 Z-1"] cells -> Bool[Tensor, "X Y Z"]: the corners of those cells (one bool
     grid: a max-pool over a float copy took 8x its memory)."""
-    points = torch.zeros(tuple(n + 1 for n in cells.shape), dtype=torch.bool)
+    points = torch.zeros(tuple(n + 1 for n in cells.shape), dtype=torch.bool, device=cells.device)
     x, y, z = cells.shape
     for i, j, k in itertools.product((0, 1), repeat=3):
         points[i : i + x, j : j + y, k : k + z] |= cells
