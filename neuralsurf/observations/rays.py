@@ -98,6 +98,12 @@ def depth_rays(frames: DepthFrames, sigma_of_depth=kinect_sigma, max_depth_jump:
     return Rays(*(torch.cat([getattr(p, name) for p in parts]) for name in Rays.__dataclass_fields__))
 
 
+def hit_bounds(rays: Rays) -> Tensor:
+    """Float64[Tensor, "2 3"]: the box (min and max corner) of the rays' hit points."""
+    points = (rays.origins + rays.hit[:, None] * rays.directions).double()
+    return torch.stack([points.min(0).values, points.max(0).values])
+
+
 def box_entry(origins: Tensor, directions: Tensor, box: float) -> Tensor:
     """Float[Tensor, "r"]: distance along each ray where it enters the cube [-box, box]^3 (0 when the
     origin lies inside; rays that miss the cube get their exit, which is smaller than their entry).
@@ -392,12 +398,11 @@ class DepthRays(Observation):
         return depth_rays(self.frames.to("cpu"), self._sigma_of_depth())
 
     def bounds(self) -> Tensor:
-        rays = self._world_rays()
-        points = (rays.origins + rays.hit[:, None] * rays.directions).double()
-        return torch.stack([points.min(0).values, points.max(0).values])
+        return hit_bounds(self._world_rays())
 
     def prepare(self, normalization: Normalization, box: float, device: torch.device, seed: int) -> RaySampler:
         rays = self._world_rays()
+        bounds = hit_bounds(rays)  # of every ray, before the subset and the denoising
         if len(rays.hit) > self.max_rays:
             keep = torch.randperm(len(rays.hit), generator=torch.Generator().manual_seed(seed))[: self.max_rays]
             rays = Rays(*(getattr(rays, name)[keep.sort().values] for name in Rays.__dataclass_fields__))
@@ -412,7 +417,7 @@ class DepthRays(Observation):
         generator = torch.Generator().manual_seed(seed)
         pool = (2 * torch.rand(self.n_carve, 3, generator=generator, dtype=torch.float64) - 1) * box
         labels = carve_labels(normalization.to_world(pool), self.frames, self.truncation * scale, self._sigma_of_depth(),
-                              self.bounds())
+                              bounds)
         if self.winding_points:
             unknown = labels == 0
             labels[unknown] = winding_labels(normalization.to_world(pool[unknown]), rays, self.winding_points, seed)
