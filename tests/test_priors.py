@@ -28,6 +28,7 @@ from neuralsurf.observations.collection import (
     SDFSampleSet,
     draw_shape_sdf,
 )
+from neuralsurf.priors import complete_cloud, noisy_cloud
 from neuralsurf.shapes import ShapeRecord
 from neuralsurf.shapes.cache import CacheRecipe, build_collection, cache_path, load_cache
 from neuralsurf.shapes.completion import reconstruct_latent
@@ -218,6 +219,23 @@ def test_latent_fit_from_a_shapes_own_samples_returns_to_the_trained_codes_quali
     assert loss["fitted"] <= 1.15 * loss["trained"], loss
     assert loss["fitted"] < 0.5 * min(loss["other"], loss["zero"]), loss
     assert iou_fitted > iou_trained - 0.05, (iou_fitted, iou_trained)
+
+
+def test_completion_from_a_noisy_cloud_returns_the_shape_it_was_drawn_from(collection, auto_decoder):
+    """complete_cloud (the latent fit of train.py's scores): the chair's 2,000 cached surface points
+    with noise 0.005 give back the chair about as well as its trained code does, and not the lamp."""
+    model = auto_decoder.model
+    record, index = RECORDS[1], 1
+    surface = torch.from_numpy(load_cache(cache_path(collection, record))["surface_points"]).double()
+    field = complete_cloud(model, noisy_cloud(surface, 2000, 0.005, seed=0), latent_steps=150)
+    points, inside = _uniform_labels(collection, record)
+    lamp_points, lamp_inside = _uniform_labels(collection, RECORDS[0])
+    with torch.no_grad():
+        iou = _label_iou(field(points.double()), inside)
+        iou_trained = _label_iou(model(points, model.codes.weight[index]), inside)
+        iou_lamp = _label_iou(field(lamp_points.double()), lamp_inside)
+    assert iou > iou_trained - 0.1, (iou, iou_trained)
+    assert iou_lamp < 0.3, iou_lamp
 
 
 def test_latent_prior_pulls_the_code_to_zero_and_needs_a_code():
