@@ -188,7 +188,11 @@ def denoise_hits(rays: Rays, k: int) -> Rays:
     """`rays` with each hit moved along its ray onto the quadric fitted to its k nearest hits (of every view;
     `geometry.quadric_heights`, in the frame of the depth map's normal, or of the ray where it has none):
     averages the sensor noise, which lies along the ray, over the neighbourhood. The move is height / cos
-    (exact for noise along the ray), the cosine at least 0.2, and at most 3 noise sigmas of the reading."""
+    (exact for noise along the ray), the cosine at least 0.2, and at most 3 noise sigmas of the reading.
+    k is clamped to the number of hits; under 6 hits (a quadric's unknowns) they stay as they are."""
+    if len(rays.hit) < 6:
+        return rays
+    k = min(k, len(rays.hit))
     hits = (rays.origins + rays.hit[:, None] * rays.directions).double()
     directions = rays.directions.double()
     has_normal = rays.normals.norm(dim=-1, keepdim=True) > 0
@@ -406,8 +410,8 @@ class DepthRays(Observation):
         if len(rays.hit) > self.max_rays:
             keep = torch.randperm(len(rays.hit), generator=torch.Generator().manual_seed(seed))[: self.max_rays]
             rays = Rays(*(getattr(rays, name)[keep.sort().values] for name in Rays.__dataclass_fields__))
-        if self.denoise_k and len(rays.hit) >= 6:  # a quadric needs 6 hits
-            rays = denoise_hits(rays, min(self.denoise_k, len(rays.hit)))
+        if self.denoise_k:
+            rays = denoise_hits(rays, self.denoise_k)
         scale = normalization.scale
         unit = Rays(normalization.to_unit(rays.origins.double()).float(), rays.directions, rays.hit / scale,
                     rays.sigma / scale, rays.cosine.clamp_min(0.05), rays.normals)
