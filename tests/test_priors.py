@@ -6,10 +6,10 @@ import functools
 import numpy as np
 import pytest
 import torch
-from torch import nn
+from torch import Tensor, nn
 
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.losses import clamped_l1
+from neuralsurf.losses import clamped_l1, eikonal_loss
 from neuralsurf.models import (
     SDFMLP,
     AutoDecoder,
@@ -250,6 +250,26 @@ def test_latent_prior_pulls_the_code_to_zero_and_needs_a_code():
         LatentPrior().prepare(Normalization(), 0.55, torch.device("cpu"), 0).losses(decoder, None)
     with pytest.raises(InputError, match="own code"):
         model(torch.zeros(2, 3), torch.zeros(3))
+
+
+def test_eikonal_term_has_no_gradient_in_the_code_of_a_frozen_relu_decoder():
+    """Why the one-view latent fit (`complete_view`) has no eikonal term: grad_x f of a ReLU decoder is
+    piecewise constant in its code, so the term cannot move the code."""
+    def code_gradients(activation: str) -> tuple[Tensor, Tensor]:
+        torch.manual_seed(0)
+        decoder = SDFMLP(width=32, depth=4, skip_layers=(2,), activation=activation, softplus_beta=10.0,
+                         latent_dim=8, geometric_init=False).requires_grad_(False)  # code weights not zero
+        model = LatentConditioned.from_code(decoder, 0.1 * torch.randn(8))
+        points = (torch.rand(512, 3) - 0.5).requires_grad_(True)
+        (gradient,) = torch.autograd.grad(model(points).sum(), points, create_graph=True)
+        (of_eikonal,) = torch.autograd.grad(eikonal_loss(gradient), model.code)
+        (of_values,) = torch.autograd.grad(model(points).square().mean(), model.code)
+        return of_eikonal, of_values
+
+    of_eikonal, of_values = code_gradients("relu")
+    assert torch.count_nonzero(of_eikonal) == 0 and of_values.abs().min() > 0
+    of_eikonal, _ = code_gradients("softplus")  # a smooth decoder's gradient does depend on the code
+    assert of_eikonal.abs().min() > 0
 
 
 @pytest.mark.slow
