@@ -219,10 +219,9 @@ def complete_cloud(prior: nn.Module, points: Tensor, *, latent_steps: int = 200,
     raise ConfigError(f"complete_cloud takes an AutoDecoder or OccupancyNetwork, got {type(prior).__name__}")
 
 
-# the ray term weights and options the one-view completion figures (README, priors) were measured with.
-# No eikonal term: under a frozen ReLU decoder its gradient in the code is zero (the code only shifts
-# pre-activations, so grad_x f is piecewise constant in it); it cost a double backward for nothing
-# (a test chair, mug and lamp: the same meshes, 28 s instead of 49 s a shape on the 2-core CPU).
+# the one-view latent fit's ray terms and options (the README's shapes_one_view figures). No eikonal term:
+# under a frozen ReLU decoder its gradient in the code is zero (grad_x f is piecewise constant in it), so
+# it only cost a double backward (same meshes, 28 s instead of 49 s a shape on the 2-core CPU).
 COMPLETION_RAY_WEIGHTS = {"surface": 1.0, "band": 1.0, "free": 1.0, "carve": 1.0}
 COMPLETION_RAY_OPTIONS = {"hit_fraction": 0.0, "carve_margin": 0.0, "winding_points": 0, "denoise_k": 0}
 
