@@ -50,7 +50,7 @@ def format_table(metrics: dict[str, float]) -> str:
 
 RESULT_KEYS = ("data", "model", "observation", "optimizer", "seed")
 """Config sections that change what a fit computes (with the trainer's keys below)."""
-TRAINER_BOOKKEEPING = ("resume", "progress", "log_every", "image_every", "mesh_every", "checkpoint_every")
+TRAINER_BOOKKEEPING = ("resume", "progress", "log_every", "image_every", "mesh_every", "checkpoint_every", "cuda_graph")
 
 
 def config_differences(stored: dict, current: dict) -> list[str]:

@@ -18,6 +18,7 @@ from torch import nn
 from neuralsurf.devices import resolve_device
 from neuralsurf.distributed import mean_over_ranks, rank_and_world
 from neuralsurf.errors import CheckpointError, ConfigError, InputError, NeuralsurfError
+from neuralsurf.graphs import GraphedStep, graphable
 from neuralsurf.models.field import NormalizedField
 from neuralsurf.models.spec import REBUILDABLE, build_model, model_spec
 from neuralsurf.observations import Observation, PointSamples, union_bounds
@@ -190,6 +191,7 @@ def fit(
     checkpoint_every: int = 500,
     config: dict | None = None,
     progress: bool = True,
+    cuda_graph: bool = True,
 ) -> FitResult:
     """Fit `model` (unit frame, x[..., 3] -> sdf) to `observations` (world frame) and return a FitResult.
 
@@ -205,6 +207,8 @@ def fit(
     Under torchrun (a process group, `neuralsurf.distributed`) the gradients are averaged over the
     processes by DistributedDataParallel, the logged values are their means, and only rank 0 writes
     checkpoints and TensorBoard events (every rank resumes from them).
+    With `cuda_graph`, a fit on one GPU replays its step as a CUDA graph (`neuralsurf.graphs`: the
+    same steps, without the launch cost); a diverged loss is then caught at the next logging step.
     """
     if not (isinstance(steps, int) and not isinstance(steps, bool) and steps >= 1):
         raise ConfigError(f"fit needs an integer steps >= 1, got {steps!r}")
@@ -254,7 +258,7 @@ def fit(
         if checkpoint_path is None or rank != 0:
             return
         save_checkpoint(checkpoint_path, {
-            **field_state(model, normalization, margin, step), "optimizer": optimizer.state_dict(),
+            **field_state(model, normalization, margin, step), "optimizer": _portable(optimizer.state_dict()),
             "scheduler": scheduler.state_dict(), "generator": generator.get_state(),
             "torch_rng": torch.get_rng_state(), "history": history, "seconds": seconds, "config": config or {},
         })
@@ -270,25 +274,43 @@ def fit(
     loss_terms = LossTerms(model, observations, samplers)
     if world > 1:  # after the resume: its broadcast of rank 0's weights also waits for every rank's reading
         loss_terms = torch.nn.parallel.DistributedDataParallel(loss_terms)
+
+    def forward(batches: list) -> tuple[dict, torch.Tensor]:
+        terms = loss_terms(batches)
+        return terms, sum(weights[name] * value for name, value in terms.items())
+
+    def update(total: torch.Tensor) -> None:
+        optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        optimizer.step()
+
+    def forward_and_update(batches: list) -> tuple[dict, torch.Tensor]:
+        terms, total = forward(batches)
+        update(total)  # detached below: a kept autograd graph would tie the next step to this one's stream
+        return {name: value.detach() for name, value in terms.items()}, total.detach()
+
+    graphed = (GraphedStep(forward_and_update, optimizer, device)
+               if cuda_graph and graphable(optimizer, device, world) else None)
     try:
         for step in bar:
-            terms = loss_terms([sampler.sample(generator) for sampler in samplers])
-            total = sum(weights[name] * value for name, value in terms.items())
-            if not torch.isfinite(total):
-                checkpoint(step, seconds_before + time.perf_counter() - started)
-                bad = [name for name, value in terms.items() if not torch.isfinite(value)]
-                raise NeuralsurfError(
-                    f"the fit diverged: loss became {total.item()} at step {step} (terms {bad}); lower the "
-                    f"learning rate (optimizer.lr, trainer.encoding_lr) or check the input for outliers"
-                )
-            optimizer.zero_grad(set_to_none=True)
-            total.backward()
-            optimizer.step()
+            batches = [sampler.sample(generator) for sampler in samplers]
+            if graphed is None:
+                terms, total = forward(batches)
+                if not torch.isfinite(total):
+                    checkpoint(step, seconds_before + time.perf_counter() - started)
+                    raise _diverged(terms, total, step)
+                update(total)
+            else:
+                terms, total = graphed(batches)
             scheduler.step()
+            if graphed is not None:
+                graphed.set_learning_rates()
             window_steps += 1
 
             done = step + 1
             if done % log_every == 0 or done == steps:
+                if not torch.isfinite(total):  # a graphed step: its update is applied, so no checkpoint
+                    raise _diverged(terms, total, step)
                 now = time.perf_counter()
                 record = mean_over_ranks({name: float(value.detach()) for name, value in terms.items()}
                                          | {"total": float(total.detach())})
@@ -321,6 +343,22 @@ def fit(
         writer.close()
     return FitResult(model, normalization, world_field.eval(), history, max(done, start_step),
                      seconds_before + time.perf_counter() - started)
+
+
+def _diverged(terms: dict, total: torch.Tensor, step: int) -> NeuralsurfError:
+    bad = [name for name, value in terms.items() if not torch.isfinite(value)]
+    return NeuralsurfError(
+        f"the fit diverged: loss became {total.item()} at step {step} (terms {bad}); lower the "
+        f"learning rate (optimizer.lr, trainer.encoding_lr) or check the input for outliers"
+    )
+
+
+def _portable(optimizer_state: dict) -> dict:
+    """An optimiser's state dict that loads on any device: a CUDA graph's `capturable` switched off."""
+    for group in optimizer_state["param_groups"]:
+        if "capturable" in group:
+            group["capturable"] = False
+    return optimizer_state
 
 
 def _check_converged(history: dict[str, list[float]]) -> None:

@@ -92,3 +92,18 @@ def test_free_space_signs_survive_a_patch_of_flipped_normals():
     assert wrong[0] > 0.02 and wrong[2000] == 0.0, wrong  # measured: 2.7 % and 0
     with pytest.raises(InputError, match="winding_points"):
         make_sdf_samples(cloud, winding_points=-1)
+
+
+def test_brute_force_knn_matches_the_kd_tree():
+    """The GPU's path (here on the CPU, in many chunks) against the k-d tree: the same neighbours, the
+    same distances."""
+    from neuralsurf.geometry import _brute_knn, _kd_tree, _tree_knn
+
+    generator = torch.Generator().manual_seed(0)
+    points = torch.rand(3000, 3, generator=generator)
+    query = 1.4 * torch.rand(2000, 3, generator=generator) - 0.2
+    for k in (1, 5):
+        distance, index = _brute_knn(query, points, k, chunk_bytes=2**16)
+        reference, reference_index = _tree_knn(_kd_tree(points), query, k)
+        assert torch.allclose(distance, reference, atol=1e-6)
+        assert (index == reference_index).float().mean() > 0.999

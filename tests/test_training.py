@@ -135,3 +135,21 @@ def test_cosine_schedule():
     assert cosine_schedule(50, 100, 0, 0.01) == pytest.approx(0.505)
     assert cosine_schedule(100, 100, 0, 0.01) == pytest.approx(0.01)
     assert cosine_schedule(4, 100, 10, 0.0) == pytest.approx(0.5)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_a_fit_replayed_as_a_cuda_graph_matches_the_eager_fit_and_resumes_on_a_cpu(tmp_path):
+    """The graph replays the same steps: the losses follow the eager run's (GPU atomics reorder sums, so
+    not to the bit), no step fell back to eager, and its checkpoint loads on a CPU."""
+    import warnings
+
+    options = {**TINY, "device": "cuda", "log_every": 1}
+    eager = fit(tiny_model(), points(sphere_cloud()), steps=40, cuda_graph=False, **options)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message="the fit's step runs without a CUDA graph")
+        graphed = fit(tiny_model(), points(sphere_cloud()), steps=40, run_dir=tmp_path, **options)
+    a, b = torch.tensor(eager.history["total"]), torch.tensor(graphed.history["total"])
+    assert torch.allclose(a, b, rtol=1e-2), (a, b)
+    assert b[-1] < 0.5 * b[0]
+    resumed = fit(tiny_model(), points(sphere_cloud()), steps=50, run_dir=tmp_path, **{**TINY, "log_every": 1})
+    assert resumed.steps == 50 and resumed.history["step"][-1] == 50

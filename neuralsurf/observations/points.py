@@ -190,6 +190,6 @@ class PointSamples(Observation):
         cloud = prepare_cloud(self.cloud, self.normals, self.normal_k, self.denoise)
         samples = make_sdf_samples(normalization.cloud_to_unit(cloud), n_near=self.n_near, n_free=self.n_free,
                                    near_sigmas=self.near_sigmas, box=box, winding_points=self.winding_points,
-                                   seed=seed)
-        return PointSampler(samples.to(device), self.weights, self.batch_size, self.free_fraction, self.clamp,
+                                   seed=seed, device=device)
+        return PointSampler(samples, self.weights, self.batch_size, self.free_fraction, self.clamp,
                             self.off_surface_alpha)
