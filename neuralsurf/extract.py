@@ -211,71 +211,13 @@ def _coarse_to_fine_values(field: Field, grid: Grid, level: float, margin: float
     return values[: grid.shape[0], : grid.shape[1], : grid.shape[2]].contiguous().numpy(), evaluations
 
 
-BRICK = 32
-"""Cells per side of the blocks that marching cubes runs on (`_marching_cubes_in_bricks`)."""
-
-
-def _surface_bricks(values: np.ndarray, level: float, brick: int) -> np.ndarray:
-    """Int[ndarray, "b 3"] indices of the bricks (`brick` cells a side) of the grid of point values
-    Float[ndarray, "X Y Z"] that may hold the `level` set: their points, with their neighbours' on
-    the far side, straddle it."""
-    count = [max(1, math.ceil((n - 1) / brick)) for n in values.shape]
-    pad = [c * brick + brick - n for c, n in zip(count, values.shape)]  # whole bricks plus one more
-    padded = torch.nn.functional.pad(torch.from_numpy(values)[None, None], (0, pad[2], 0, pad[1], 0, pad[0]),
-                                     mode="replicate")[0, 0]
-    blocks = padded.reshape(count[0] + 1, brick, count[1] + 1, brick, count[2] + 1, brick)
-    low, high = blocks.amin((1, 3, 5)), blocks.amax((1, 3, 5))
-    shifts = list(itertools.product((0, 1), repeat=3))
-    low = torch.stack([low[i : i + count[0], j : j + count[1], k : k + count[2]] for i, j, k in shifts]).amin(0)
-    high = torch.stack([high[i : i + count[0], j : j + count[1], k : k + count[2]] for i, j, k in shifts]).amax(0)
-    return ((low < level) & (high > level)).nonzero().numpy()
-
-
-def _marching_cubes_in_bricks(values: np.ndarray, level: float, brick: int = BRICK) -> tuple[np.ndarray, np.ndarray]:
-    """skimage's marching cubes (Lewiner) of Float[ndarray, "X Y Z"] run only on the bricks that hold
-    the level set, then welded where two bricks meet. Each cell's triangles depend on its 8
-    corners alone, so the mesh is the whole grid's (vertex order aside, and vertices placed in
-    brick-local float32, so a little more precisely) at a fraction of the cost (a sphere at 512^3 on a
-    2-core CPU: 3.4 s -> 1.9 s; the rest is Lewiner's work on the surface's cells). A surface that
-    fills most bricks goes to skimage in one call.
-
-    Returns vertices Float64[ndarray, "v 3"] in grid units and faces Int[ndarray, "f 3"] (outward).
-    """
-    from skimage.measure import marching_cubes as skimage_marching_cubes
-
-    bricks = _surface_bricks(values, level, brick)
-    if len(bricks) * brick**3 > values.size / 2 or (values == level).any():
-        # a surface in most bricks (a gyroid) is faster in one call; exact zeros put several vertices on
-        # one grid point, which a weld by position would merge
-        vertices, faces, _, _ = skimage_marching_cubes(values, level, allow_degenerate=False)
-        return vertices.astype(np.float64), faces
-    vertices, faces, count = [], [], 0
-    for corner in bricks * brick:
-        block = values[tuple(slice(c, c + brick + 1) for c in corner)]
-        if min(block.shape) < 2 or not block.min() < level < block.max():
-            continue
-        v, f, _, _ = skimage_marching_cubes(block, level, allow_degenerate=False)
-        vertices.append(v + corner)  # exact: float32 brick coordinates plus integers, in float64
-        faces.append(f + count)
-        count += len(v)
-    vertices, faces = np.concatenate(vertices), np.concatenate(faces)
-    # the two copies of a vertex on a shared brick face are bit-identical (the same edge, the same
-    # in-plane coordinates); each becomes its first copy
-    shared = ((vertices % brick == 0) & (vertices > 0) & (vertices < np.array(values.shape) - 1)).any(1).nonzero()[0]
-    rows = np.ascontiguousarray(vertices[shared]).view(np.dtype((np.void, 24))).ravel()
-    _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
-    target = np.arange(len(vertices))
-    target[shared] = shared[first][inverse.reshape(-1)]
-    kept = target == np.arange(len(vertices))
-    faces = (np.cumsum(kept) - 1)[target][faces]
-    return vertices[kept], faces
-
-
 def marching_cubes(values: np.ndarray, grid: Grid, level: float = 0.0, valid: np.ndarray | None = None) -> Mesh:
     """Float[ndarray, "X Y Z"] values at the grid points -> Mesh of the `level` set (world frame,
     faces oriented towards values above `level`). Cells with a corner where `valid` (Bool[ndarray,
     "X Y Z"]) is False produce no faces (e.g. unobserved TSDF voxels). Raises ExtractionError if no
     face remains."""
+    from skimage.measure import marching_cubes as skimage_marching_cubes
+
     finite = values if valid is None else np.where(valid, values, level + 1.0).astype(values.dtype)
     low, high = float(finite.min()), float(finite.max())
     if not low < level < high:
@@ -283,7 +225,7 @@ def marching_cubes(values: np.ndarray, grid: Grid, level: float = 0.0, valid: np
             f"the field has no {level:g}-level set in the box: its values there lie in [{low:.4g}, {high:.4g}]; "
             f"pass bounds that contain the surface, or a level between those values"
         )
-    vertices, faces = _marching_cubes_in_bricks(finite, level)
+    vertices, faces, _, _ = skimage_marching_cubes(finite, level, allow_degenerate=False)  # outward winding
     if valid is not None:
         cell = np.floor(vertices[faces].mean(1)).astype(np.int64)  # a face lies inside its cell
         cell_valid = ~_cell_extremes(torch.from_numpy(~valid).float())[1].bool().numpy()

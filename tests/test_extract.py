@@ -7,7 +7,6 @@ import warnings
 import numpy as np
 import pytest
 import torch
-import trimesh
 from scipy.spatial import cKDTree
 
 from neuralsurf.errors import ConfigError, ExtractionError, InputError
@@ -359,22 +358,3 @@ def test_marching_cubes_skips_cells_with_invalid_corners():
     assert half.vertices[:, 0].min() >= -grid.spacing
     assert 0.4 * len(full.faces) < len(half.faces) < 0.6 * len(full.faces)
     assert int(half.faces.max()) == len(half.vertices) - 1  # unused vertices are dropped
-
-
-@pytest.mark.parametrize("brick", [8, 12])  # a quarter of the grid's volume in surface bricks
-def test_marching_cubes_in_bricks_is_the_whole_grids_mesh(brick):
-    """Bricks, welded by position, against skimage on the whole grid: the same vertices (to float32
-    rounding), the same number of faces, watertight (a torus off the grid's axes, so that vertices
-    fall on the bricks' shared faces)."""
-    from skimage.measure import marching_cubes as whole
-
-    from neuralsurf.extract import _marching_cubes_in_bricks
-
-    axis = np.linspace(-1, 1, 97)
-    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
-    values = (np.sqrt((np.sqrt((x - 0.03) ** 2 + y**2) - 0.55) ** 2 + (z - 0.01) ** 2) - 0.2).astype(np.float32)
-    expected_vertices, expected_faces, _, _ = whole(values, 0.0, allow_degenerate=False)
-    vertices, faces = _marching_cubes_in_bricks(values, 0.0, brick=brick)
-    assert len(vertices) == len(expected_vertices) and len(faces) == len(expected_faces)
-    assert cKDTree(expected_vertices).query(vertices)[0].max() < 1e-4
-    assert trimesh.Trimesh(vertices, faces, process=False).is_watertight
