@@ -292,7 +292,9 @@ def extract_unit(field: nn.Module, resolution: int) -> Mesh:
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return extract_mesh(clipped_to_cube(field), resolution=resolution, bounds=UNIT_BOUNDS, progress=False)
+        device = next(field.parameters()).device  # the clipped field is a plain function: say where it runs
+        return extract_mesh(clipped_to_cube(field), resolution=resolution, bounds=UNIT_BOUNDS, progress=False,
+                            device=device)
 
 
 def score_completions(prior: nn.Module, shapes: list[TestShape], *, n_points: int = 3000, noise: float = 0.005,

@@ -39,7 +39,9 @@ class LatentCodes(nn.Module):
         """Int[Tensor, "..."] -> Float[Tensor, "... dim"]."""
         if indices.dtype not in (torch.int32, torch.int64):
             raise InputError(f"latent code indices must be integers, got {indices.dtype}")
-        if indices.numel() and (int(indices.min()) < 0 or int(indices.max()) >= len(self)):
+        capturing = indices.is_cuda and torch.cuda.is_current_stream_capturing()  # a CUDA graph cannot wait
+        checkable = indices.numel() and not capturing
+        if checkable and (int(indices.min()) < 0 or int(indices.max()) >= len(self)):
             raise InputError(f"latent code indices must lie in [0, {len(self)}), got {int(indices.min())}.."
                              f"{int(indices.max())}: the index of a shape outside the training collection")
         return self.weight[indices]
