@@ -104,16 +104,17 @@ class GraphedStep:
         for rate, group in zip(self.learning_rates, self.optimizer.param_groups):
             group["lr"] = rate  # recorded as a tensor, so later values reach the replays
         self.optimizer.zero_grad(set_to_none=True)  # the gradients become the graph's own buffers
-        graph = torch.cuda.CUDAGraph()
+        graph, failure = torch.cuda.CUDAGraph(), None
         try:
             with torch.cuda.graph(graph):
                 self.outputs = self.step(static_batches)
         except RuntimeError as error:  # an operation that synchronises or is not allowed in a graph
-            self._disable(f"recording failed ({str(error).splitlines()[0]})")
+            failure = str(error).splitlines()[0]
+        for value, group in zip(floats, self.optimizer.param_groups):
+            group["lr"] = value
+        if failure is not None:
+            self._disable(f"recording failed ({failure})")
             return self._eager(batches)
-        finally:
-            for value, group in zip(floats, self.optimizer.param_groups):
-                group["lr"] = value
         self.graph = graph
         self.graph.replay()
         return self.outputs

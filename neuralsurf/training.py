@@ -208,7 +208,8 @@ def fit(
     processes by DistributedDataParallel, the logged values are their means, and only rank 0 writes
     checkpoints and TensorBoard events (every rank resumes from them).
     With `cuda_graph`, a fit on one GPU replays its step as a CUDA graph (`neuralsurf.graphs`: the
-    same steps, without the launch cost); a diverged loss is then caught at the next logging step.
+    same steps, without the launch cost); a diverged loss is then caught at the next logging or
+    checkpoint step, and that step is not saved.
     """
     if not (isinstance(steps, int) and not isinstance(steps, bool) and steps >= 1):
         raise ConfigError(f"fit needs an integer steps >= 1, got {steps!r}")
@@ -308,9 +309,10 @@ def fit(
             window_steps += 1
 
             done = step + 1
+            saving = done % checkpoint_every == 0 or done == steps
+            if graphed is not None and (saving or done % log_every == 0) and not torch.isfinite(total):
+                raise _diverged(terms, total, step)  # a graphed step's update is applied: no checkpoint of it
             if done % log_every == 0 or done == steps:
-                if not torch.isfinite(total):  # a graphed step: its update is applied, so no checkpoint
-                    raise _diverged(terms, total, step)
                 now = time.perf_counter()
                 record = mean_over_ranks({name: float(value.detach()) for name, value in terms.items()}
                                          | {"total": float(total.detach())})
@@ -329,7 +331,7 @@ def fit(
                 _log_slices(writer, world_field, done)
             if writer is not None and mesh_every and done % mesh_every == 0:
                 _log_mesh(writer, world_field, done)
-            if done % checkpoint_every == 0 or done == steps:
+            if saving:
                 checkpoint(done, seconds_before + time.perf_counter() - started)
     finally:
         for p in frozen:
