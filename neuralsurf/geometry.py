@@ -15,8 +15,8 @@ from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.structures import Mesh, PointCloud
 
 
-# largest query x point count searched by brute force on a GPU (the bunny's 1.25M samples x 100k points
-# take about 0.4 s on an H100); beyond it, and on the CPU, a k-d tree
+# largest query x point count searched by brute force on a GPU (the bunny's sample pool: 1.25M queries x
+# 100k points); beyond it, and on the CPU, a k-d tree
 GPU_BRUTE_FORCE_PAIRS = 2**38
 
 

@@ -132,7 +132,8 @@ def make_sdf_samples(
 ) -> SDFSamples:
     """Build the sample pool of a unit-frame cloud (see `Normalization.cloud_to_unit`) on `device`:
     the random draws are made on the CPU (the same pool on every device), the distances and winding
-    numbers where the pool will live (a GPU's brute-force `knn`: 1.8 s -> 0.4 s for the bunny).
+    numbers where the pool will live (on an H100 the bunny's eager 400-step fit: 7.0 s with the pool built
+    on the CPU, 5.1 s with it built on the GPU by brute-force `knn`).
 
     Near points are split evenly between the Gaussian standard deviations `near_sigmas`. Free points
     far from the cloud take their sign from the winding number of `winding_points` cloud points
