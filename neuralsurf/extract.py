@@ -211,11 +211,14 @@ def _coarse_to_fine_values(field: Field, grid: Grid, level: float, margin: float
     return values[: grid.shape[0], : grid.shape[1], : grid.shape[2]].contiguous().numpy(), evaluations
 
 
-def marching_cubes(values: np.ndarray, grid: Grid, level: float = 0.0, valid: np.ndarray | None = None) -> Mesh:
+def marching_cubes(values: np.ndarray, grid: Grid, level: float = 0.0, valid: np.ndarray | None = None,
+                   device: torch.device | str = "cpu") -> Mesh:
     """Float[ndarray, "X Y Z"] values at the grid points -> Mesh of the `level` set (world frame,
     faces oriented towards values above `level`). Cells with a corner where `valid` (Bool[ndarray,
     "X Y Z"]) is False produce no faces (e.g. unobserved TSDF voxels). Raises ExtractionError if no
-    face remains."""
+    face remains. On a CUDA `device` (and without `valid`) the cubes are marched there
+    (`neuralsurf.marching`: the same vertices as skimage's, ambiguous cells triangulated alike or
+    otherwise); else by skimage's Lewiner marching cubes on the CPU."""
     from skimage.measure import marching_cubes as skimage_marching_cubes
 
     finite = values if valid is None else np.where(valid, values, level + 1.0).astype(values.dtype)
@@ -225,7 +228,12 @@ def marching_cubes(values: np.ndarray, grid: Grid, level: float = 0.0, valid: np
             f"the field has no {level:g}-level set in the box: its values there lie in [{low:.4g}, {high:.4g}]; "
             f"pass bounds that contain the surface, or a level between those values"
         )
-    vertices, faces, _, _ = skimage_marching_cubes(finite, level, allow_degenerate=False)  # outward winding
+    if torch.device(device).type == "cuda" and valid is None:
+        from neuralsurf.marching import marching_cubes_torch
+
+        vertices, faces = (t.cpu().numpy() for t in marching_cubes_torch(torch.from_numpy(finite).to(device), level))
+    else:
+        vertices, faces, _, _ = skimage_marching_cubes(finite, level, allow_degenerate=False)  # outward winding
     if valid is not None:
         cell = np.floor(vertices[faces].mean(1)).astype(np.int64)  # a face lies inside its cell
         cell_valid = ~_cell_extremes(torch.from_numpy(~valid).float())[1].bool().numpy()
@@ -293,7 +301,7 @@ def extract_mesh(
         values = evaluate_grid_points(
             field, grid, _all_points(grid.shape), chunk_size, device, progress, "extract"
         ).reshape(grid.shape)
-    mesh = marching_cubes(values, grid, float(level))
+    mesh = marching_cubes(values, grid, float(level), device=device)
     faces_out = [values[0], values[-1], values[:, 0], values[:, -1], values[:, :, 0], values[:, :, -1]]
     if any((side <= level).any() for side in faces_out):
         warnings.warn(
