@@ -183,13 +183,13 @@ def _coarse_to_fine_values(field: Field, grid: Grid, level: float, margin: float
     when its corners straddle `level` or one lies within margin * d of it. Every point of a cube is
     within d / 2 of a corner, so a field with |grad f| <= 2 * margin cannot reach `level` inside an
     unrefined cell: interpolated values there have the right sign. Returns the values and the
-    number of field evaluations.
+    number of field evaluations. The bookkeeping (interpolation, refinement masks) runs on `device`.
     """
     stride = 2**depth
     index = _all_points(_level_shape(grid, stride)) * stride  # the last layer may overhang the grid
     values = torch.from_numpy(evaluate_grid_points(field, grid, index, chunk_size, device, progress,
                                                    f"extract 1/{depth + 1}"))
-    values = values.reshape(_level_shape(grid, stride))
+    values = values.reshape(_level_shape(grid, stride)).to(device)
     evaluations = len(index)
     active = cells_near_level(values, level, margin * stride * grid.spacing * math.sqrt(3))
     while stride > 1:
@@ -201,14 +201,14 @@ def _coarse_to_fine_values(field: Field, grid: Grid, level: float, margin: float
         children = active.repeat_interleave(2, 0).repeat_interleave(2, 1).repeat_interleave(2, 2)
         children = children[: shape[0] - 1, : shape[1] - 1, : shape[2] - 1]
         todo = _points_of_cells(children)
-        todo_index = todo.nonzero().numpy()
+        todo_index = todo.nonzero().cpu().numpy()
         level_name = f"extract {depth + 1 - int(math.log2(stride))}/{depth + 1}"
         values[todo] = torch.from_numpy(
             evaluate_grid_points(field, grid, todo_index * stride, chunk_size, device, progress, level_name)
-        )
+        ).to(device)
         evaluations += len(todo_index)
         active = children & cells_near_level(values, level, margin * stride * grid.spacing * math.sqrt(3))
-    return values[: grid.shape[0], : grid.shape[1], : grid.shape[2]].contiguous().numpy(), evaluations
+    return values[: grid.shape[0], : grid.shape[1], : grid.shape[2]].contiguous().cpu().numpy(), evaluations
 
 
 def marching_cubes(values: np.ndarray, grid: Grid, level: float = 0.0, valid: np.ndarray | None = None,
