@@ -86,12 +86,12 @@ def marching_cubes_torch(values: Tensor, level: float = 0.0) -> tuple[Tensor, Te
     """
     X, Y, Z = values.shape
     below = values < level
-    case = torch.zeros((X - 1, Y - 1, Z - 1), dtype=torch.long, device=values.device)
+    case = torch.zeros((X - 1, Y - 1, Z - 1), dtype=torch.uint8, device=values.device)  # a byte a cell
     for c, (i, j, k) in enumerate(_CORNERS):
-        case |= below[i : X - 1 + i, j : Y - 1 + j, k : Z - 1 + k].long() << c
+        case |= below[i : X - 1 + i, j : Y - 1 + j, k : Z - 1 + k].to(torch.uint8) << c
     cells = ((case > 0) & (case < 255)).nonzero()  # [n, 3]
     table, counts = case_table(str(values.device))
-    cell_case = case[cells[:, 0], cells[:, 1], cells[:, 2]]
+    cell_case = case[cells[:, 0], cells[:, 1], cells[:, 2]].long()
     triangles = table[cell_case]  # [n, 5, 3]
     keep = torch.arange(5, device=values.device) < counts[cell_case, None]  # [n, 5]
     edges = triangles[keep]  # [f, 3] cell-local edges
