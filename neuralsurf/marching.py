@@ -33,11 +33,8 @@ def _case_triangles(case: int) -> list[tuple[int, int, int]]:
     following = {}  # each crossed edge -> the next crossed edge along the level set's loop
     for face in _FACES:
         for i, corner in enumerate(face):
-            if not inside[corner]:
-                continue
-            # walk the run of inside corners that starts here (a run starts after an outside corner)
-            if inside[face[i - 1]]:
-                continue
+            if not inside[corner] or inside[face[i - 1]]:
+                continue  # runs of inside corners are walked from their first corner, after an outside one
             j = i
             while inside[face[(j + 1) % 4]]:
                 j += 1
