@@ -21,6 +21,7 @@ _CORNERS = [(c & 1, c >> 1 & 1, c >> 2 & 1) for c in range(8)]
 _EDGES = [(a, a | 1 << axis) for axis in range(3) for a in range(8) if not a >> axis & 1]
 # faces as corner cycles, counter-clockwise seen from outside the cell
 _FACES = [(0, 4, 6, 2), (1, 3, 7, 5), (0, 1, 5, 4), (2, 6, 7, 3), (0, 2, 3, 1), (4, 5, 7, 6)]
+_EDGE_FACES = [{f for f, face in enumerate(_FACES) if set(edge) <= set(face)} for edge in _EDGES]  # two each
 
 
 def _edge(a: int, b: int) -> int:
@@ -55,10 +56,9 @@ def _fan_start(loop: list[int]) -> list[int]:
     """The loop rotated so that its fan's diagonals never join two edges of one cube face: the cell
     across that face could draw the same diagonal, and the mesh edge would have four triangles.
     (Every loop of the 256 cases has such a rotation.)"""
-    faces = [{f for f, face in enumerate(_FACES) if set(_EDGES[e]) <= set(face)} for e in range(12)]
     for r in range(len(loop)):
         rotated = loop[r:] + loop[:r]
-        if all(not faces[rotated[0]] & faces[rotated[k]] for k in range(2, len(loop) - 1)):
+        if all(not _EDGE_FACES[rotated[0]] & _EDGE_FACES[rotated[k]] for k in range(2, len(loop) - 1)):
             return rotated
     raise AssertionError(f"no fan without a face diagonal for loop {loop}")
 
