@@ -4,15 +4,17 @@ mesh lies from VoxelBlockGrid's (median distance of our vertices to its vertices
 
     python benchmarks/bench_tsdf.py                       # the bunny and 7-Scenes redkitchen
     python benchmarks/bench_tsdf.py --skip-7scenes        # the bunny only (no real data needed)
-    python benchmarks/bench_tsdf.py --threads 2           # our torch threads (default 1, TSDFVolume's)
+    python benchmarks/bench_tsdf.py --threads 2           # our torch threads (default TSDFVolume's "auto")
 
 Settings shared by all: the same frames, voxel size and truncation (3 voxels), grids that coincide
 (ours starts on a multiple of the voxel size, as Open3D's grids do), blocks of 8^3 voxels, meshes of
 every voxel observed at least once (VoxelBlockGrid: weight_threshold 0; its default, 3, keeps voxels
 seen 4 times or more). VoxelBlockGrid runs as Open3D's examples do (compute_unique_block_coordinates,
 then integrate, per frame; Open3D's own threads, all cores); ours runs TSDFVolume's defaults (band
-only, free_space 0; torch on one thread). Times cover integration only; frames are decoded and
-converted before. Rows run round robin, best of --repeats, so that load from other processes hits
+only, free_space 0; eager, torch on one thread) and, as "compiled", TSDFVolume(compiled=True) (torch.compile,
+torch's threads): its one-time compilation runs on two frames before the timed run and is printed
+apart ("warm-up s"; torch caches compiled code on disk, so runs after the first compile less). Times
+cover integration only; frames are decoded and converted before. Rows run round robin, best of --repeats, so that load from other processes hits
 them alike; the load average is printed. On CUDA (VoxelBlockGrid and ours): bench_tsdf_cuda.py.
 
 Bunny: 24 exact 320 x 240 views from `scan_depth`, voxel = longest side of the box / 256; also the
@@ -45,6 +47,8 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("NEURALSURF_DATA", ROOT.parent / "shared" / "data"))
 KITCHEN = DATA / "7scenes_redkitchen_every10"
 MESH_OUT = Path("/tmp/redkitchen_tsdf_1cm.ply")
+WARM_UP: dict[str, float] = {}
+"""Seconds of the last one-time compilation, by method."""
 
 
 def peak_mb() -> float:
@@ -113,7 +117,12 @@ def fuse(method: str, frames, bounds: torch.Tensor, voxel: float, **options) -> 
         for item in inputs:
             volume.integrate(*item)
         return time.perf_counter() - started, volume
-    volume = TSDFVolume(bounds, voxel, truncation, device="cpu", sparse=method == "sparse", **options)
+    options = dict(options, sparse=method != "dense", compiled=method == "compiled")
+    if method == "compiled":  # the one-time compilation, apart
+        started = time.perf_counter()
+        TSDFVolume(bounds, voxel, truncation, device="cpu", **options).integrate(frames[:2], progress=False)
+        WARM_UP[method] = time.perf_counter() - started
+    volume = TSDFVolume(bounds, voxel, truncation, device="cpu", **options)
     started = time.perf_counter()
     volume.integrate(frames, progress=False)
     return time.perf_counter() - started, volume
@@ -132,7 +141,7 @@ def extract(method: str, fused):
 # ------------------------------------------------------------------------------------ bunny
 
 
-def bench_bunny(repeats: int, threads: int) -> None:
+def bench_bunny(repeats: int, threads: int | str) -> None:
     from neuralsurf.metrics import evaluate_mesh
     from neuralsurf.scenes import bunny, scan_depth
 
@@ -142,7 +151,7 @@ def bench_bunny(repeats: int, threads: int) -> None:
     voxel = float((hi - lo).max()) / 256
     bounds = snapped(torch.stack([lo - 8 * voxel, hi + 8 * voxel]), voxel)
     rows = (("vbg", "Open3D VoxelBlockGrid"), ("uniform", "Open3D Uniform"), ("dense", "ours dense"),
-            ("sparse", "ours sparse"))
+            ("sparse", "ours sparse"), ("compiled", "ours sparse compiled"))
     best, fused = {}, {}
     for _ in range(repeats):
         for method, _ in rows:
@@ -163,7 +172,7 @@ def bench_bunny(repeats: int, threads: int) -> None:
         print(f"{label:22} {ms:>9.1f} {best[method] / best['vbg']:>6.2f}x {len(mesh.vertices):>9,} "
               f"{len(mesh.vertices) / len(reference):>6.3f}x {gap:>10.2f} {chamfer:>17.2e}")
     print("vs VBG: ratio to VoxelBlockGrid (time < 1: faster than it); gap: median distance of the mesh's "
-          "vertices to VoxelBlockGrid's, in voxels")
+          f"vertices to VoxelBlockGrid's, in voxels; compiled: warm-up (compilation) {WARM_UP['compiled']:.1f} s")
 
 
 # ---------------------------------------------------------------------------------- 7-Scenes
@@ -187,7 +196,9 @@ def run_kitchen(config: dict) -> dict:
     mesh = extract(method, fused)
     result = {"ms_per_frame": seconds / len(frames) * 1000, "extract_s": time.perf_counter() - extract_started,
               "vertices": len(mesh.vertices), "peak_mb": max(load_peak, peak_mb()), "fusion_mb": peak_mb() - before}
-    if method in ("dense", "sparse"):
+    if method in WARM_UP:
+        result["warm_up_s"] = WARM_UP[method]
+    if method in ("dense", "sparse", "compiled"):
         result["blocks"] = fused.n_blocks
     if method == "vbg":
         result["blocks"] = int(fused.hashmap().size())
@@ -205,14 +216,15 @@ def run_subprocess(config: dict) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def bench_kitchen(threads: int, repeats: int) -> None:
+def bench_kitchen(threads: int | str, repeats: int) -> None:
     if not KITCHEN.is_dir():
         print(f"\n7-Scenes: skipped, {KITCHEN} not found (set NEURALSURF_DATA)")
         return
     runs = []
     for voxel in (0.01, 0.02):
         cm = f"{voxel * 100:.0f} cm"
-        runs += [(f"Open3D VBG {cm}", "vbg", voxel), (f"ours sparse {cm}", "sparse", voxel)]
+        runs += [(f"Open3D VBG {cm}", "vbg", voxel), (f"ours sparse {cm}", "sparse", voxel),
+                 (f"ours compiled {cm}", "compiled", voxel)]
         if voxel == 0.02:
             runs += [(f"ours dense {cm}", "dense", voxel), (f"Open3D Uniform {cm}", "uniform", voxel)]
     print(f"\n7-Scenes redkitchen (100 frames 640x480), truncation 3 voxels, one subprocess per row and run, "
@@ -228,7 +240,7 @@ def bench_kitchen(threads: int, repeats: int) -> None:
                     rows[label] = row
                 rows[label]["vertices_file"] = config["vertices"]
         header = (f"{'method':22} {'ms/frame':>9} {'vs VBG':>7} {'vertices':>10} {'vs VBG':>7} {'gap (vox)':>10} "
-                  f"{'blocks':>7} {'extract s':>10} {'fusion MB':>10} {'peak MB':>8}")
+                  f"{'blocks':>7} {'extract s':>10} {'fusion MB':>10} {'peak MB':>8} {'warm-up s':>10}")
         print(header + "\n" + "-" * len(header))
         for label, method, voxel in runs:
             row, reference = rows[label], rows[f"Open3D VBG {voxel * 100:.0f} cm"]
@@ -236,7 +248,8 @@ def bench_kitchen(threads: int, repeats: int) -> None:
             blocks = f"{row['blocks']:,}" if "blocks" in row else "-"
             print(f"{label:22} {row['ms_per_frame']:>9.1f} {row['ms_per_frame'] / reference['ms_per_frame']:>6.2f}x "
                   f"{row['vertices']:>10,} {row['vertices'] / reference['vertices']:>6.3f}x {gap:>10.2f} {blocks:>7} "
-                  f"{row['extract_s']:>10.1f} {row['fusion_mb']:>10.0f} {row['peak_mb']:>8.0f}")
+                  f"{row['extract_s']:>10.1f} {row['fusion_mb']:>10.0f} {row['peak_mb']:>8.0f} "
+                  f"{row.get('warm_up_s', 0):>10.1f}")
     print("gap: median distance of the mesh's vertices to VoxelBlockGrid's, in voxels; blocks: allocated; fusion MB: "
           "peak RSS during fusion + extraction minus the RSS before")
     print(f"mesh for a look: {MESH_OUT}")
@@ -246,7 +259,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--threads", type=int, default=1, help="our torch threads (TSDFVolume(threads=...))")
+    parser.add_argument("--threads", type=int, default=None, help="our torch threads (default: TSDFVolume's)")
     parser.add_argument("--repeats", type=int, default=3, help="bunny: best of this many integrations")
     parser.add_argument("--kitchen-repeats", type=int, default=2, help="7-Scenes: best of this many runs")
     parser.add_argument("--skip-7scenes", action="store_true")
@@ -259,13 +272,14 @@ def main() -> None:
     import open3d as o3d
 
     print(
-        f"torch {torch.__version__} (ours on {args.threads} thread(s)), open3d {o3d.__version__} (its own threads), "
+        f"torch {torch.__version__} (ours on {args.threads or 'auto'} thread(s)), open3d {o3d.__version__} (its own threads), "
         f"{os.cpu_count()} CPU cores, CPU only; load average {os.getloadavg()[0]:.1f} at the start"
     )
+    threads = args.threads or "auto"
     if not args.skip_bunny:
-        bench_bunny(args.repeats, args.threads)
+        bench_bunny(args.repeats, threads)
     if not args.skip_7scenes:
-        bench_kitchen(args.threads, args.kitchen_repeats)
+        bench_kitchen(threads, args.kitchen_repeats)
     print(f"load average at the end: {os.getloadavg()[0]:.1f}")
 
 

@@ -348,7 +348,7 @@ def test_candidate_blocks_of_several_frames_are_each_frames_own(sphere_frames):
 
 
 def test_compiled_fusion_equals_eager_fusion(sphere_frames):
-    """compiled=True runs `tile_box_codes` and `fuse_blocks` through torch.compile: the same candidate
+    """compiled=True runs `tile_box_codes`, `first_in_raster` and `fuse_blocks` through torch.compile: the same candidate
     blocks and the same fused values (depth weights, a weight cap, colour) as the same code run eagerly
     with the same tiles, and a mesh within a hundredth of a voxel of the eager default's."""
     from neuralsurf.baselines import tsdf
@@ -364,7 +364,8 @@ def test_compiled_fusion_equals_eager_fusion(sphere_frames):
         blocks = [
             candidate_blocks(frames.depth[:1], frames.K[:1], rotation.float(), translation.float(), volume.truncation,
                              0.0, 8, volume.block_counts, box_codes, tile)[0]
-            for box_codes in (tsdf.tile_box_codes, tsdf._COMPILED[tsdf.tile_box_codes])
+            for box_codes in ((tsdf.tile_box_codes, tsdf.first_in_raster),
+                              (tsdf._COMPILED[tsdf.tile_box_codes], tsdf._COMPILED[tsdf.first_in_raster]))
         ]
         assert len(blocks[0]) > 20 and torch.equal(*blocks)
     compiled = make(True)
@@ -395,7 +396,7 @@ def test_a_failed_compilation_warns_and_fuses_eagerly(sphere_frames, monkeypatch
         return fail
 
     monkeypatch.setattr(torch, "compile", no_compiler)
-    monkeypatch.setattr(tsdf, "_COMPILED", {f: tsdf.CompiledOnCPU(f) for f in (tsdf.tile_box_codes, tsdf.fuse_blocks)})
+    monkeypatch.setattr(tsdf, "_COMPILED", {f: tsdf.CompiledOnCPU(f) for f in tsdf._COMPILED})
     with pytest.warns(UserWarning, match="C\\+\\+ compiler"):
         compiled = TSDFVolume(BOX, VOXEL, device="cpu", compiled=True).integrate(sphere_frames[:4])
     monkeypatch.setitem(tsdf._TILE, "eager", tsdf._TILE["compiled"])
