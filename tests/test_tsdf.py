@@ -348,7 +348,7 @@ def test_candidate_blocks_of_several_frames_are_each_frames_own(sphere_frames):
 
 
 def test_compiled_fusion_equals_eager_fusion(sphere_frames):
-    """compiled=True runs `tile_box_codes`, `first_in_raster` and `fuse_blocks` through torch.compile: the same candidate
+    """compiled=True runs `tile_box_codes` and `fuse_blocks` through torch.compile: the same candidate
     blocks and the same fused values (depth weights, a weight cap, colour) as the same code run eagerly
     with the same tiles, and a mesh within a hundredth of a voxel of the eager default's."""
     from neuralsurf.baselines import tsdf
@@ -364,8 +364,7 @@ def test_compiled_fusion_equals_eager_fusion(sphere_frames):
         blocks = [
             candidate_blocks(frames.depth[:1], frames.K[:1], rotation.float(), translation.float(), volume.truncation,
                              0.0, 8, volume.block_counts, box_codes, tile)[0]
-            for box_codes in ((tsdf.tile_box_codes, tsdf.first_in_raster),
-                              (tsdf._COMPILED[tsdf.tile_box_codes], tsdf._COMPILED[tsdf.first_in_raster]))
+            for box_codes in (tsdf.tile_box_codes, tsdf._COMPILED[tsdf.tile_box_codes])
         ]
         assert len(blocks[0]) > 20 and torch.equal(*blocks)
     compiled = make(True)

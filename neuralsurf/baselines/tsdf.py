@@ -278,8 +278,9 @@ def tile_box_codes(
     Returns:
         Int64[Tensor, "f h/tile w/tile"]: (frame * blocks + key) * 8 + bits, with key = (i * ny + j) * nz
         + k the box's first block (clipped to the volume) and bits (4, 2, 1 for i, j, k) the axes on which
-        it meets two blocks; _WIDE where it meets more than two on an axis; _NO_BLOCK where the tile has
-        no box (no valid depth, or a piece outside the volume).
+        it meets two blocks; _WIDE where it meets more than two on an axis; _NO_BLOCK where the tile adds
+        no box (no valid depth, a piece outside the volume, or the box of its left or upper neighbour:
+        each box stays at its first tile, so a frame gives a few thousand boxes, not 300,000).
     """
     frames, height, width = depth.shape
     pool = torch.nn.functional.max_pool2d
@@ -303,16 +304,11 @@ def tile_box_codes(
         key = key * block_counts[axis].long() + first.long()
         bits = bits * 2 + (last > first).long()
     frame = torch.arange(frames, device=depth.device)[:, None, None]
-    return torch.where(inside, torch.where(wide, _WIDE, (frame * block_counts.prod().long() + key) * 8 + bits), _NO_BLOCK)
-
-
-def first_in_raster(codes: Tensor) -> Tensor:
-    """Int64[Tensor, "f r c"] `tile_box_codes` -> the same with _NO_BLOCK where the left or upper neighbour
-    has the same box: each box stays at its first tile in raster order, so a frame gives a few thousand
-    boxes, not 300,000. (Apart from `tile_box_codes`, so that compiled, its codes are computed once.)"""
-    left = torch.nn.functional.pad(codes[:, :, :-1], (1, 0), value=_NO_BLOCK)
-    up = torch.nn.functional.pad(codes[:, :-1], (0, 0, 1, 0), value=_NO_BLOCK)
-    return torch.where((codes >= 0) & ((codes == left) | (codes == up)), _NO_BLOCK, codes)
+    code = torch.where(inside, torch.where(wide, _WIDE, (frame * block_counts.prod().long() + key) * 8 + bits), _NO_BLOCK)
+    # a box is kept at its first tile in raster order: neither its left nor its upper neighbour has it
+    left = torch.nn.functional.pad(code[:, :, :-1], (1, 0), value=_NO_BLOCK)
+    up = torch.nn.functional.pad(code[:, :-1], (0, 0, 1, 0), value=_NO_BLOCK)
+    return torch.where((code >= 0) & ((code == left) | (code == up)), _NO_BLOCK, code)
 
 
 def candidate_blocks(
@@ -324,14 +320,14 @@ def candidate_blocks(
     free_space: float,
     block_size: int,
     block_counts: Tensor,
-    box_codes=(tile_box_codes, first_in_raster),
+    box_codes=tile_box_codes,
     tile: int = _TILE["eager"],
 ) -> tuple[Tensor, Tensor | None]:
     """The blocks that the bands of some frames touch: those meeting the segment z in
     [d - truncation - free_space, d + truncation] of a valid pixel's footprint (depth d).
 
-    The boxes of image tiles of tile x tile pixels (`tile_box_codes`, then `first_in_raster`; `box_codes`
-    are these functions, compiled or not):
+    The boxes of image tiles of tile x tile pixels (`tile_box_codes`; `box_codes` is that function,
+    compiled or not):
     the distinct ones give their blocks; a tile whose box spans more than two blocks on an axis (a depth
     edge, a grazing view, a long segment) gives the boxes of its pixels, enumerated by `box_keys`. So the
     candidates hold every block that a pixel's segment meets, and few more.
@@ -350,11 +346,11 @@ def candidate_blocks(
     frames, height, width = depth.shape
     total = int(block_counts.prod())
     ny, nz = int(block_counts[1]), int(block_counts[2])
-    depth = torch.nn.functional.pad(depth, (0, -width % tile, 0, -height % tile))
+    if width % tile or height % tile:
+        depth = torch.nn.functional.pad(depth, (0, -width % tile, 0, -height % tile))
     pixel_to_grid = rotation @ torch.linalg.inv(K)
     band = torch.tensor([truncation + free_space, truncation, block_size], dtype=depth.dtype, device=depth.device)
-    codes = box_codes[0](depth, pixel_to_grid, translation, band, block_counts.to(depth.device, depth.dtype), tile)
-    codes = box_codes[1](codes).view(-1)
+    codes = box_codes(depth, pixel_to_grid, translation, band, block_counts.to(depth.device, depth.dtype), tile).view(-1)
     tiles = (codes != _NO_BLOCK).nonzero()[:, 0]
     codes = codes[tiles]
     boxes = codes[codes >= 0]  # with some repeats (boxes met again further on), as their blocks
@@ -506,7 +502,7 @@ class CompiledOnCPU:
         return self.function(*args)
 
 
-_COMPILED = {function: CompiledOnCPU(function) for function in (tile_box_codes, first_in_raster, fuse_blocks)}
+_COMPILED = {function: CompiledOnCPU(function) for function in (tile_box_codes, fuse_blocks)}
 
 
 class TSDFVolume:
@@ -738,8 +734,7 @@ class TSDFVolume:
         compiled = lambda function: _COMPILED[function] if self.compiled else function
         keys, frame_keys = candidate_blocks(
             depth, to(K), to(rotation), to(translation), self.truncation, self.free_space, self.block_size,
-            self.block_counts, (compiled(tile_box_codes), compiled(first_in_raster)),
-            _TILE["compiled" if self.compiled else "eager"],
+            self.block_counts, compiled(tile_box_codes), _TILE["compiled" if self.compiled else "eager"],
         )
         slots = self._slots_of(keys)
         if self.sparse:  # allocate the blocks these frames touch for the first time
