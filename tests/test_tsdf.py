@@ -367,9 +367,7 @@ def test_compiled_fusion_equals_eager_fusion(sphere_frames):
             for box_codes in (tsdf.tile_box_codes, tsdf._COMPILED[tsdf.tile_box_codes])
         ]
         assert len(blocks[0]) > 20 and torch.equal(*blocks)
-    compiled = make(True)
-    assert compiled._chunk_observations > volume._chunk_observations
-    compiled.integrate(frames)
+    compiled = make(True).integrate(frames)
     with pytest.MonkeyPatch.context() as patch:  # the eager run with the compiled run's tiles
         patch.setitem(tsdf._TILE, "eager", tsdf._TILE["compiled"])
         volume.integrate(frames)
@@ -404,6 +402,25 @@ def test_a_failed_compilation_warns_and_fuses_eagerly(sphere_frames, monkeypatch
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # once: the next call goes straight to the eager function
         TSDFVolume(BOX, VOXEL, device="cpu", compiled=True).integrate(sphere_frames[:1])
+
+
+def test_long_integrations_are_compiled_by_default(sphere_frames, monkeypatch):
+    """compiled=None compiles an integrate call of _COMPILE_PIXELS depth pixels or more, not a shorter one;
+    True and False force it either way."""
+    from neuralsurf.baselines import tsdf
+
+    calls = []
+    spy = lambda function: lambda *args: (calls.append(function.__name__), function(*args))[1]
+    monkeypatch.setattr(tsdf, "_COMPILED", {f: spy(f) for f in tsdf._COMPILED})
+    monkeypatch.setattr(tsdf, "_COMPILE_PIXELS", 4 * 64 * 48)
+    runs = {(None, 3): [], (None, 4): ["tile_box_codes", "fuse_blocks"], (True, 1): ["tile_box_codes", "fuse_blocks"],
+            (False, 24): []}
+    for (compiled, frames), expected in runs.items():
+        calls.clear()
+        TSDFVolume(BOX, VOXEL, device="cpu", compiled=compiled).integrate(sphere_frames[:frames])
+        assert sorted(set(calls)) == sorted(expected), (compiled, frames)
+    with pytest.raises(ConfigError, match="compiled"):
+        TSDFVolume(BOX, VOXEL, compiled="yes")
 
 
 def test_auto_device_is_cpu_without_cuda():

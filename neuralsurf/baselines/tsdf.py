@@ -38,10 +38,10 @@ Integration, a pass of `frames_per_pass` frames at a time (one on a CPU, 32 on a
     arithmetic only (bool tensors are several times slower there), and `integrate` runs torch on
     `threads` threads (eager, 1: many short vectorised ops, whose thread synchronisation costs more
     than it gains on a few cores and stalls badly when other processes hold the cores).
-    `compiled=True` runs the tiles' boxes and the voxel pass as loops compiled by torch.compile
-    (`CompiledOnCPU`) on all of torch's threads: on 7-Scenes at 1 cm, 2 cores, 17-20 ms a frame
-    instead of 57, after a one-time compilation of 20-35 s (about 9 s in later processes, from
-    torch's on-disk cache): for long sequences.
+    Compiled (`compiled`, by default for calls of _COMPILE_PIXELS depth pixels or more), the tiles'
+    boxes and the voxel pass run as loops compiled by torch.compile (`CompiledOnCPU`) on all of torch's
+    threads: on 7-Scenes at 1 cm, 2 cores, 19 ms a frame instead of 56, after a compilation of 20-35 s
+    once per process (about 11 s from torch's on-disk cache when compiled before): for long sequences.
     Stored values are signed distances in metres (not normalised), in [-truncation, truncation].
 
 Extraction
@@ -250,6 +250,10 @@ def box_keys(lo: Tensor, hi: Tensor, block_counts: Tensor, tags: Tensor | None =
     return torch.cat(keys)
 
 
+_COMPILE_PIXELS = 300 * 640 * 480
+"""TSDFVolume(compiled=None) compiles an `integrate` call on a CPU from this many depth pixels on. Measured on
+7-Scenes at 1 cm, 2 cores: 56 ms a frame eager, 19 compiled after a compilation of 11 s (from torch's
+on-disk cache; 20-35 s without): compiling pays from about 300 frames of 640 x 480."""
 _TILE = {"compiled": 1, "eager": 2}
 """Pixels per side of the tiles that `candidate_blocks` boxes. Measured on 7-Scenes at 1 cm (one frame:
 tiles of 1 pixel give 2,737 blocks, of 2 pixels 2,782 for a quarter of the vectorised ops, of 4 pixels
@@ -534,7 +538,8 @@ class TSDFVolume:
             when other processes are busy), torch's setting when compiled; None leaves torch's
             setting. Compiled loops keep the thread count of the process's first compiled fusion.
         compiled: on a CPU, compile the fusion with torch.compile (see the module docstring; needs a
-            C++ compiler, else a warning and eager fusion); no effect on a GPU.
+            C++ compiler, else a warning and eager fusion); None: for `integrate` calls of at least
+            _COMPILE_PIXELS depth pixels, where compilation pays for itself. No effect on a GPU.
     """
 
     def __init__(
@@ -552,7 +557,7 @@ class TSDFVolume:
         max_memory: int | None = None,
         frames_per_pass: int | None = None,
         threads: int | str | None = "auto",
-        compiled: bool = False,
+        compiled: bool | None = None,
     ):
         box = as_bounds(bounds)
         voxel_size = _positive(voxel_size, "voxel_size", "a length in metres")
@@ -597,8 +602,10 @@ class TSDFVolume:
                 f"threads must be an integer >= 1, 'auto', or None to keep torch's setting; got {threads!r}"
             )
         self.threads = threads if threads in (None, "auto") else int(threads)
-        self.compiled = bool(compiled) and kind == "cpu"
-        self._chunk_observations = _CHUNK_OBSERVATIONS["compiled" if self.compiled else kind]
+        if compiled not in (None, True, False):
+            raise ConfigError(f"compiled must be True, False or None (compile long integrations), got {compiled!r}")
+        self.compiled = compiled
+        self._chunk_observations = _CHUNK_OBSERVATIONS[kind]
         if kind == "cuda":
             self._chunk_observations = min(self._chunk_observations, available_memory(self.device) // 400)
         points = np.floor((box[1] - box[0]) / voxel_size + 1e-9).astype(np.int64) + 1
@@ -704,14 +711,17 @@ class TSDFVolume:
         depth = frames.depth.to(self.device, non_blocking=True)
         colors = frames.colors.to(self.device, non_blocking=True) if self.with_color else None
         bar = progress_bar(desc="TSDF fusion", total=len(frames), unit="frame", enabled=progress)
-        threads = (None if self.compiled else 1) if self.threads == "auto" else self.threads
-        with torch_threads(threads if self.device.type == "cpu" else None):
-            self._integrate_all(frames, depth, colors, bar)
+        cpu = self.device.type == "cpu"
+        compiled = cpu and (depth.numel() >= _COMPILE_PIXELS if self.compiled is None else self.compiled)
+        threads = (None if compiled else 1) if self.threads == "auto" else self.threads
+        with torch_threads(threads if cpu else None):
+            self._integrate_all(frames, depth, colors, bar, compiled)
         bar.close()
         return self
 
-    def _integrate_all(self, frames: DepthFrames, depth: Tensor, colors: Tensor | None, bar) -> None:
-        """The passes of `integrate` over depth Float[Tensor, "n h w"] and colours (on the device)."""
+    def _integrate_all(self, frames: DepthFrames, depth: Tensor, colors: Tensor | None, bar, compiled: bool) -> None:
+        """The passes of `integrate` over depth Float[Tensor, "n h w"] and colours (on the device),
+        compiled or eager."""
         for start in range(0, len(frames), self.frames_per_pass):
             part = slice(start, start + self.frames_per_pass)
             self._integrate_frames(
@@ -719,22 +729,24 @@ class TSDFVolume:
                 frames.K[part].cpu(),
                 frames.cam_to_world[part].cpu(),
                 None if colors is None else colors[part],
+                compiled,
             )
             self.frames_integrated += len(depth[part])
             bar.update(len(depth[part]))
 
     def _integrate_frames(
-        self, depth: Tensor, K: Tensor, cam_to_world: Tensor, colors: Tensor | None
+        self, depth: Tensor, K: Tensor, cam_to_world: Tensor, colors: Tensor | None, compiled: bool
     ) -> None:
         """Fuse depth images Float[Tensor, "f h w"] seen by K Float[Tensor, "f 3 3"] at cam_to_world
-        Float[Tensor, "f 4 4"] (both on the CPU), colours Float[Tensor, "f h w 3"] | None, in order."""
+        Float[Tensor, "f 4 4"] (both on the CPU), colours Float[Tensor, "f h w 3"] | None, in order;
+        `compiled`: through `_COMPILED` (CPU)."""
         origin = torch.as_tensor(self.origin, dtype=torch.float64)
         rotation, translation = camera_to_grid(cam_to_world, origin, self.voxel_size)
         to = lambda t: t.to(self.device, depth.dtype)
-        compiled = lambda function: _COMPILED[function] if self.compiled else function
+        run = lambda function: _COMPILED[function] if compiled else function
         keys, frame_keys = candidate_blocks(
             depth, to(K), to(rotation), to(translation), self.truncation, self.free_space, self.block_size,
-            self.block_counts, compiled(tile_box_codes), _TILE["compiled" if self.compiled else "eager"],
+            self.block_counts, run(tile_box_codes), _TILE["compiled" if compiled else "eager"],
         )
         slots = self._slots_of(keys)
         if self.sparse:  # allocate the blocks these frames touch for the first time
@@ -749,8 +761,9 @@ class TSDFVolume:
         colors = None if colors is None else pad_image(colors).reshape(-1, 3)
         cap = math.inf if self.max_weight is None else self.max_weight
         limits = torch.tensor([self.truncation, cap], dtype=depth.dtype, device=self.device)
-        fuse = compiled(fuse_blocks)
-        per_chunk = max(1, self._chunk_observations // (voxels * n_frames))
+        fuse = run(fuse_blocks)
+        chunk_observations = _CHUNK_OBSERVATIONS["compiled"] if compiled else self._chunk_observations
+        per_chunk = max(1, chunk_observations // (voxels * n_frames))
         for start in range(0, len(keys), per_chunk):
             chunk, chunk_slots = keys[start : start + per_chunk], slots[start : start + per_chunk]
             frame_mask = None
