@@ -56,6 +56,7 @@ Extraction
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import numbers
 import os
@@ -287,9 +288,9 @@ def tile_box_codes(
         each box stays at its first tile, so a frame gives a few thousand boxes, not 300,000).
     """
     frames, height, width = depth.shape
-    pool = torch.nn.functional.max_pool2d
-    nearest = -pool(torch.where(depth > 0, -depth, -math.inf), tile) if tile > 1 else depth
-    deepest = pool(depth, tile) if tile > 1 else depth
+    pixels = lambda image: [image[:, i::tile, j::tile] for i in range(tile) for j in range(tile)]  # of each tile
+    nearest = functools.reduce(torch.minimum, pixels(torch.where(depth > 0, depth, math.inf)))
+    deepest = functools.reduce(torch.maximum, pixels(depth))
     centres = lambda n: torch.arange(n, device=depth.device, dtype=depth.dtype) * tile + (tile - 1) / 2
     u, v = centres(width // tile), centres(height // tile)[:, None]  # pixel units
     near, far = (nearest - band[0]).clamp_min(1e-6), deepest + band[1]
