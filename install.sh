@@ -14,6 +14,11 @@ extras="data"
 packages=()
 ldconfig -p | grep -q "libusb-1.0.so.0" || packages+=(libusb-1.0-0)
 ldconfig -p | grep -q "libgomp.so.1" || packages+=(libgomp1)
+# A C++ compiler and Python's headers for torch.compile's CPU backend (TSDFVolume's compiled fusion;
+# without them it warns and fuses eagerly, slower).
+command -v g++ >/dev/null || packages+=(g++)
+"$PYTHON" -c "import os, sysconfig; assert os.path.exists(os.path.join(sysconfig.get_paths()['include'], 'Python.h'))" \
+  2>/dev/null || packages+=("$("$PYTHON" -c 'import sys; print(f"python3.{sys.version_info.minor}-dev")')")
 if [ "${1:-}" = "dev" ] && ! command -v chromedriver >/dev/null; then packages+=(chromium chromium-driver); fi
 if [ ${#packages[@]} -gt 0 ]; then
   sudo=""

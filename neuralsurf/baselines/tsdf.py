@@ -332,8 +332,7 @@ def candidate_blocks(
     [d - truncation - free_space, d + truncation] of a valid pixel's footprint (depth d).
 
     The boxes of image tiles of tile x tile pixels (`tile_box_codes`; `box_codes` is that function,
-    compiled or not):
-    the distinct ones give their blocks; a tile whose box spans more than two blocks on an axis (a depth
+    compiled or not) give their blocks; a tile whose box spans more than two blocks on an axis (a depth
     edge, a grazing view, a long segment) gives the boxes of its pixels, enumerated by `box_keys`. So the
     candidates hold every block that a pixel's segment meets, and few more.
 
