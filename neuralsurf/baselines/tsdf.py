@@ -333,8 +333,9 @@ def candidate_blocks(
 
     The boxes of image tiles of tile x tile pixels (`tile_box_codes`; `box_codes` is that function,
     compiled or not) give their blocks; a tile whose box spans more than two blocks on an axis (a depth
-    edge, a grazing view, a long segment) gives the boxes of its pixels, enumerated by `box_keys`. So the
-    candidates hold every block that a pixel's segment meets, and few more.
+    edge, a grazing view, a long segment) gives the boxes of its pixels (`box_codes` again, then
+    `box_keys` for those still wider). So the candidates hold every block that a pixel's segment meets,
+    and few more.
 
     Args:
         depth: Float[Tensor, "f h w"] z-depth (0 = invalid); K: Float[Tensor, "f 3 3"];
@@ -357,27 +358,35 @@ def candidate_blocks(
     codes = box_codes(depth, pixel_to_grid, translation, band, block_counts.to(depth.device, depth.dtype), tile).view(-1)
     tiles = (codes != _NO_BLOCK).nonzero()[:, 0]
     codes = codes[tiles]
-    boxes = codes[codes >= 0]  # with some repeats (boxes met again further on), as their blocks
-    corner = torch.arange(8, device=depth.device)  # bits of the second block taken on each axis
-    step = (corner >> 2) * (ny * nz) + ((corner >> 1) & 1) * nz + (corner & 1)
-    first, bits = boxes[:, None] // 8, boxes[:, None] % 8
-    keys = [torch.where((bits & corner) == corner, first + step, first).view(-1)]
+    boxes = [codes[codes >= 0]]  # with some repeats (boxes met again further on), as their blocks
     wide = tiles[codes == _WIDE]
+    keys = []
     if len(wide):  # the pixels of these tiles, one box each
         rows, columns = depth.shape[1] // tile, depth.shape[2] // tile
+        frame, row, col = wide // (rows * columns), wide // columns % rows * tile, wide % columns * tile
         step = torch.arange(tile, device=depth.device)
-        frame = (wide // (rows * columns))[:, None, None].expand(-1, tile, tile)
-        row = (wide // columns % rows * tile)[:, None, None] + step[:, None]
-        col = (wide % columns * tile)[:, None, None] + step
-        d = depth[frame, row, col]  # (wide, tile, tile)
-        valid = d > 0
-        frame, d = frame[valid], d[valid]
-        u, v = col.expand_as(valid)[valid].to(depth.dtype), row.expand_as(valid)[valid].to(depth.dtype)
+        pixels = depth[frame[:, None, None], row[:, None, None] + step[:, None], col[:, None, None] + step]
+        if tile > 1:  # re-boxed by box_codes as images of tile x tile one-pixel tiles (pixel (u, v) is u + col, v + row)
+            shifted = pixel_to_grid[frame].clone()
+            shifted[:, :, 2] += shifted[:, :, 0] * col[:, None] + shifted[:, :, 1] * row[:, None]
+            codes = box_codes(pixels, shifted, translation[frame], band, block_counts.to(depth.device, depth.dtype), 1)
+            boxes.append((codes % (total * 8) + (frame * total * 8)[:, None, None])[codes >= 0])
+            pixels = torch.where(codes == _WIDE, pixels, 0.0)  # those left for box_keys
+        valid = pixels > 0
+        frame = frame[:, None, None].expand_as(valid)[valid]
+        u = (col[:, None, None] + step).expand_as(valid)[valid].to(depth.dtype)
+        v = (row[:, None, None] + step[:, None]).expand_as(valid)[valid].to(depth.dtype)
+        d = pixels[valid]
         lo, hi = frustum_boxes(
             torch.stack([u - 0.5, u + 0.5, v - 0.5, v + 0.5], 1), (d - truncation - free_space).clamp_min(1e-6),
             d + truncation, pixel_to_grid[frame], translation[frame],
         )
         keys.append(box_keys(torch.floor(lo / block_size), torch.floor(hi / block_size), block_counts, frame * total))
+    boxes = torch.cat(boxes)
+    corner = torch.arange(8, device=depth.device)  # bits of the second block taken on each axis
+    step = (corner >> 2) * (ny * nz) + ((corner >> 1) & 1) * nz + (corner & 1)
+    first, bits = boxes[:, None] // 8, boxes[:, None] % 8
+    keys.append(torch.where((bits & corner) == corner, first + step, first).view(-1))
     frame_keys = _unique_keys(torch.cat(keys), frames * total)
     if frames == 1:
         return frame_keys, None
