@@ -355,7 +355,8 @@ def candidate_blocks(
         depth = torch.nn.functional.pad(depth, (0, -width % tile, 0, -height % tile))
     pixel_to_grid = rotation @ torch.linalg.inv(K)
     band = torch.tensor([truncation + free_space, truncation, block_size], dtype=depth.dtype, device=depth.device)
-    codes = box_codes(depth, pixel_to_grid, translation, band, block_counts.to(depth.device, depth.dtype), tile).view(-1)
+    counts = block_counts.to(depth.device, depth.dtype)
+    codes = box_codes(depth, pixel_to_grid, translation, band, counts, tile).view(-1)
     tiles = (codes != _NO_BLOCK).nonzero()[:, 0]
     codes = codes[tiles]
     boxes = [codes[codes >= 0]]  # with some repeats (boxes met again further on), as their blocks
@@ -369,7 +370,7 @@ def candidate_blocks(
         if tile > 1:  # re-boxed by box_codes as images of tile x tile one-pixel tiles (pixel (u, v) is u + col, v + row)
             shifted = pixel_to_grid[frame].clone()
             shifted[:, :, 2] += shifted[:, :, 0] * col[:, None] + shifted[:, :, 1] * row[:, None]
-            codes = box_codes(pixels, shifted, translation[frame], band, block_counts.to(depth.device, depth.dtype), 1)
+            codes = box_codes(pixels, shifted, translation[frame], band, counts, 1)
             boxes.append((codes % (total * 8) + (frame * total * 8)[:, None, None])[codes >= 0])
             pixels = torch.where(codes == _WIDE, pixels, 0.0)  # those left for box_keys
         valid = pixels > 0
@@ -384,9 +385,9 @@ def candidate_blocks(
         keys.append(box_keys(torch.floor(lo / block_size), torch.floor(hi / block_size), block_counts, frame * total))
     boxes = torch.cat(boxes)
     corner = torch.arange(8, device=depth.device)  # bits of the second block taken on each axis
-    step = (corner >> 2) * (ny * nz) + ((corner >> 1) & 1) * nz + (corner & 1)
+    offset = (corner >> 2) * (ny * nz) + ((corner >> 1) & 1) * nz + (corner & 1)
     first, bits = boxes[:, None] // 8, boxes[:, None] % 8
-    keys.append(torch.where((bits & corner) == corner, first + step, first).view(-1))
+    keys.append(torch.where((bits & corner) == corner, first + offset, first).view(-1))
     frame_keys = _unique_keys(torch.cat(keys), frames * total)
     if frames == 1:
         return frame_keys, None
