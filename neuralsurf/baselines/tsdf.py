@@ -191,31 +191,6 @@ def _unique_keys(keys: Tensor, total: int) -> Tensor:
     return torch.unique(keys)
 
 
-def frustum_boxes(
-    rect: Tensor, near: Tensor, far: Tensor, pixel_to_grid: Tensor, translation: Tensor
-) -> tuple[Tensor, Tensor]:
-    """Grid-frame boxes of frustum pieces: the points whose pixel coordinates lie in a rectangle and
-    whose z lies in [near, far]. Exact: along each axis a point is z times an affine function of
-    (u, v) plus a constant, so its extremes lie at the rectangle's corners and at z = near or far.
-
-    Args:
-        rect: Float[Tensor, "n 4"] pixel-coordinate extents (u0, u1, v0, v1); pixel centres are whole
-            numbers, so pixel (u, v) alone is (u - 0.5, u + 0.5, v - 0.5, v + 0.5).
-        near, far: Float[Tensor, "n"] z range in metres, 0 < near <= far.
-        pixel_to_grid: Float[Tensor, "n 3 3"] (or "1 3 3") rotation @ K^-1: (u, v, 1) -> grid units per
-            metre of z; translation: Float[Tensor, "n 3"] (or "1 3"), the camera centre in grid units.
-    Returns:
-        lo, hi: Float[Tensor, "n 3"] corners of each piece's box in grid units.
-    """
-    u, v = rect[:, [0, 1, 0, 1]], rect[:, [2, 2, 3, 3]]  # (n, 4) rectangle corners
-    rays = torch.stack([u, v, torch.ones_like(u)], -1) @ pixel_to_grid.transpose(1, 2)  # (n, 4, 3)
-    low, high = rays.amin(1), rays.amax(1)
-    near, far = near[:, None], far[:, None]
-    lo = torch.minimum(low * near, low * far) + translation
-    hi = torch.maximum(high * near, high * far) + translation
-    return lo, hi
-
-
 def box_keys(lo: Tensor, hi: Tensor, block_counts: Tensor, tags: Tensor | None = None) -> Tensor:
     """Keys of every block in some boxes: lo, hi Float[Tensor, "n 3"] inclusive block ranges (clipped
     to the volume) -> Int64[Tensor, "k"] linear keys (i * ny + j) * nz + k, with repeats, plus each
@@ -263,23 +238,52 @@ _NO_BLOCK, _WIDE = -1, -2
 """`tile_box_codes` of a tile that adds no box and of one whose box spans more than two blocks on an axis."""
 
 
-def tile_box_codes(
-    depth: Tensor, pixel_to_grid: Tensor, translation: Tensor, band: Tensor, block_counts: Tensor, tile: int
-) -> Tensor:
-    """Each image tile's piece of the band, as the blocks its box meets, in one integer.
+def tile_block_ranges(
+    depth: Tensor, pixel_to_grid: Tensor, translation: Tensor, band: Tensor, tile: int
+) -> tuple[list[Tensor], list[Tensor], Tensor]:
+    """The blocks that the box of each image tile's piece of the band spans.
 
     A tile's piece: the points whose pixel coordinates lie in the footprint of its tile x tile pixels
     and whose z lies in [nearest - band[0], deepest + band[1]] (its smallest and largest valid depths).
-    Its box in grid units is exact (as in `frustum_boxes`: along each axis the extremes lie at the
-    footprint's corners and at the two ends of z), and it holds the pieces of the tile's pixels. With a
-    band thinner than a block, the box of a tile without a depth edge meets one or two blocks per axis.
+    Its box is exact: along each axis a point is z times an affine function of (u, v) plus a constant,
+    so the extremes lie at the footprint's corners and at the two ends of z; it holds the pieces of the
+    tile's pixels.
 
     Args:
         depth: Float[Tensor, "f h w"] z-depth (0 = invalid), h and w multiples of `tile`.
         pixel_to_grid: Float[Tensor, "f 3 3"] rotation @ K^-1; translation: Float[Tensor, "f 3"] the camera
             centre in grid units (x_grid = rotation @ x_camera + translation).
         band: Float[Tensor, "3"] metres in front of and behind the depth, and voxels per block side.
-        block_counts: Float[Tensor, "3"] blocks per axis; tile: pixels per tile side.
+        tile: pixels per tile side.
+    Returns:
+        first, last: per axis, Float[Tensor, "f h/tile w/tile"] the box's first and last block (not clipped to
+        the volume; one tensor an axis, as a tile's three axes side by side vectorise badly); seen:
+        Bool[Tensor, "f h/tile w/tile"] where the tile has a valid depth.
+    """
+    pixels = lambda image: [image[:, i::tile, j::tile] for i in range(tile) for j in range(tile)]  # of each tile
+    nearest = functools.reduce(torch.minimum, pixels(torch.where(depth > 0, depth, math.inf)))
+    deepest = functools.reduce(torch.maximum, pixels(depth))
+    centres = lambda n: torch.arange(n, device=depth.device, dtype=depth.dtype) * tile + (tile - 1) / 2
+    u, v = centres(depth.shape[2] // tile), centres(depth.shape[1] // tile)[:, None]  # pixel units
+    near, far = (nearest - band[0]).clamp_min(1e-6), deepest + band[1]
+    first, last = [], []
+    for axis in range(3):
+        a, b, c = (pixel_to_grid[:, axis, k, None, None] for k in range(3))
+        centre, half = u * a + v * b + c, tile / 2 * (a.abs() + b.abs())  # ray per metre of z, over the tile
+        low, high = centre - half, centre + half
+        shift = translation[:, axis, None, None]
+        first.append(torch.floor((torch.minimum(low * near, low * far) + shift) / band[2]))
+        last.append(torch.floor((torch.maximum(high * near, high * far) + shift) / band[2]))
+    return first, last, deepest > 0
+
+
+def tile_box_codes(
+    depth: Tensor, pixel_to_grid: Tensor, translation: Tensor, band: Tensor, block_counts: Tensor, tile: int
+) -> Tensor:
+    """Each image tile's box (`tile_block_ranges`), clipped to the volume, as one integer. With a band
+    thinner than a block, the box of a tile without a depth edge meets one or two blocks per axis.
+
+    Args: as `tile_block_ranges`, and block_counts: Float[Tensor, "3"] blocks per axis.
     Returns:
         Int64[Tensor, "f h/tile w/tile"]: (frame * blocks + key) * 8 + bits, with key = (i * ny + j) * nz
         + k the box's first block (clipped to the volume) and bits (4, 2, 1 for i, j, k) the axes on which
@@ -287,28 +291,16 @@ def tile_box_codes(
         no box (no valid depth, a piece outside the volume, or the box of its left or upper neighbour:
         each box stays at its first tile, so a frame gives a few thousand boxes, not 300,000).
     """
-    frames, height, width = depth.shape
-    pixels = lambda image: [image[:, i::tile, j::tile] for i in range(tile) for j in range(tile)]  # of each tile
-    nearest = functools.reduce(torch.minimum, pixels(torch.where(depth > 0, depth, math.inf)))
-    deepest = functools.reduce(torch.maximum, pixels(depth))
-    centres = lambda n: torch.arange(n, device=depth.device, dtype=depth.dtype) * tile + (tile - 1) / 2
-    u, v = centres(width // tile), centres(height // tile)[:, None]  # pixel units
-    near, far = (nearest - band[0]).clamp_min(1e-6), deepest + band[1]
-    inside, wide = deepest > 0, torch.zeros_like(deepest, dtype=torch.bool)
-    key = bits = torch.zeros_like(deepest, dtype=torch.int64)
-    for axis in range(3):
-        a, b, c = (pixel_to_grid[:, axis, k, None, None] for k in range(3))
-        centre, half = u * a + v * b + c, tile / 2 * (a.abs() + b.abs())  # ray per metre of z, over the tile
-        low, high = centre - half, centre + half
-        shift = translation[:, axis, None, None]
-        first = torch.floor((torch.minimum(low * near, low * far) + shift) / band[2])
-        last = torch.floor((torch.maximum(high * near, high * far) + shift) / band[2])
+    firsts, lasts, inside = tile_block_ranges(depth, pixel_to_grid, translation, band, tile)
+    wide = torch.zeros_like(inside)
+    key = bits = torch.zeros_like(inside, dtype=torch.int64)
+    for axis, (first, last) in enumerate(zip(firsts, lasts)):
         inside = inside & (last >= 0) & (first < block_counts[axis])
         first, last = first.clamp_min(0), torch.minimum(last, block_counts[axis] - 1)
         wide = wide | (last - first > 1)
         key = key * block_counts[axis].long() + first.long()
         bits = bits * 2 + (last > first).long()
-    frame = torch.arange(frames, device=depth.device)[:, None, None]
+    frame = torch.arange(len(depth), device=depth.device)[:, None, None]
     code = torch.where(inside, torch.where(wide, _WIDE, (frame * block_counts.prod().long() + key) * 8 + bits), _NO_BLOCK)
     # a box is kept at its first tile in raster order: neither its left nor its upper neighbour has it
     left = torch.nn.functional.pad(code[:, :, :-1], (1, 0), value=_NO_BLOCK)
@@ -334,7 +326,7 @@ def candidate_blocks(
     The boxes of image tiles of tile x tile pixels (`tile_box_codes`; `box_codes` is that function,
     compiled or not) give their blocks; a tile whose box spans more than two blocks on an axis (a depth
     edge, a grazing view, a long segment) gives the boxes of its pixels (`box_codes` again, then
-    `box_keys` for those still wider). So the candidates hold every block that a pixel's segment meets,
+    `box_keys` over `tile_block_ranges` for those still wider). So the candidates hold every block that a pixel's segment meets,
     and few more.
 
     Args:
@@ -362,27 +354,20 @@ def candidate_blocks(
     boxes = [codes[codes >= 0]]  # with some repeats (boxes met again further on), as their blocks
     wide = tiles[codes == _WIDE]
     keys = []
-    if len(wide):  # the pixels of these tiles, one box each
+    if len(wide):  # the pixels of these tiles, as images of one-pixel tiles (pixel (u, v) is u + col, v + row)
         rows, columns = depth.shape[1] // tile, depth.shape[2] // tile
         frame, row, col = wide // (rows * columns), wide // columns % rows * tile, wide % columns * tile
         step = torch.arange(tile, device=depth.device)
         pixels = depth[frame[:, None, None], row[:, None, None] + step[:, None], col[:, None, None] + step]
-        if tile > 1:  # re-boxed by box_codes as images of tile x tile one-pixel tiles (pixel (u, v) is u + col, v + row)
-            shifted = pixel_to_grid[frame].clone()
-            shifted[:, :, 2] += shifted[:, :, 0] * col[:, None] + shifted[:, :, 1] * row[:, None]
+        shifted = pixel_to_grid[frame].clone()
+        shifted[:, :, 2] += shifted[:, :, 0] * col[:, None] + shifted[:, :, 1] * row[:, None]
+        if tile > 1:  # their own boxes, mostly narrower
             codes = box_codes(pixels, shifted, translation[frame], band, counts, 1)
             boxes.append((codes % (total * 8) + (frame * total * 8)[:, None, None])[codes >= 0])
-            pixels = torch.where(codes == _WIDE, pixels, 0.0)  # those left for box_keys
-        valid = pixels > 0
-        frame = frame[:, None, None].expand_as(valid)[valid]
-        u = (col[:, None, None] + step).expand_as(valid)[valid].to(depth.dtype)
-        v = (row[:, None, None] + step[:, None]).expand_as(valid)[valid].to(depth.dtype)
-        d = pixels[valid]
-        lo, hi = frustum_boxes(
-            torch.stack([u - 0.5, u + 0.5, v - 0.5, v + 0.5], 1), (d - truncation - free_space).clamp_min(1e-6),
-            d + truncation, pixel_to_grid[frame], translation[frame],
-        )
-        keys.append(box_keys(torch.floor(lo / block_size), torch.floor(hi / block_size), block_counts, frame * total))
+            pixels = torch.where(codes == _WIDE, pixels, 0.0)
+        first, last, seen = tile_block_ranges(pixels, shifted, translation[frame], band, 1)  # the widest
+        tags = (frame * total)[:, None, None].expand_as(seen)
+        keys.append(box_keys(torch.stack(first, -1)[seen], torch.stack(last, -1)[seen], block_counts, tags[seen]))
     boxes = torch.cat(boxes)
     corner = torch.arange(8, device=depth.device)  # bits of the second block taken on each axis
     offset = (corner >> 2) * (ny * nz) + ((corner >> 1) & 1) * nz + (corner & 1)
@@ -1196,7 +1181,6 @@ __all__ = [
     "camera_to_grid",
     "candidate_blocks",
     "depth_bounds",
-    "frustum_boxes",
     "fuse_open3d",
     "fuse_voxel_block_grid",
     "grid_to_pixel",
