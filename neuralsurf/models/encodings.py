@@ -73,25 +73,32 @@ class HashGrid(nn.Module):
         self.bound = bound
         self.out_dim = 3 + levels * features_per_level
         offsets = torch.tensor([0, *sizes]).cumsum(0)
+        if offsets[-1] >= 2**31:
+            raise ConfigError(f"HashGrid's {int(offsets[-1])} table rows exceed int32 indices; lower log2_table_size or levels")
         self.table = nn.Parameter(init_scale * (2 * torch.rand(int(offsets[-1]), features_per_level) - 1))
-        # per level: resolution, table rows, first row, hashed or dense (shaped to broadcast over [n, L, 8])
+        # per level (shaped to broadcast over [n, L, 3, 2]): resolution, and what multiplies each
+        # axis's corner coordinate: (side^2, side, 1) for a dense level, the primes for a hashed one;
+        # levels grow finer, so the dense ones come first
+        self.dense_levels = sum((r + 1) ** 3 <= table for r in resolutions)
+        axis_factors = [[(r + 1) ** 2, r + 1, 1] for r in resolutions[: self.dense_levels]]
+        axis_factors += [list(_PRIMES)] * (levels - self.dense_levels)
         self.register_buffer("resolution", torch.tensor(resolutions)[:, None], persistent=False)
-        self.register_buffer("size", torch.tensor(sizes)[:, None], persistent=False)
-        self.register_buffer("offset", offsets[:-1, None], persistent=False)
-        self.register_buffer("hashed", torch.tensor([(r + 1) ** 3 > table for r in resolutions])[:, None],
-                             persistent=False)
+        self.register_buffer("axis_factors", torch.tensor(axis_factors)[..., None], persistent=False)
+        self.register_buffer("offset", offsets[:-1, None, None, None].int(), persistent=False)
+        self.table_mask = table - 1  # hashed levels have 2^k rows
 
     def _rows(self, low: Tensor) -> Tensor:
-        """Int[Tensor, "n L 3"] low corners of the cells -> Int[Tensor, "n L 2 2 2"] table rows of the
+        """Int[Tensor, "n L 3"] low corners of the cells -> Int32[Tensor, "n L 2 2 2"] table rows of the
         8 corners, indexed [x, y, z] by low (0) or high (1). Each axis's two coordinates are scaled
-        (dense) or multiplied by its prime (hashed) once, then combined by broadcasting."""
-        axes = torch.stack([low, low + 1], -1).unbind(-2)  # 3 x [n, L, 2]
-        side = (self.resolution + 1)[..., None, None]
-        i, j, k = _corners(*axes)
-        dense = (i * side + j) * side + k
-        i, j, k = _corners(*(a * prime for a, prime in zip(axes, _PRIMES)))
-        hashed = (i ^ j ^ k) & (self.size - 1)[..., None, None]  # hashed tables have 2^k rows
-        return torch.where(self.hashed[..., None, None], hashed, dense) + self.offset[..., None, None]
+        (dense: row = x side^2 + y side + z) or multiplied by its prime and masked (hashed: row = the
+        masked products xor-ed, Instant-NGP's hash) once, then combined by broadcasting in int32."""
+        axes = torch.stack([low, low + 1], -1) * self.axis_factors  # [n, L, 3, 2], int64: no overflow
+        dense, hashed = axes.split([self.dense_levels, len(self.axis_factors) - self.dense_levels], 1)
+        i, j, k = _corners(*dense.int().unbind(-2))
+        rows = [i + j + k]
+        i, j, k = _corners(*(hashed & self.table_mask).int().unbind(-2))
+        rows.append(i ^ j ^ k)
+        return torch.cat(rows, 1) + self.offset
 
     def forward(self, x: Tensor) -> Tensor:
         """x[..., 3] in [-bound, bound] (clamped outside) -> [..., out_dim]."""
@@ -101,12 +108,15 @@ class HashGrid(nn.Module):
         cell = position.detach().floor().minimum(self.resolution - 1)
         frac = position - cell  # differentiable in x
         rows = self._rows(cell.long())  # [n, L, 2, 2, 2]
-        # one gather for all levels; index_select's backward (index_add_) is deterministic on a CPU,
-        # where indexing's backward adds with atomics in thread order
-        v = self.table.index_select(0, rows.reshape(-1)).reshape(*rows.shape, -1)  # [n, L, 2, 2, 2, F]
+        # one gather for all levels, each point's 8 corners together (nearby rows: cache-friendly);
+        # index_select's backward (index_add_) is deterministic on a CPU, where indexing's backward
+        # adds with atomics in thread order (and it is ~30x slower with int32 rows)
+        v = self.table.index_select(0, rows.reshape(-1).long()).reshape(*rows.shape, -1)  # [n, L, 2, 2, 2, F]
         # trilinear interpolation as three lerps (x, then y, then z): less than half the work of
-        # weighting all 8 corners, in the forward pass and in the eikonal term's double backward
-        v = torch.lerp(v[:, :, 0], v[:, :, 1], frac[:, :, 0, None, None, None])  # [n, L, 2, 2, F]
-        v = torch.lerp(v[:, :, 0], v[:, :, 1], frac[:, :, 1, None, None])  # [n, L, 2, F]
-        features = torch.lerp(v[:, :, 0], v[:, :, 1], frac[:, :, 2, None]).flatten(1)  # [n, L * F]
+        # weighting all 8 corners, in the forward pass and in the eikonal term's double backward;
+        # unbind, not indexing: its backward stacks the halves instead of filling zeros for each
+        v = torch.lerp(*v.unbind(2), frac[:, :, 0, None, None, None])  # [n, L, 2, 2, F]
+        v = torch.lerp(*v.unbind(2), frac[:, :, 1, None, None])  # [n, L, 2, F]
+        v = torch.lerp(*v.unbind(2), frac[:, :, 2, None])  # [n, L, F]
+        features = v.flatten(1)  # [n, L * F]
         return torch.cat([flat, features], dim=-1).reshape(*x.shape[:-1], self.out_dim)
