@@ -93,7 +93,9 @@ def winding_signs(
     pick = torch.randperm(len(points), generator=torch.Generator().manual_seed(seed))[:n_points]
     subsample, sub_normals = points[pick], normals[pick]
     reach = 3 * cloud_spacing(subsample) if len(subsample) > 1 else math.inf
-    chunk = 512 if query.device.type == "cpu" else 16_384  # a CPU's cache; a GPU's width
+    # a CPU: (chunk, n_points) buffers of ~1.3 MB, which stay in cache (64 rows of 5,000 points: 2x
+    # faster than 512); a GPU: its width
+    chunk = max(16, 320_000 // len(subsample)) if query.device.type == "cpu" else 16_384
     winding = winding_number(query, subsample, sub_normals, point_areas(subsample), chunk=chunk)
     return torch.where(winding < 0.5, 1.0, -1.0), reach
 

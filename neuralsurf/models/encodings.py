@@ -36,11 +36,6 @@ class FourierFeatures(nn.Module):
 _PRIMES = (1, 2_654_435_761, 805_459_861)
 
 
-def _corners(x: Tensor, y: Tensor, z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Three [..., 2] per-axis values -> views broadcasting to [..., 2, 2, 2] (x, y, z)."""
-    return x[..., :, None, None], y[..., None, :, None], z[..., None, None, :]
-
-
 @rebuildable
 class HashGrid(nn.Module):
     """Multi-resolution grid of learned features (Instant-NGP, Mueller et al. 2022), pure PyTorch.
@@ -76,38 +71,42 @@ class HashGrid(nn.Module):
         if offsets[-1] >= 2**31:
             raise ConfigError(f"HashGrid's {int(offsets[-1])} table rows exceed int32 indices; lower log2_table_size or levels")
         self.table = nn.Parameter(init_scale * (2 * torch.rand(int(offsets[-1]), features_per_level) - 1))
-        # per level (shaped to broadcast over [n, L, 3, 2]): resolution, and what multiplies each
-        # axis's corner coordinate: (side^2, side, 1) for a dense level, the primes for a hashed one;
-        # levels grow finer, so the dense ones come first
+        # per level (shaped to broadcast over [2, L, 3, n]): resolution, and what multiplies each
+        # axis's corner coordinate: (side^2, side, 1) for a dense level, the primes for a hashed one,
+        # reduced modulo the table size (the masked product is the same); levels grow finer, so the
+        # dense ones come first. int32 where no product can overflow it.
         self.dense_levels = sum((r + 1) ** 3 <= table for r in resolutions)
-        axis_factors = [[(r + 1) ** 2, r + 1, 1] for r in resolutions[: self.dense_levels]]
-        axis_factors += [list(_PRIMES)] * (levels - self.dense_levels)
-        self.register_buffer("resolution", torch.tensor(resolutions)[:, None], persistent=False)
-        self.register_buffer("axis_factors", torch.tensor(axis_factors)[..., None], persistent=False)
-        self.register_buffer("offset", offsets[:-1, None, None, None].int(), persistent=False)
         self.table_mask = table - 1  # hashed levels have 2^k rows
+        axis_factors = [[(r + 1) ** 2, r + 1, 1] for r in resolutions[: self.dense_levels]]
+        axis_factors += [[prime & self.table_mask for prime in _PRIMES]] * (levels - self.dense_levels)
+        wide = (max(resolutions) + 1) * max(max(f) for f in axis_factors) >= 2**31
+        self.register_buffer("resolution", torch.tensor(resolutions)[:, None, None], persistent=False)
+        self.register_buffer("axis_factors", torch.tensor(axis_factors, dtype=torch.int64 if wide else torch.int32)[..., None],
+                             persistent=False)
+        self.register_buffer("offset", offsets[:-1, None].int(), persistent=False)
 
     def _rows(self, low: Tensor) -> Tensor:
-        """Int[Tensor, "n L 3"] low corners of the cells -> Int32[Tensor, "n L 2 2 2"] table rows of the
+        """Int[Tensor, "L 3 n"] low corners of the cells -> Int32[Tensor, "n L 2 2 2"] table rows of the
         8 corners, indexed [x, y, z] by low (0) or high (1). Each axis's two coordinates are scaled
-        (dense: row = x side^2 + y side + z) or multiplied by its prime and masked (hashed: row = the
-        masked products xor-ed, Instant-NGP's hash) once, then combined by broadcasting in int32."""
-        axes = torch.stack([low, low + 1], -1) * self.axis_factors  # [n, L, 3, 2], int64: no overflow
+        (dense: row = x side^2 + y side + z) or multiplied by its prime (hashed: row = the products
+        xor-ed and masked, Instant-NGP's hash) once, then combined by broadcasting with the points
+        innermost (contiguous, vectorised: 2x faster than points outermost) and transposed once."""
+        axes = torch.stack([low, low + 1]) * self.axis_factors  # [2, L, 3, n]
         dense, hashed = axes.split([self.dense_levels, len(self.axis_factors) - self.dense_levels], 1)
-        i, j, k = _corners(*dense.int().unbind(-2))
-        rows = [i + j + k]
-        i, j, k = _corners(*(hashed & self.table_mask).int().unbind(-2))
-        rows.append(i ^ j ^ k)
-        return torch.cat(rows, 1) + self.offset
+        dense, hashed = dense.int().unbind(2), (hashed & self.table_mask).int().unbind(2)  # 3 x [2, L, n]
+        offset = self.offset.split([self.dense_levels, len(self.offset) - self.dense_levels])
+        dense_rows = (dense[0] + offset[0])[:, None, None] + dense[1][None, :, None] + dense[2][None, None, :]
+        hashed_rows = (hashed[0][:, None, None] ^ hashed[1][None, :, None] ^ hashed[2][None, None, :]) + offset[1]
+        return torch.cat([dense_rows, hashed_rows], 3).permute(4, 3, 0, 1, 2).contiguous()  # [2, 2, 2, L, n] -> [n, L, 2, 2, 2]
 
     def forward(self, x: Tensor) -> Tensor:
         """x[..., 3] in [-bound, bound] (clamped outside) -> [..., out_dim]."""
         flat = x.reshape(-1, 3)
         u = (flat.clamp(-self.bound, self.bound) + self.bound) / (2 * self.bound)
-        position = u[:, None, :] * self.resolution  # [n, L, 3]
+        position = u.T * self.resolution  # [L, 3, n]
         cell = position.detach().floor().minimum(self.resolution - 1)
-        frac = position - cell  # differentiable in x
-        rows = self._rows(cell.long())  # [n, L, 2, 2, 2]
+        frac = (position - cell).permute(2, 0, 1).contiguous()  # [n, L, 3], differentiable in x
+        rows = self._rows(cell.int())  # [n, L, 2, 2, 2]
         # one gather for all levels, each point's 8 corners together (nearby rows: cache-friendly);
         # index_select's backward (index_add_) is deterministic on a CPU, where indexing's backward
         # adds with atomics in thread order (and it is ~30x slower with int32 rows)
