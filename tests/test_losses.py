@@ -43,6 +43,22 @@ def test_wrong_sphere_scores_its_error():
     assert terms["surface"].item() == pytest.approx(0.05, abs=1e-5)
 
 
+def test_without_near_gradient_the_values_match_and_grad_f_covers_surface_and_free_points():
+    batch = sphere_batch()
+    torch.manual_seed(0)
+    model = torch.nn.Sequential(torch.nn.Linear(3, 16), torch.nn.Softplus(beta=10), torch.nn.Linear(16, 1), torch.nn.Flatten(0))
+    full, lean = evaluate_sdf_batch(model, batch), evaluate_sdf_batch(model, batch, near_gradient=False)
+    for name in ("surface", "near", "free", "surface_gradient"):
+        assert torch.allclose(getattr(lean, name), getattr(full, name), atol=1e-6)
+    n, m = len(batch.surface_points), len(batch.near_points)
+    assert torch.allclose(lean.gradient, torch.cat([full.gradient[:n], full.gradient[n + m :]]), atol=1e-6)
+    exact = point_terms(evaluate_sdf_batch(ExactSphere(), batch, near_gradient=False), batch, DEFAULT_POINT_WEIGHTS)
+    assert exact["eikonal"] < 1e-6 and exact["normal"] < 1e-6
+    terms = point_terms(lean, batch, DEFAULT_POINT_WEIGHTS)
+    sum(terms.values()).backward()  # the near samples' sdf term reaches the weights by a first-order pass
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.parameters())
+
+
 def test_terms_without_normals_and_weights_switch_terms_off():
     batch = sphere_batch(with_normals=False)
     weights = {**DEFAULT_POINT_WEIGHTS, "normal": 0.5, "eikonal": 0.0, "off_surface": 1.0}
