@@ -1,3 +1,5 @@
+import itertools
+
 import pytest
 import torch
 
@@ -44,6 +46,28 @@ def test_gradient_exists_and_matches_finite_differences():
         step[axis] = eps
         fd = (model(x + step) - model(x - step)) / (2 * eps)
         assert torch.allclose(g[:, axis], fd.detach(), atol=1e-6)
+
+
+@pytest.mark.parametrize("options", [dict(levels=8, log2_table_size=17, max_resolution=256),  # int32 rows
+                                     dict(levels=4, log2_table_size=22, max_resolution=1024)])  # int64 products
+def test_hashgrid_rows_are_the_dense_index_or_teschner_hash_of_each_corner(options):
+    grid = HashGrid(**options)
+    x = torch.rand(500, 3) * 1.4 - 0.7  # some outside the bound: clamped
+    resolution = grid.resolution.flatten()[None, :, None]
+    position = ((x.clamp(-0.6, 0.6) + 0.6) / 1.2)[:, None, :] * resolution  # [n, L, 3]
+    low = position.floor().minimum(resolution - 1).long()
+    rows = grid._rows(low.permute(1, 2, 0).int()).long()  # [n, L, 2, 2, 2]
+    table, offset = 2 ** options["log2_table_size"], 0
+    for level, resolution in enumerate(grid.resolution.flatten().tolist()):
+        for corner in itertools.product((0, 1), repeat=3):
+            i, j, k = (low[:, level] + torch.tensor(corner)).unbind(-1)
+            side = resolution + 1
+            if side**3 <= table:
+                expected = (i * side + j) * side + k
+            else:  # Teschner et al.'s spatial hash, as Instant-NGP (int64: no overflow before the mask)
+                expected = (i * 1 ^ j * 2_654_435_761 ^ k * 805_459_861) % table
+            assert torch.equal(rows[:, level][:, corner[0], corner[1], corner[2]], expected + offset)
+        offset += min(side**3, table)
 
 
 def test_hashgrid_is_twice_differentiable_gradcheck():
