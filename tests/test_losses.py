@@ -46,7 +46,8 @@ def test_wrong_sphere_scores_its_error():
 def test_without_near_gradient_the_values_match_and_grad_f_covers_surface_and_free_points():
     batch = sphere_batch()
     torch.manual_seed(0)
-    model = torch.nn.Sequential(torch.nn.Linear(3, 16), torch.nn.Softplus(beta=10), torch.nn.Linear(16, 1), torch.nn.Flatten(0))
+    model = torch.nn.Sequential(torch.nn.Linear(3, 16), torch.nn.Softplus(beta=10), torch.nn.Linear(16, 1),
+                                torch.nn.Flatten(0))
     full, lean = evaluate_sdf_batch(model, batch), evaluate_sdf_batch(model, batch, near_gradient=False)
     for name in ("surface", "near", "free", "surface_gradient"):
         assert torch.allclose(getattr(lean, name), getattr(full, name), atol=1e-6)

@@ -48,8 +48,8 @@ def test_gradient_exists_and_matches_finite_differences():
         assert torch.allclose(g[:, axis], fd.detach(), atol=1e-6)
 
 
-@pytest.mark.parametrize("options", [dict(levels=8, log2_table_size=17, max_resolution=256),  # int32 rows
-                                     dict(levels=4, log2_table_size=22, max_resolution=1024)])  # int64 products
+@pytest.mark.parametrize("options", [{"levels": 8, "log2_table_size": 17, "max_resolution": 256},  # int32
+                                     {"levels": 4, "log2_table_size": 22, "max_resolution": 1024}])  # int64
 def test_hashgrid_rows_are_the_dense_index_or_teschner_hash_of_each_corner(options):
     grid = HashGrid(**options)
     x = torch.rand(500, 3) * 1.4 - 0.7  # some outside the bound: clamped

@@ -69,7 +69,8 @@ class HashGrid(nn.Module):
         self.out_dim = 3 + levels * features_per_level
         offsets = torch.tensor([0, *sizes]).cumsum(0)
         if offsets[-1] >= 2**31:
-            raise ConfigError(f"HashGrid's {int(offsets[-1])} table rows exceed int32 indices; lower log2_table_size or levels")
+            raise ConfigError(f"HashGrid's {int(offsets[-1])} table rows exceed int32 indices; "
+                              f"lower log2_table_size or levels")
         self.table = nn.Parameter(init_scale * (2 * torch.rand(int(offsets[-1]), features_per_level) - 1))
         # per level (shaped to broadcast over [2, L, 3, n]): resolution, and what multiplies each
         # axis's corner coordinate: (side^2, side, 1) for a dense level, the primes for a hashed one,
@@ -81,8 +82,8 @@ class HashGrid(nn.Module):
         axis_factors += [[prime & self.table_mask for prime in _PRIMES]] * (levels - self.dense_levels)
         wide = (max(resolutions) + 1) * max(max(f) for f in axis_factors) >= 2**31
         self.register_buffer("resolution", torch.tensor(resolutions)[:, None, None], persistent=False)
-        self.register_buffer("axis_factors", torch.tensor(axis_factors, dtype=torch.int64 if wide else torch.int32)[..., None],
-                             persistent=False)
+        factors = torch.tensor(axis_factors, dtype=torch.int64 if wide else torch.int32)
+        self.register_buffer("axis_factors", factors[..., None], persistent=False)
         self.register_buffer("offset", offsets[:-1, None].int(), persistent=False)
 
     def _rows(self, low: Tensor) -> Tensor:
@@ -97,7 +98,8 @@ class HashGrid(nn.Module):
         offset = self.offset.split([self.dense_levels, len(self.offset) - self.dense_levels])
         dense_rows = (dense[0] + offset[0])[:, None, None] + dense[1][None, :, None] + dense[2][None, None, :]
         hashed_rows = (hashed[0][:, None, None] ^ hashed[1][None, :, None] ^ hashed[2][None, None, :]) + offset[1]
-        return torch.cat([dense_rows, hashed_rows], 3).permute(4, 3, 0, 1, 2).contiguous()  # [2, 2, 2, L, n] -> [n, L, 2, 2, 2]
+        rows = torch.cat([dense_rows, hashed_rows], 3)  # [2, 2, 2, L, n]
+        return rows.permute(4, 3, 0, 1, 2).contiguous()
 
     def forward(self, x: Tensor) -> Tensor:
         """x[..., 3] in [-bound, bound] (clamped outside) -> [..., out_dim]."""

@@ -139,7 +139,8 @@ class PointSampler(Sampler):
         return draw_batch(self.samples, self.batch_size, self.free_fraction, generator)
 
     def losses(self, model: nn.Module, batch: SDFBatch) -> dict[str, Tensor]:
-        return point_terms(evaluate_sdf_batch(model, batch, self.near_gradient), batch, self.weights, self.clamp, self.off_surface_alpha)
+        outputs = evaluate_sdf_batch(model, batch, self.near_gradient)
+        return point_terms(outputs, batch, self.weights, self.clamp, self.off_surface_alpha)
 
 
 @dataclass(frozen=True)
