@@ -27,6 +27,7 @@ from neuralsurf.observations.collection import (
     LatentPrior,
     SDFSampleSet,
     draw_shape_sdf,
+    view_clouds,
 )
 from neuralsurf.priors import complete_cloud, noisy_cloud
 from neuralsurf.shapes import ShapeRecord
@@ -182,6 +183,36 @@ def test_collection_occupancy_batches_carry_the_cached_labels(collection):
         assert [labelled[tuple(p)] for p in points.tolist()] == inside.bool().tolist()
     # one-sided clouds: without noise, every point is a surface sample seen from one side
     assert sampler.losses(OccupancyNetwork(PointNetEncoder(8, 8), CBNDecoder(8, 16)), batch)["occupancy"] > 0
+
+
+def test_view_clouds_are_one_sided_surface_points_of_each_view():
+    """A sphere of radius 0.4 seen by the one-view scene's cameras: every point lies on it, and each
+    view sees one cap (all points within 90 deg of the view's mean direction)."""
+    import trimesh
+
+    from neuralsurf.structures import Mesh
+
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=0.4)
+    mesh = Mesh(torch.from_numpy(ball.vertices), torch.from_numpy(ball.faces))
+    clouds = view_clouds([mesh, mesh], views=3, points_per_view=500, seed=0)
+    assert clouds.shape == (2, 3, 500, 3)
+    assert torch.allclose(clouds.norm(dim=-1), torch.full((2, 3, 500), 0.4), atol=2e-3)
+    directions = torch.nn.functional.normalize(clouds, dim=-1)
+    mean = torch.nn.functional.normalize(directions.mean(2, keepdim=True), dim=-1)
+    assert ((directions * mean).sum(-1) > 0).all()
+    assert not torch.allclose(mean[0, 0], mean[0, 1], atol=0.1)  # views from other sides
+
+
+def test_one_sided_clouds_come_from_the_shapes_views(collection):
+    observation = CollectionOccupancy(collection, shapes_per_batch=2, query_points=10, cloud_points=50,
+                                      cloud_noise=0.0, partial=1.0, partial_views=2)
+    sampler = observation.prepare(Normalization(), 0.55, torch.device("cpu"), 0)
+    assert sampler.views.shape == (2, 2, 200, 3)
+    batch = sampler.sample(torch.Generator().manual_seed(0))
+    seen = [{tuple(p) for p in view.tolist()} for view in sampler.views.reshape(4, 200, 3)]
+    for cloud in batch.clouds:
+        owners = [all(tuple(p) in points for p in cloud.tolist()) for points in seen]
+        assert sum(owners) == 1  # every point from one view of one shape
 
 
 def test_one_shape_code_recovers_each_training_shape(collection, auto_decoder):

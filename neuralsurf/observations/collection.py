@@ -217,12 +217,38 @@ def facing_mask(normals: Tensor, generator: torch.Generator) -> Tensor:
     return (normals * direction.to(normals)[:, None, :]).sum(-1) < 0
 
 
+def view_clouds(meshes: list, views: int, points_per_view: int, seed: int) -> Tensor:
+    """Float[Tensor, "S views points_per_view 3"]: back-projected points of `views` synthetic depth
+    views of each mesh (unit frame), cameras and images as the `shapes_one_view` scene's
+    (`scenes.recipes.one_view_camera`, 160x120, 50 deg): one-sided clouds with self-occlusion, as one
+    depth view sees a shape. Each view's points are drawn at random (with repeats when fewer)."""
+    from neuralsurf.geometry import backproject_depth
+    from neuralsurf.scenes.recipes import one_view_camera
+    from neuralsurf.scenes.scanner import scan_depth
+
+    generator = torch.Generator().manual_seed(seed)
+    clouds = torch.empty(len(meshes), views, points_per_view, 3)
+    for i, mesh in enumerate(meshes):
+        # camera seeds from 10^6 up: the shapes_one_view scene's cameras take seeds 0, 1, ...
+        poses = torch.stack([one_view_camera(1_000_000 * (seed + 1) + views * i + v) for v in range(views)])
+        frames = scan_depth(mesh, cam_to_world=poses, width=160, height=120, fov_deg=50.0)
+        points = backproject_depth(frames)
+        for v in range(views):
+            seen = points[v][frames.depth[v] > 0]
+            if not len(seen):
+                raise InputError(f"shape {i} of the collection is not seen from view {v} (camera {poses[v].tolist()})")
+            clouds[i, v] = seen[torch.randint(len(seen), (points_per_view,), generator=generator)].float()
+    return clouds
+
+
 def draw_occupancy(surface: Tensor, normals: Tensor, points: Tensor, inside: Tensor, shapes: int, cloud_points: int,
                    cloud_noise: float, partial: float, query_points: int,
-                   generator: torch.Generator) -> OccupancyBatch:
+                   generator: torch.Generator, views: Tensor | None = None) -> OccupancyBatch:
     """Shapes at random; for each, a cloud of `cloud_points` surface samples plus N(0, cloud_noise^2)
-    (a `partial` share of clouds from one side only, see `facing_mask`) and `query_points` labelled
-    points. surface, normals: [S, M, 3]; points: [S, P, 3]; inside: Bool[S, P]."""
+    and `query_points` labelled points. A `partial` share of clouds is one-sided: drawn from one of
+    the shape's `views` (`view_clouds`) when given, else the surface samples facing a random direction
+    (`facing_mask`). surface, normals: [S, M, 3]; points: [S, P, 3]; inside: Bool[S, P];
+    views: [S, V, p, 3]."""
     count, m = surface.shape[:2]
     device = surface.device
     shape_index = torch.randperm(count, generator=generator)[: min(shapes, count)]
@@ -231,15 +257,19 @@ def draw_occupancy(surface: Tensor, normals: Tensor, points: Tensor, inside: Ten
     rows = shape_index[:, None].to(device)
     keep = torch.ones(b, 4 * cloud_points, dtype=torch.bool)
     one_sided = torch.rand(b, generator=generator) < partial
-    if one_sided.any():
+    if views is None and one_sided.any():
         facing = facing_mask(normals[rows, candidates.to(device)].cpu(), generator)
         keep = torch.where(one_sided[:, None] & facing.any(1, keepdim=True), facing, keep)
     pick = torch.multinomial(keep.double(), cloud_points, replacement=True, generator=generator)
-    cloud_index = candidates.gather(1, pick).to(device)
+    cloud = surface[rows, candidates.gather(1, pick).to(device)]
+    if views is not None and one_sided.any():
+        view = torch.randint(views.shape[1], (b, 1), generator=generator)
+        seen = torch.randint(views.shape[2], (b, cloud_points), generator=generator)
+        from_view = views[rows, view.to(device), seen.to(device)]
+        cloud = torch.where(one_sided[:, None, None].to(device), from_view, cloud)
     noise = cloud_noise * torch.randn(b, cloud_points, 3, generator=generator)
     query = torch.randint(points.shape[1], (b, query_points), generator=generator).to(device)
-    return OccupancyBatch(surface[rows, cloud_index] + noise.to(device), points[rows, query],
-                          inside[rows, query].float())
+    return OccupancyBatch(cloud + noise.to(device), points[rows, query], inside[rows, query].float())
 
 
 @dataclass(frozen=True)
@@ -254,12 +284,14 @@ class CollectionOccupancySampler(Sampler):
     cloud_noise: float
     partial: float
     query_points: int
+    views: Tensor | None = None
     rank: int = 0
     world: int = 1
 
     def sample(self, generator: torch.Generator) -> OccupancyBatch:
         batch = draw_occupancy(self.surface, self.normals, self.points, self.inside, self.shapes_per_batch,
-                               self.cloud_points, self.cloud_noise, self.partial, self.query_points, generator)
+                               self.cloud_points, self.cloud_noise, self.partial, self.query_points, generator,
+                               self.views)
         return rank_rows(batch, self.rank, self.world)
 
     def losses(self, model: nn.Module, batch: OccupancyBatch) -> dict[str, Tensor]:
@@ -286,6 +318,9 @@ class CollectionOccupancy(Observation):
     """Gaussian noise of the input points, unit frame (OccNet's configs: 0.005)."""
     partial: float = 0.0
     """Share of input clouds seen from one side only (for completion from one view)."""
+    partial_views: int = 0
+    """One-sided clouds come from this many synthetic depth views of each shape (`view_clouds`, with
+    self-occlusion, rendered once in `prepare`); 0: the surface samples facing a random direction."""
     near_fraction: float = 0.0
     """Share of query points drawn from the near-surface pool (the rest: uniform in the box). Uniform
     only, as in the paper: test IoU 0.728 against 0.692 with half near (shapes_onet, 5,000 steps)."""
@@ -294,9 +329,11 @@ class CollectionOccupancy(Observation):
     def __post_init__(self) -> None:
         object.__setattr__(self, "weights", check_weights(self.weights, OCCUPANCY_TERMS, "CollectionOccupancy"))
         counts = (self.shapes_per_batch, self.query_points, self.cloud_points)
-        if min(counts) < 1 or not (0 <= self.partial <= 1 and 0 <= self.near_fraction <= 1 and self.cloud_noise >= 0):
+        shares = 0 <= self.partial <= 1 and 0 <= self.near_fraction <= 1
+        if min(counts) < 1 or self.partial_views < 0 or not shares or self.cloud_noise < 0:
             raise ConfigError(f"CollectionOccupancy needs shapes_per_batch, query_points, cloud_points >= 1, "
-                              f"partial and near_fraction in [0, 1] and cloud_noise >= 0, got {self}")
+                              f"partial_views >= 0, partial and near_fraction in [0, 1] and cloud_noise >= 0, "
+                              f"got {self}")
 
     @classmethod
     def from_collection(cls, collection, **options) -> CollectionOccupancy:
@@ -308,8 +345,9 @@ class CollectionOccupancy(Observation):
 
     def prepare(self, normalization: Normalization, box: float, device: torch.device,
                 seed: int) -> CollectionOccupancySampler:
-        arrays = _load(split_paths(self.root, self.split), ("surface_points", "surface_normals", "occ_uniform_points",
-                                                             "occ_uniform_inside", "occ_near_points", "occ_near_inside"))
+        paths = split_paths(self.root, self.split)
+        arrays = _load(paths, ("surface_points", "surface_normals", "occ_uniform_points", "occ_uniform_inside",
+                               "occ_near_points", "occ_near_inside"))
         n = arrays["occ_uniform_points"].shape[1]
         n_near = round(n * self.near_fraction)
         # a fixed pool with the asked mix: the first n - n_near uniform points and n_near near ones
@@ -324,7 +362,23 @@ class CollectionOccupancy(Observation):
             torch.from_numpy(arrays["surface_normals"]).float().to(device),
             _to_unit(points, normalization, device), torch.from_numpy(inside).to(device), self.weights,
             shapes, self.cloud_points, self.cloud_noise / normalization.scale, self.partial,
-            self.query_points, rank, world)
+            self.query_points, self._views(paths, normalization, device, seed), rank, world)
+
+    def _views(self, paths: list[Path], normalization: Normalization, device: torch.device,
+               seed: int) -> Tensor | None:
+        """The `view_clouds` of every shape (4 x cloud_points points a view), or None."""
+        if not (self.partial_views and self.partial):
+            return None
+        from neuralsurf.shapes.cache import load_cache
+        from neuralsurf.structures import Mesh
+
+        meshes = []
+        for path in paths:
+            arrays = load_cache(path)
+            meshes.append(Mesh(torch.from_numpy(arrays["mesh_vertices"]).double(),
+                               torch.from_numpy(arrays["mesh_faces"])))
+        clouds = view_clouds(meshes, self.partial_views, 4 * self.cloud_points, seed)
+        return _to_unit(clouds.numpy(), normalization, device)
 
 
 # ----------------------------------------------------------------------------- one shape
