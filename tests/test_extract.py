@@ -10,7 +10,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from neuralsurf.errors import ConfigError, ExtractionError, InputError
-from neuralsurf.extract import extract_mesh, field_slice, make_grid, marching_cubes, slice_image
+from neuralsurf.extract import extract_mesh, field_slice, make_grid, marching_cubes, off_level, slice_image
 from neuralsurf.scenes.analytic import Box, Sphere, Torus
 from neuralsurf.structures import Mesh
 
@@ -54,7 +54,7 @@ def reference_mesh(field, resolution: int, bounds, level: float = 0.0
     grid = make_grid(bounds, resolution)
     index = np.stack(np.meshgrid(*[np.arange(s) for s in grid.shape], indexing="ij"), -1).reshape(-1, 3)
     volume = field(torch.from_numpy(grid.world(index))).numpy().reshape(grid.shape)
-    verts, faces, _, _ = skimage_marching_cubes(volume, level)
+    verts, faces, _, _ = skimage_marching_cubes(off_level(volume, level), level)  # as marching_cubes
     return grid.origin + verts.astype(np.float64) * grid.spacing, faces.astype(np.int64), grid.spacing
 
 
@@ -160,6 +160,20 @@ def test_chunked_evaluation_matches_one_skimage_call(name):
     assert distance.max() < 1e-4 * spacing  # float32 positions, 80 cells * 2^-24 ~ 5e-6 cells
     assert len(np.unique(match)) == len(match)
     assert np.array_equal(canonical_faces(match[mesh.faces.numpy()]), canonical_faces(faces))
+
+
+def test_values_a_hair_from_the_level_still_give_a_closed_mesh():
+    """Random signs with a fifth of the grid points 1e-7 from the level (as a fitted field can be):
+    their edges' vertices would share a float32 position and pinch the mesh (not watertight before
+    `off_level`); strictly signed values always close, and `off_level` keeps every sign."""
+    rng = np.random.default_rng(0)
+    values = rng.uniform(-1, 1, (24, 24, 24)).astype(np.float32)
+    tiny = rng.random(values.shape) < 0.2
+    values[tiny] = np.sign(values[tiny]) * 1e-7
+    values[[0, -1]], values[:, [0, -1]], values[:, :, [0, -1]] = 1, 1, 1
+    moved = off_level(values, 0.0)
+    assert np.array_equal(np.sign(moved), np.sign(values)) and np.abs(moved - values).max() <= 2e-4  # 1e-4 x 2
+    assert marching_cubes(values, make_grid(UNIT_BOX.numpy(), 23)).is_watertight
 
 
 def test_blocks_merge_where_vertices_sit_on_grid_points():
