@@ -211,33 +211,30 @@ def _coarse_to_fine_values(field: Field, grid: Grid, level: float, margin: float
     return values[: grid.shape[0], : grid.shape[1], : grid.shape[2]].contiguous().cpu().numpy(), evaluations
 
 
-def off_level(values: np.ndarray, level: float, min_fraction: float = 1e-4) -> np.ndarray:
-    """Float[ndarray, "X Y Z"] values with no grid point nearer to `level` than `min_fraction` of its
+def off_level(values: Tensor, level: float, min_fraction: float = 1e-4) -> Tensor:
+    """Float[Tensor, "X Y Z"] values with no grid point nearer to `level` than `min_fraction` of its
     difference to any neighbour across the level (that point moved away from the level, its sign
     kept; points exactly at the level are left to marching cubes). Without this a field within ~1e-6
     of the level at a grid point puts the vertices of that point's edges on the same float32
     position, and merging them pinches the mesh (edges of four faces: not watertight)."""
-    close = np.abs(values - level) < min_fraction * (values.max() - values.min())
-    close &= values != level
-    points = np.argwhere(close)
-    if not len(points):
-        return values
-    here = values[tuple(points.T)].astype(np.float64) - level
-    needed = np.zeros(len(points))
+    points = ((values - level).abs_() < min_fraction * float(values.max() - values.min())).nonzero()
+    here = values[tuple(points.T)].double() - level
+    points, here = points[here != 0], here[here != 0]
+    needed = torch.zeros_like(here)
     for axis in range(3):
         for step in (-1, 1):
-            neighbour = points.copy()
+            neighbour = points.clone()
             neighbour[:, axis] += step
             inside = (neighbour[:, axis] >= 0) & (neighbour[:, axis] < values.shape[axis])
-            other = np.full(len(points), np.nan)
-            other[inside] = values[tuple(neighbour[inside].T)] - level
-            across = inside & (np.sign(other) == -np.sign(here))
-            needed[across] = np.maximum(needed[across], min_fraction * np.abs(other[across] - here[across]))
-    move = np.abs(here) < needed
+            other = torch.zeros_like(here)
+            other[inside] = values[tuple(neighbour[inside].T)].double() - level
+            across = inside & (other.sign() == -here.sign())
+            needed = torch.where(across, torch.maximum(needed, min_fraction * (other - here).abs()), needed)
+    move = here.abs() < needed
     if not move.any():
         return values
-    values = values.copy()
-    values[tuple(points[move].T)] = level + np.sign(here[move]) * needed[move]
+    values = values.clone()
+    values[tuple(points[move].T)] = (level + here[move].sign() * needed[move]).to(values.dtype)
     return values
 
 
@@ -252,7 +249,6 @@ def marching_cubes(values: np.ndarray, grid: Grid, level: float = 0.0, valid: np
     from skimage.measure import marching_cubes as skimage_marching_cubes
 
     finite = values if valid is None else np.where(valid, values, level + 1.0).astype(values.dtype)
-    finite = off_level(finite, level)
     low, high = float(finite.min()), float(finite.max())
     if not low < level < high:
         raise ExtractionError(
@@ -262,8 +258,10 @@ def marching_cubes(values: np.ndarray, grid: Grid, level: float = 0.0, valid: np
     if torch.device(device).type == "cuda" and valid is None:
         from neuralsurf.marching import marching_cubes_torch
 
-        vertices, faces = (t.cpu().numpy() for t in marching_cubes_torch(torch.from_numpy(finite).to(device), level))
+        finite = off_level(torch.from_numpy(finite).to(device), level)
+        vertices, faces = (t.cpu().numpy() for t in marching_cubes_torch(finite, level))
     else:
+        finite = off_level(torch.from_numpy(finite), level).numpy()
         vertices, faces, _, _ = skimage_marching_cubes(finite, level, allow_degenerate=False)  # outward winding
     if valid is not None:
         cell = np.floor(vertices[faces].mean(1)).astype(np.int64)  # a face lies inside its cell
