@@ -255,14 +255,14 @@ def marching_cubes(values: np.ndarray, grid: Grid, level: float = 0.0, valid: np
             f"the field has no {level:g}-level set in the box: its values there lie in [{low:.4g}, {high:.4g}]; "
             f"pass bounds that contain the surface, or a level between those values"
         )
-    if torch.device(device).type == "cuda" and valid is None:
+    on_gpu = torch.device(device).type == "cuda" and valid is None
+    finite = off_level(torch.from_numpy(finite).to(device if on_gpu else "cpu"), level)
+    if on_gpu:
         from neuralsurf.marching import marching_cubes_torch
 
-        finite = off_level(torch.from_numpy(finite).to(device), level)
         vertices, faces = (t.cpu().numpy() for t in marching_cubes_torch(finite, level))
     else:
-        finite = off_level(torch.from_numpy(finite), level).numpy()
-        vertices, faces, _, _ = skimage_marching_cubes(finite, level, allow_degenerate=False)  # outward winding
+        vertices, faces, _, _ = skimage_marching_cubes(finite.numpy(), level, allow_degenerate=False)  # outward
     if valid is not None:
         cell = np.floor(vertices[faces].mean(1)).astype(np.int64)  # a face lies inside its cell
         cell_valid = ~_cell_extremes(torch.from_numpy(~valid).float())[1].bool().numpy()

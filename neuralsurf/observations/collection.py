@@ -369,14 +369,13 @@ class CollectionOccupancy(Observation):
         """The `view_clouds` of every shape (4 x cloud_points points a view), or None."""
         if not (self.partial_views and self.partial):
             return None
-        from neuralsurf.shapes.cache import load_cache
         from neuralsurf.structures import Mesh
 
         meshes = []
-        for path in paths:
-            arrays = load_cache(path)
-            meshes.append(Mesh(torch.from_numpy(arrays["mesh_vertices"]).double(),
-                               torch.from_numpy(arrays["mesh_faces"])))
+        for path in paths:  # the two mesh arrays alone (np.load reads an npz key by key)
+            with np.load(path, allow_pickle=False) as data:
+                meshes.append(Mesh(torch.from_numpy(data["mesh_vertices"]).double(),
+                                   torch.from_numpy(data["mesh_faces"])))
         clouds = view_clouds(meshes, self.partial_views, 4 * self.cloud_points, seed)
         return _to_unit(clouds.numpy(), normalization, device)
 
