@@ -141,13 +141,16 @@ def deepsdf(n_shapes: int, latent_dim: int = 64, width: int = 256, depth: int = 
 
 
 def occupancy_network(n_shapes: int, latent_dim: int = 128, encoder_hidden: int = 128, hidden: int = 256,
-                      blocks: int = 5, threshold: float = 0.2) -> OccupancyNetwork:
+                      blocks: int = 5, threshold: float = 0.2, plane_dim: int = 0,
+                      plane_resolution: int = 32) -> OccupancyNetwork:
     """An Occupancy Network (PointNet encoder with ResNet blocks, CBN decoder), codes of `latent_dim`
-    entries, its field's zero level at occupancy probability `threshold` (the paper's 0.2).
+    entries, its field's zero level at occupancy probability `threshold` (the paper's 0.2); with
+    `plane_dim > 0` also feature planes of that many channels (`plane_resolution`^2 cells, ConvONet).
     `n_shapes` is unused: the encoder computes each shape's code (the argument keeps one signature
     for both priors)."""
-    return OccupancyNetwork(PointNetEncoder(latent_dim, encoder_hidden), CBNDecoder(latent_dim, hidden, blocks),
-                            threshold=threshold)
+    planes = {"plane_dim": plane_dim, "plane_resolution": plane_resolution}
+    return OccupancyNetwork(PointNetEncoder(latent_dim, encoder_hidden, **planes),
+                            CBNDecoder(latent_dim, hidden, blocks, **planes), threshold=threshold)
 
 
 def train_prior(run_dir: str | Path, collection: ShapeCollection, model: Callable[..., nn.Module],

@@ -20,6 +20,7 @@ from neuralsurf.models import (
     OccupancyNetwork,
     PointNetEncoder,
 )
+from neuralsurf.models.occupancy import local_pool, plane_cells, plane_means, sample_planes
 from neuralsurf.models.spec import build_model, model_spec
 from neuralsurf.observations.collection import (
     CollectionOccupancy,
@@ -93,6 +94,57 @@ def test_prior_models_rebuild_from_plain_specs():
         latent = torch.randn(16) if isinstance(model, OccupancyNetwork) else None
         assert torch.equal(model(x, latent), rebuilt(x, latent))
 
+
+
+def test_feature_planes_are_read_in_the_cells_they_were_written_to():
+    """Oracle: a naive loop over points and planes (cell means, local pooling) and the cell centres:
+    bilinear reads of a plane at its own cell centres return the cell values."""
+    torch.manual_seed(0)
+    r, half = 4, 0.55
+    points = torch.rand(2, 30, 3) * 1.2 - 0.6          # some outside the box: they use the border cells
+    features = torch.randn(2, 30, 5)
+    cells = plane_cells(points, r, half)
+    naive = torch.zeros(2, 3, r * r, 5)
+    for b in range(2):
+        for k, (i, j) in enumerate([(0, 1), (0, 2), (1, 2)]):
+            uv = ((points[b][:, [i, j]] / half).clamp(-1, 1) + 1) / 2 * r
+            u, v = uv.long().clamp(0, r - 1).unbind(-1)
+            for cell in range(r * r):
+                members = (v * r + u) == cell
+                if members.any():
+                    naive[b, k, cell] = features[b][members].mean(0)
+    means = plane_means(features, cells, r)
+    assert torch.allclose(means, naive, atol=1e-6)
+    pooled = torch.stack([sum(naive[b, k, cells[b, k]] for k in range(3)) for b in range(2)])
+    assert torch.allclose(local_pool(features, cells, r), pooled, atol=1e-6)
+    planes = torch.zeros(2, 3, 5, r, r)                                  # only the xy plane written
+    planes[:, 0] = means[:, 0].transpose(1, 2).reshape(2, 5, r, r)
+    centres = (torch.arange(r) + 0.5) / r * 2 * half - half            # cell centres along one axis
+    y, x = torch.meshgrid(centres, centres, indexing="ij")               # row-major: v = y, u = x
+    reads = sample_planes(planes, torch.stack([x.flatten(), y.flatten(), torch.zeros(r * r)], -1).expand(2, -1, -1),
+                          half)
+    assert torch.allclose(reads, means[:, 0], atol=1e-5)
+
+
+def test_occupancy_network_with_feature_planes_is_permutation_invariant_and_rebuilds():
+    torch.manual_seed(0)
+    net = OccupancyNetwork(PointNetEncoder(8, 16, plane_dim=4, plane_resolution=8),
+                           CBNDecoder(8, 16, blocks=2, plane_dim=4, plane_resolution=8)).eval()
+    cloud = torch.rand(2, 200, 3) - 0.5
+    code = net.encode(cloud)
+    assert code.shape == (2, 8 + 3 * 4 * 8 * 8)
+    assert torch.allclose(net.encode(cloud[:, torch.randperm(200)]), code, atol=1e-5)
+    x = torch.rand(50, 3) - 0.5
+    rebuilt = build_model(model_spec(net)).eval()
+    rebuilt.load_state_dict(net.state_dict())
+    assert torch.equal(rebuilt(x, code[0]), net(x, code[0]))
+    # the planes matter: another cloud's planes under the same global code give another field
+    swapped = torch.cat([code[0, :8], code[1, 8:]])
+    assert not torch.allclose(net(x, swapped), net(x, code[0]), atol=1e-4)
+    with pytest.raises(ConfigError, match="layout"):
+        OccupancyNetwork(PointNetEncoder(8, 16, plane_dim=4, plane_resolution=8), CBNDecoder(8, 16))
+    with pytest.raises(ConfigError, match="divisible"):
+        PointNetEncoder(8, 16, plane_dim=4, plane_resolution=6)
 
 def test_conditional_batch_norm_with_a_constant_code_is_batch_norm_with_those_affine_parameters():
     torch.manual_seed(0)
