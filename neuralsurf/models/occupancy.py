@@ -270,7 +270,8 @@ class OccupancyNetwork(nn.Module):
     def field_from_cloud(self, points: Tensor, normalization=None, margin: float = 0.05):
         """Shape completion in one forward pass: the world-frame field of the shape whose (partial,
         noisy) surface points are `points` (Float[Tensor, "n 3"], in the frame the network was trained
-        in unless `normalization` maps world to it). The model is put in eval mode."""
+        in unless `normalization` maps world to it). The model is put in eval mode. With feature planes,
+        give as many points as the training clouds had: the planes' cells fill with the density."""
         from neuralsurf.models.field import NormalizedField
         from neuralsurf.structures import Normalization
 
