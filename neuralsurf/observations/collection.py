@@ -220,10 +220,10 @@ def facing_mask(normals: Tensor, generator: torch.Generator) -> Tensor:
 def view_clouds(meshes: list, views: int, points_per_view: int, seed: int) -> Tensor:
     """Float[Tensor, "S views points_per_view 3"]: back-projected points of `views` synthetic depth
     views of each mesh (unit frame), cameras and images as the `shapes_one_view` scene's
-    (`scenes.recipes.one_view_camera`, 160x120, 50 deg): one-sided clouds with self-occlusion, as one
+    (`scenes.recipes.one_view_camera`, `ONE_VIEW_IMAGE`): one-sided clouds with self-occlusion, as one
     depth view sees a shape. Each view's points are drawn at random (with repeats when fewer)."""
     from neuralsurf.geometry import backproject_depth
-    from neuralsurf.scenes.recipes import one_view_camera
+    from neuralsurf.scenes.recipes import ONE_VIEW_IMAGE, one_view_camera
     from neuralsurf.scenes.scanner import scan_depth
 
     generator = torch.Generator().manual_seed(seed)
@@ -231,7 +231,7 @@ def view_clouds(meshes: list, views: int, points_per_view: int, seed: int) -> Te
     for i, mesh in enumerate(meshes):
         # camera seeds from 10^6 up: the shapes_one_view scene's cameras take seeds 0, 1, ...
         poses = torch.stack([one_view_camera(1_000_000 * (seed + 1) + views * i + v) for v in range(views)])
-        frames = scan_depth(mesh, cam_to_world=poses, width=160, height=120, fov_deg=50.0)
+        frames = scan_depth(mesh, cam_to_world=poses, **ONE_VIEW_IMAGE)
         points = backproject_depth(frames)
         for v in range(views):
             seen = points[v][frames.depth[v] > 0]

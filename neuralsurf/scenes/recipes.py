@@ -328,6 +328,10 @@ def shapes_cloud(collection, name: str = "shapes_cloud", n_points: int = 3000, n
                                   f"points each, Gaussian noise {noise:g} (longest side 1)")
 
 
+ONE_VIEW_IMAGE = {"width": 160, "height": 120, "fov_deg": 50.0}
+"""The image of the shapes_one_view scene's camera (and of the OccNet's one-sided training views)."""
+
+
 def one_view_camera(seed: int, distance: float = 1.6) -> torch.Tensor:
     """Float64[Tensor, "4 4"] cam_to_world looking at the origin from a random azimuth and an elevation
     of 0.2 to 0.6 rad (from above, as a person sees a chair, mug or lamp) at `distance`."""
@@ -345,8 +349,8 @@ def one_view_camera(seed: int, distance: float = 1.6) -> torch.Tensor:
 
 
 @lru_cache(maxsize=4)
-def shapes_one_view(collection, name: str = "shapes_one_view", width: int = 160, height: int = 120,
-                    fov_deg: float = 50.0, distance: float = 1.6, noise: float = 0.001, limit: int | None = None,
+def shapes_one_view(collection, name: str = "shapes_one_view", width: int = ONE_VIEW_IMAGE["width"],
+                    height: int = ONE_VIEW_IMAGE["height"], fov_deg: float = ONE_VIEW_IMAGE["fov_deg"], distance: float = 1.6, noise: float = 0.001, limit: int | None = None,
                     seed: int = 0) -> SceneSet:
     """One synthetic depth view (Gaussian noise `noise`, unit frame) of each test shape of
     `collection`, from a random side (`one_view_camera`); point methods get its back-projection."""
