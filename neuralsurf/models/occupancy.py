@@ -15,6 +15,7 @@ like an SDF. Complete a shape from a cloud with one forward pass: `model.field_f
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -126,7 +127,6 @@ class PointNetEncoder(nn.Module):
         if plane_dim and plane_resolution % 2 ** unet_depth:
             raise ConfigError(f"plane_resolution {plane_resolution} must be divisible by 2^unet_depth = "
                               f"{2 ** unet_depth}")
-        self.c_dim = c_dim
         self.layout = code_layout(c_dim, plane_dim, plane_resolution, half)
         self.fc_pos = nn.Linear(3, 2 * hidden)
         self.blocks = nn.ModuleList(ResnetBlockFC(2 * hidden, hidden) for _ in range(blocks))
@@ -154,13 +154,27 @@ class PointNetEncoder(nn.Module):
         return torch.cat([code, self.unet(planes).reshape(b, -1)], dim=-1)
 
 
-def code_layout(c_dim: int, plane_dim: int, plane_resolution: int, half: float) -> tuple:
-    """What an encoder's code holds, which its decoder must read alike: (c_dim, plane_dim, resolution,
-    half), the plane entries 0 for a global code alone."""
+class CodeLayout(NamedTuple):
+    """What an encoder's code holds, which its decoder must read alike: a global code of `c_dim`
+    entries, then three planes of `plane_dim` x `resolution`^2 over [-half, half]^3 (0s: none)."""
+
+    c_dim: int
+    plane_dim: int
+    resolution: int
+    half: float
+
+    @property
+    def size(self) -> int:
+        """The entries of one flat code."""
+        return self.c_dim + 3 * self.plane_dim * self.resolution ** 2
+
+
+def code_layout(c_dim: int, plane_dim: int, plane_resolution: int, half: float) -> CodeLayout:
+    """The checked `CodeLayout` of a code with these settings (the plane entries 0 without planes)."""
     if plane_dim < 0 or (plane_dim and (plane_resolution < 2 or half <= 0)):
         raise ConfigError(f"feature planes need plane_dim >= 0, plane_resolution >= 2 and half > 0, got "
                           f"{plane_dim}, {plane_resolution}, {half}")
-    return (c_dim, plane_dim, plane_resolution, half) if plane_dim else (c_dim, 0, 0, 0.0)
+    return CodeLayout(c_dim, plane_dim, plane_resolution, half) if plane_dim else CodeLayout(c_dim, 0, 0, 0.0)
 
 
 class ConditionalBatchNorm(nn.Module):
@@ -210,7 +224,6 @@ class CBNDecoder(nn.Module):
         super().__init__()
         if min(c_dim, hidden, blocks) < 1:
             raise ConfigError(f"CBNDecoder needs c_dim, hidden, blocks >= 1, got {c_dim}, {hidden}, {blocks}")
-        self.c_dim = c_dim
         self.layout = code_layout(c_dim, plane_dim, plane_resolution, half)
         self.fc_p = nn.Linear(3, hidden)
         self.fc_planes = nn.ModuleList(nn.Linear(plane_dim, hidden) for _ in range(blocks if plane_dim else 0))
@@ -238,14 +251,12 @@ class OccupancyNetwork(nn.Module):
         if not 0 < threshold < 1:
             raise ConfigError(f"threshold is an occupancy probability in (0, 1), got {threshold}")
         if getattr(encoder, "layout", None) != getattr(decoder, "layout", None):
-            raise ConfigError(f"the encoder writes codes of layout {getattr(encoder, 'layout', None)} (c_dim, "
-                              f"plane_dim, plane_resolution, half), the decoder reads {getattr(decoder, 'layout', None)}; "
-                              f"give both the same")
+            raise ConfigError(f"the encoder writes codes of layout {getattr(encoder, 'layout', None)}, the decoder "
+                              f"reads {getattr(decoder, 'layout', None)}; give both the same settings")
         self.encoder = encoder
         self.decoder = decoder
         self.threshold = float(threshold)
-        c_dim, plane_dim, resolution, _ = encoder.layout
-        self.latent_dim = c_dim + 3 * plane_dim * resolution ** 2     # the entries of one code
+        self.latent_dim = encoder.layout.size
 
     def encode(self, cloud: Tensor) -> Tensor:
         """Float[Tensor, "b n 3"] (or "n 3") unit-frame points -> codes Float[Tensor, "b latent_dim"]."""
