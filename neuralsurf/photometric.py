@@ -751,12 +751,92 @@ class DepthError:
     offset: float
 
 
+def continuous_pieces(
+    depth: Tensor,
+    normals: Tensor,
+    mask: Tensor | None = None,
+    K: Tensor | None = None,
+    pixel_size: float = 1.0,
+    tolerance: float = 0.5,
+    max_slope: float = 3.0,
+    min_fraction: float = 0.01,
+) -> Tensor:
+    """The pieces of a true depth map that normal integration can recover, each up to its own scale
+    (perspective) or offset (orthographic): a part seen only across an occluding contour, such as an
+    ear in front of the body, is joined to the rest by no normal, so no integrator can place it.
+
+    Neighbouring mask pixels are joined where their depth step (log-depth under perspective) is the one
+    their normals predict (the mean of their target derivatives, as `integrate_least_squares` uses)
+    within `tolerance` pixel footprints, and the predicted slope is at most `max_slope` footprints per
+    pixel (grazing rims, where normals fix no step, join nothing). Pieces are the connected components
+    of the joined pixels; those under `min_fraction` of the mask are dropped (-1).
+
+    Args:
+        depth: Float[Tensor, "h w"] true z-depth (orthographic: depth in the units of `pixel_size`).
+        normals: Float[Tensor, "h w 3"] true unit normals, camera frame.
+        mask: Bool[Tensor, "h w"]; None: depth > 0.
+        K: Float[Tensor, "3 3"] for a perspective camera; None: orthographic.
+    Returns:
+        Int64[Tensor, "h w"]: a piece index per pixel (0 the largest), -1 outside every kept piece.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    depth, normals = torch.as_tensor(depth), torch.as_tensor(normals)
+    if depth.ndim != 2 or tuple(normals.shape[:2]) != tuple(depth.shape):
+        raise InputError(f"depth must be an (h, w) map of the normals' size, got {tuple(depth.shape)} "
+                         f"and normals {tuple(normals.shape)}")
+    normals, mask = _check_integration_inputs(normals, depth > 0 if mask is None else mask, K)
+    m = mask.numpy()
+    index = np.full(m.shape, -1, dtype=np.int64)
+    index[m] = np.arange(int(m.sum()))
+    z = depth.double().cpu().numpy()
+    t = np.log(np.where(m, z, 1.0)) if K is not None else np.where(m, z, 0.0)
+    p, q, footprint = _gradients(normals, mask, K, pixel_size, max_slope)
+    rows, cols = [], []
+    for axis, target in ((1, p.ravel()), (0, q.ravel())):
+        a, b, ia, ib = _pairs(m, index, axis)
+        predicted = (target[a] + target[b]) / 2
+        scale = footprint.ravel()[a]
+        step = t.ravel()[b] - t.ravel()[a]
+        joined = (np.abs(step - predicted) * scale <= tolerance) & (np.abs(predicted) * scale <= max_slope)
+        rows.append(ia[joined])
+        cols.append(ib[joined])
+    n = int(m.sum())
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    _, labels = connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False)
+    counts = np.bincount(labels)
+    order = np.argsort(-counts, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    kept = counts >= min_fraction * n
+    pieces = np.full(m.shape, -1, dtype=np.int64)
+    pieces[m] = np.where(kept[labels], rank[labels], -1)
+    return torch.from_numpy(pieces)
+
+
+def _alignment(e: Tensor, t: Tensor, align: str) -> tuple[float, float]:
+    """Least-squares (scale, offset) taking estimate values e [n] to truth t [n] under `align`."""
+    if align == "scale":
+        return float((e * t).sum() / (e * e).sum().clamp_min(1e-30)), 0.0
+    if align == "offset":
+        return 1.0, float((t - e).mean())
+    if align == "scale_offset":
+        design = torch.stack([e, torch.ones_like(e)], -1)
+        solution = torch.linalg.lstsq(design, t[:, None]).solution[:, 0]
+        return float(solution[0]), float(solution[1])
+    return 1.0, 0.0
+
+
 def depth_error(
-    estimate: Tensor, truth: Tensor, mask: Tensor | None = None, align: str = "scale"
+    estimate: Tensor, truth: Tensor, mask: Tensor | None = None, align: str = "scale", pieces: Tensor | None = None
 ) -> DepthError:
     """Mean absolute error of depth estimate [h, w] against truth [h, w] over `mask` (default: truth > 0)
     after the least-squares alignment `align`: "scale" (s * estimate; perspective integration),
-    "offset" (estimate + o; orthographic integration), "scale_offset" (s * estimate + o) or "none"."""
+    "offset" (estimate + o; orthographic integration), "scale_offset" (s * estimate + o) or "none".
+
+    With `pieces` (Int[Tensor, "h w"], `continuous_pieces`), each piece is aligned on its own and the
+    mean runs over the mask's pixels in a piece (>= 0); `scale` and `offset` are then piece 0's."""
     if estimate.shape != truth.shape or estimate.ndim != 2:
         raise InputError(
             f"depth maps must both be (h, w), got {tuple(estimate.shape)} and {tuple(truth.shape)}"
@@ -765,21 +845,24 @@ def depth_error(
         raise ConfigError(f"align must be 'scale', 'offset', 'scale_offset' or 'none', got {align!r}")
     truth = truth.to(estimate.device)
     mask = (truth > 0) if mask is None else torch.as_tensor(mask, device=estimate.device).bool()
-    e, t = estimate[mask].double(), truth[mask].double()
-    if len(e) == 0:
+    if pieces is None:
+        pieces = torch.zeros(mask.shape, dtype=torch.int64)
+    elif tuple(pieces.shape) != tuple(mask.shape):
+        raise InputError(f"pieces must be (h, w) = {tuple(mask.shape)}, got {tuple(pieces.shape)}")
+    pieces = torch.where(mask, torch.as_tensor(pieces, device=estimate.device), -1)
+    if not (pieces >= 0).any():
         raise InputError("no pixel to compare: the mask is empty")
-    scale, offset = 1.0, 0.0
-    if align == "scale":
-        scale = float((e * t).sum() / (e * e).sum().clamp_min(1e-30))
-    elif align == "offset":
-        offset = float((t - e).mean())
-    elif align == "scale_offset":
-        design = torch.stack([e, torch.ones_like(e)], -1)
-        solution = torch.linalg.lstsq(design, t[:, None]).solution[:, 0]
-        scale, offset = float(solution[0]), float(solution[1])
-    aligned = torch.where(mask, estimate.double() * scale + offset, 0.0)
+    aligned = torch.zeros(mask.shape, dtype=torch.float64, device=estimate.device)
+    alignments = {}
+    for piece in torch.unique(pieces[pieces >= 0]).tolist():
+        inside = pieces == piece
+        e = estimate[inside].double()
+        alignments[piece] = scale, offset = _alignment(e, truth[inside].double(), align)
+        aligned[inside] = e * scale + offset
+    scored = pieces >= 0
+    scale, offset = alignments.get(0, next(iter(alignments.values())))
     return DepthError(
-        float((aligned[mask] - truth[mask].double()).abs().mean()), aligned.to(estimate.dtype), scale, offset
+        float((aligned[scored] - truth[scored].double()).abs().mean()), aligned.to(estimate.dtype), scale, offset
     )
 
 
@@ -792,6 +875,7 @@ __all__ = [
     "NormalIntegration",
     "PhotometricStereoResult",
     "angular_error",
+    "continuous_pieces",
     "calibrate_chrome_ball",
     "depth_error",
     "integrate_bilateral",

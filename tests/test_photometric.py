@@ -16,6 +16,7 @@ from neuralsurf.geometry import backproject_depth_to_camera
 from neuralsurf.photometric import (
     angular_error,
     calibrate_chrome_ball,
+    continuous_pieces,
     depth_error,
     integrate_bilateral,
     integrate_least_squares,
@@ -344,6 +345,51 @@ def test_bilateral_integration_keeps_a_depth_step():
         aligned = depth_error(result.depth, capture.depth, capture.mask, align="scale").aligned
         errors[integrate.__name__] = float((aligned - capture.depth).abs()[band].mean())
     assert errors["integrate_bilateral"] <= 0.5 * errors["integrate_least_squares"], errors
+
+
+def cap_over_wall(h: int = 48, w: int = 64):
+    """Orthographic (pixels 0.025 apart): a sphere cap (centre (0, 0, 3), radius 1, seen within 0.5 of
+    its axis) in front of a wall at z = 4: normals, depth, mask. The cap's rim occludes the wall: the
+    normals hold no trace of the step (a cap sunk into the wall has the same ones)."""
+    v, u = torch.meshgrid(
+        torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij"
+    )
+    x, y = (u - (w - 1) / 2) * 0.025, (v - (h - 1) / 2) * 0.025
+    on_cap = x**2 + y**2 < 0.5**2
+    cap = torch.stack([x, y, -torch.sqrt((1 - x**2 - y**2).clamp_min(0))], -1)
+    wall = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
+    normals = torch.where(on_cap[..., None], cap, wall.expand_as(cap))
+    depth = torch.where(on_cap, 3 + cap[..., 2], 4.0)
+    return normals, depth, torch.ones(h, w, dtype=torch.bool)
+
+
+def test_continuous_pieces_split_at_an_occluding_rim_and_depth_error_aligns_each_piece():
+    normals, depth, mask = cap_over_wall()
+    pieces = continuous_pieces(depth, normals, mask, pixel_size=0.025)
+    x, y = torch.meshgrid(
+        (torch.arange(48, dtype=torch.float64) - 23.5) * 0.025,
+        (torch.arange(64, dtype=torch.float64) - 31.5) * 0.025,
+        indexing="ij",
+    )
+    on_cap = y**2 + x**2 < 0.5**2
+    # two pieces, the wall (the larger) first; only cap pixels whose slope exceeds 3 footprints drop out
+    assert set(pieces.unique().tolist()) <= {-1, 0, 1}
+    assert (pieces[~on_cap] == 0).all() and (pieces[on_cap] != 0).all() and (pieces[on_cap] == 1).float().mean() > 0.9
+    # an estimate right up to a different offset per piece is exact piece by piece, not as a whole
+    shifted = depth + torch.where(on_cap, 0.7, -0.3)
+    assert depth_error(shifted, depth, mask, align="offset", pieces=pieces).mean_abs < 1e-12
+    assert depth_error(shifted, depth, mask, align="offset").mean_abs > 0.3
+    # integration recovers each piece's shape (0.1 % of the cap's size); the step between them is lost
+    for integrate in (integrate_least_squares, integrate_bilateral):
+        result = integrate(normals, mask, pixel_size=0.025)
+        assert depth_error(result.depth, depth, mask, align="offset", pieces=pieces).mean_abs < 1e-3
+        assert depth_error(result.depth, depth, mask, align="offset").mean_abs > 0.5
+    # a piece under min_fraction of the mask is dropped; bad shapes are named
+    assert (continuous_pieces(depth, normals, mask, pixel_size=0.025, min_fraction=0.5) <= 0).all()
+    with pytest.raises(InputError, match="normals' size"):
+        continuous_pieces(depth[:, :10], normals, pixel_size=0.025)
+    with pytest.raises(InputError, match="pieces must be"):
+        depth_error(depth, depth, pieces=pieces[:, :10])
 
 
 def test_integration_and_depth_error_input_errors():

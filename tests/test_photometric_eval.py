@@ -45,6 +45,7 @@ def test_photometric_stereo_rows_on_a_small_rig(tmp_path):
     for row in (ls, robust):
         assert 0 <= row["normal_error_median_deg"] <= row["normal_error_mean_deg"] < 5
         assert 0 < row["integration_depth_error"] < 0.05  # integrated rig depth, fraction of the bunny's size
+        assert 0 < row["integration_depth_error_pieces"] < 0.05 and 0.8 < row["integration_piece_coverage"] <= 1
         assert (tmp_path / row["render"]).is_file()
     # attached shadows break least squares at the rim; the robust method drops them
     assert robust["normal_error_mean_deg"] < ls["normal_error_mean_deg"]

@@ -41,6 +41,8 @@ class NormalMapResult:
     """Float[Tensor, "h w"] per view: the rig's z-depth (0 off the object), or empty."""
     sizes: tuple[float, ...] = ()
     """Per view with depth: the object's size (longest side of the box of its back-projected pixels)."""
+    pieces: tuple[Tensor, ...] = ()
+    """Int64[Tensor, "h w"] per view with depth and true normals: `continuous_pieces` of the truth."""
 
 
 def _check_photometric(scene: Scene) -> None:
@@ -54,12 +56,12 @@ def photometric_normals(scene: Scene, *, method: str = "robust", integrate: str 
     """Photometric stereo (`neuralsurf.photometric.photometric_stereo`, `method` least_squares, trimmed
     or robust) on every capture of the scene; with `integrate` (least_squares or bilateral) and a
     capture with K and depth, the estimated normals are also integrated to depth."""
-    from neuralsurf.photometric import INTEGRATORS, photometric_stereo
+    from neuralsurf.photometric import INTEGRATORS, continuous_pieces, photometric_stereo
 
     _check_photometric(scene)
     from neuralsurf.baselines.nehab import pixel_rays
 
-    normals, truth, masks, depth, true_depth, sizes = [], [], [], [], [], []
+    normals, truth, masks, depth, true_depth, sizes, pieces = [], [], [], [], [], [], []
     for capture in scene.photometric:
         result = photometric_stereo(capture, method, **(options or {}))
         mask = capture.pixel_mask()
@@ -72,17 +74,22 @@ def photometric_normals(scene: Scene, *, method: str = "robust", integrate: str 
             solved = mask & result.mask
             depth.append(INTEGRATORS[integrate](result.normals, solved, K=capture.K).depth)
             true_depth.append(torch.where(solved, capture.depth, 0.0))
+            if capture.normals is not None:
+                pieces.append(continuous_pieces(capture.depth, capture.normals, mask, K=capture.K))
             seen = capture.depth > 0
             points = pixel_rays(capture.K, capture.height, capture.width)[seen] * capture.depth[seen, None].double()
             sizes.append(float((points.max(0).values - points.min(0).values).max()))
-    return NormalMapResult(tuple(normals), tuple(truth), tuple(masks), tuple(depth), tuple(true_depth), tuple(sizes))
+    return NormalMapResult(tuple(normals), tuple(truth), tuple(masks), tuple(depth), tuple(true_depth), tuple(sizes),
+                           tuple(pieces))
 
 
 def score_normal_maps(result: NormalMapResult) -> dict[str, float]:
     """normal_error_mean_deg / normal_error_median_deg over the pixels of every view with a ground
     truth (unsolved pixels count as 90 deg), normal_coverage (share solved); with integrated depth,
     integration_depth_error (mean |dz| after the least-squares scale, as a fraction of the object's
-    size, `NormalMapResult.sizes`) and its median."""
+    size, `NormalMapResult.sizes`) and its median; with ground-truth normals too,
+    integration_depth_error_pieces (each `continuous_pieces` piece aligned on its own: what normals can
+    determine) and integration_piece_coverage (the share of the scored pixels in a kept piece)."""
     from neuralsurf.errors import InputError
     from neuralsurf.photometric import angular_error, depth_error
 
@@ -107,6 +114,16 @@ def score_normal_maps(result: NormalMapResult) -> dict[str, float]:
         values = torch.cat(absolute)
         scores["integration_depth_error"] = float(values.mean())
         scores["integration_depth_error_median"] = float(values.median())
+    if result.pieces and len(result.pieces) == len(result.depth):
+        errors, in_pieces, scored = [], 0, 0
+        for estimate, truth, size, pieces in zip(result.depth, result.true_depth, result.sizes, result.pieces):
+            mask = (truth > 0) & (estimate > 0)
+            aligned = depth_error(estimate, truth, mask, align="scale", pieces=pieces)
+            inside = mask & (pieces >= 0)
+            errors.append((aligned.aligned - truth).abs()[inside].double() / size)
+            in_pieces, scored = in_pieces + int(inside.sum()), scored + int(mask.sum())
+        scores["integration_depth_error_pieces"] = float(torch.cat(errors).mean())
+        scores["integration_piece_coverage"] = in_pieces / scored
     return scores
 
 

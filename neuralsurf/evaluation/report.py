@@ -16,7 +16,8 @@ TABLE_COLUMNS = [("method", "method"), ("scene", "scene"), ("status", "status"),
                  ("hausdorff", "Hausdorff"), ("depth_error_mean", "held-out depth err m"),
                  ("depth_completeness", "held-out compl."), ("normal_error_mean_deg", "normal err mean deg"),
                  ("normal_error_median_deg", "normal err median deg"),
-                 ("integration_depth_error", "integrated depth err"), ("seconds", "time s"), ("peak_rss_mb", "peak RSS MiB"),
+                 ("integration_depth_error", "integrated depth err"),
+                 ("integration_depth_error_pieces", "integrated depth err per piece"), ("seconds", "time s"), ("peak_rss_mb", "peak RSS MiB"),
                  ("cuda_peak_mb", "CUDA peak MiB"), ("n_faces", "faces"), ("watertight", "watertight")]
 
 
