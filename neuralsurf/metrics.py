@@ -325,7 +325,8 @@ def evaluate_mesh(
         - ``chamfer_l2_sum``: DeepSDF / pytorch3d Chamfer, the *sum* of the two mean squared NN
           distances (= 2 * chamfer_l2).
         - ``normal_consistency``: OccNet, mean |cos| between the face normals of nearest-neighbour
-          samples, averaged over both directions; 1 is best.
+          samples, averaged over both directions; 1 is best. Has a sampling floor: 0.9960 for the
+          bunny against itself at 100k samples.
         - ``accuracy_exact``: mean exact distance from pred samples to gt's triangles.
         - ``completeness_exact``: mean exact distance from gt samples to pred's triangles.
         - ``chamfer_l1_exact``: ``0.5 * (accuracy_exact + completeness_exact)``; no sampling floor
