@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.structures import PhotometricCapture
+from neuralsurf.structures import PhotometricCapture, check_intrinsics
 
 # ----------------------------------------------------------------------------------------------
 # photometric stereo
@@ -67,6 +67,8 @@ def _check_inputs(images: Tensor, lights: Tensor, mask: Tensor | None) -> tuple[
         )
     if images.shape[0] < 3:
         raise InputError(f"photometric stereo needs at least 3 lights, got {images.shape[0]}")
+    if not torch.isfinite(lights).all():
+        raise InputError(f"lights hold NaN or inf (rows {_bad_rows(lights)}): check the light directions file")
     norms = lights.norm(dim=-1, keepdim=True)
     if (norms < 1e-8).any():
         raise InputError("a light direction is zero; give unit directions towards each light")
@@ -76,7 +78,17 @@ def _check_inputs(images: Tensor, lights: Tensor, mask: Tensor | None) -> tuple[
     mask = torch.as_tensor(mask, device=images.device).bool()
     if mask.shape != (h, w):
         raise InputError(f"mask must be (h, w) = {(h, w)}, got {tuple(mask.shape)}")
+    finite = torch.isfinite(images.sum(0))  # one pass; a NaN or inf in any image stays in the sum
+    finite = finite.all(-1) if images.ndim == 4 else finite
+    if not finite[mask].all():
+        raise InputError(f"images hold NaN or inf at {int((~finite & mask).sum())} masked pixels: give finite "
+                         f"intensities, or leave those pixels out of the mask")
     return images, lights / norms, mask
+
+
+def _bad_rows(values: Tensor) -> list[int]:
+    """Indices (at most 5) of the rows of values [n, ...] holding NaN or inf."""
+    return (~torch.isfinite(values.flatten(start_dim=1)).all(-1)).nonzero()[:5, 0].tolist()
 
 
 def _gather(images: Tensor, mask: Tensor) -> tuple[Tensor, Tensor | None]:
@@ -551,15 +563,21 @@ def _check_integration_inputs(normals: Tensor, mask: Tensor | None, K) -> tuple[
     normals = torch.as_tensor(normals)
     if normals.ndim != 3 or normals.shape[-1] != 3:
         raise InputError(f"normals must be an (h, w, 3) normal map, got {tuple(normals.shape)}")
+    finite = torch.isfinite(normals).all(-1).cpu()
     if mask is None:
-        mask = normals.norm(dim=-1) > 0
+        mask = ~finite | (normals.norm(dim=-1) > 0).cpu()
     mask = torch.as_tensor(mask).bool().cpu()
     if mask.shape != normals.shape[:2]:
         raise InputError(f"mask must be (h, w) = {tuple(normals.shape[:2])}, got {tuple(mask.shape)}")
+    if not finite[mask].all():
+        raise InputError(f"normals hold NaN or inf at {int((~finite & mask).sum())} masked pixels: mark pixels "
+                         f"without a normal by a zero normal or leave them out of the mask")
     if mask.sum() < 2:
         raise InputError("the mask holds fewer than 2 pixels: nothing to integrate")
-    if K is not None and tuple(torch.as_tensor(K).shape) != (3, 3):
-        raise InputError(f"K must be 3x3, got {tuple(torch.as_tensor(K).shape)}")
+    if K is not None:
+        if tuple(torch.as_tensor(K).shape) != (3, 3):
+            raise InputError(f"K must be 3x3, got {tuple(torch.as_tensor(K).shape)}")
+        check_intrinsics(torch.as_tensor(K, dtype=torch.float64)[None], normals.shape[1], normals.shape[0])
     return normals, mask
 
 
@@ -786,7 +804,11 @@ def continuous_pieces(
     if depth.ndim != 2 or tuple(normals.shape[:2]) != tuple(depth.shape):
         raise InputError(f"depth must be an (h, w) map of the normals' size, got {tuple(depth.shape)} "
                          f"and normals {tuple(normals.shape)}")
-    normals, mask = _check_integration_inputs(normals, depth > 0 if mask is None else mask, K)
+    if mask is None:
+        mask = (depth > 0) | ~torch.isfinite(depth)
+    normals, mask = _check_integration_inputs(normals, mask, K)
+    if not torch.isfinite(depth[mask]).all():
+        raise InputError("depth holds NaN or inf inside the mask: leave those pixels out of the mask")
     m = mask.numpy()
     index = np.full(m.shape, -1, dtype=np.int64)
     index[m] = np.arange(int(m.sum()))
@@ -850,8 +872,11 @@ def depth_error(
     elif tuple(pieces.shape) != tuple(mask.shape):
         raise InputError(f"pieces must be (h, w) = {tuple(mask.shape)}, got {tuple(pieces.shape)}")
     pieces = torch.where(mask, torch.as_tensor(pieces, device=estimate.device), -1)
-    if not (pieces >= 0).any():
+    scored = pieces >= 0
+    if not scored.any():
         raise InputError("no pixel to compare: the mask is empty")
+    if not (torch.isfinite(estimate[scored]).all() and torch.isfinite(truth[scored]).all()):
+        raise InputError("the depth maps hold NaN or inf inside the mask: leave those pixels out of the mask")
     aligned = torch.zeros(mask.shape, dtype=torch.float64, device=estimate.device)
     alignments = {}
     for piece in torch.unique(pieces[pieces >= 0]).tolist():
@@ -859,7 +884,6 @@ def depth_error(
         e = estimate[inside].double()
         alignments[piece] = scale, offset = _alignment(e, truth[inside].double(), align)
         aligned[inside] = e * scale + offset
-    scored = pieces >= 0
     scale, offset = alignments.get(0, next(iter(alignments.values())))
     return DepthError(
         float((aligned[scored] - truth[scored].double()).abs().mean()), aligned.to(estimate.dtype), scale, offset

@@ -178,6 +178,16 @@ def test_stereo_input_errors():
         robust_stereo(images, torch.randn(4, 3), torch.ones(4, 4, dtype=torch.bool))
     with pytest.raises(ConfigError, match="fewer than 3"):
         trimmed_stereo(images, torch.randn(4, 3), dark_fraction=0.5, bright_fraction=0.25)
+    lights = torch.tensor([[0.0, 0, -1], [0.5, 0, -1], [0, 0.5, -1], [-0.5, 0, -1]])
+    with pytest.raises(InputError, match=r"lights hold NaN or inf \(rows \[2\]\)"):
+        least_squares_stereo(images, torch.where(torch.arange(4)[:, None] == 2, float("nan"), lights))
+    broken = images.clone()
+    broken[1, 2, 3] = float("inf")
+    with pytest.raises(InputError, match="images hold NaN or inf at 1 masked pixels"):
+        robust_stereo(torch.stack([broken] * 3, -1), lights)
+    outside = torch.ones(5, 5, dtype=torch.bool)
+    outside[2, 3] = False  # a broken pixel outside the mask is not read
+    assert least_squares_stereo(broken, lights, outside).mask[2, 3].item() is False
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
@@ -399,6 +409,20 @@ def test_integration_and_depth_error_input_errors():
         integrate_least_squares(torch.zeros(4, 4, 3))
     with pytest.raises(ConfigError, match="align"):
         depth_error(torch.ones(2, 2), torch.ones(2, 2), align="affine")
+    normals = torch.tensor([0.0, 0.0, -1.0]).expand(4, 4, 3).clone()
+    normals[1, 1] = float("nan")
+    for integrate in (integrate_least_squares, integrate_bilateral):
+        with pytest.raises(InputError, match="normals hold NaN or inf at 1 masked pixels"):
+            integrate(normals)
+    K = torch.tensor([[4.0, 0, 1.5], [0, 4.0, 1.5], [0, 0, 1]])
+    with pytest.raises(InputError, match="holds NaN or inf"):
+        integrate_least_squares(normals[2:], K=K * torch.tensor([[float("nan"), 1, 1], [1, 1, 1], [1, 1, 1]]))
+    depth = torch.ones(4, 4)
+    depth[0, 0] = float("nan")
+    with pytest.raises(InputError, match="NaN or inf inside the mask"):
+        depth_error(depth, torch.ones(4, 4))
+    with pytest.raises(InputError, match="depth holds NaN or inf"):
+        continuous_pieces(depth, normals[[0, 2, 3, 3]], K=K)
     aligned = depth_error(
         2 * torch.ones(3, 3) + torch.eye(3), 4 * torch.ones(3, 3) + 2 * torch.eye(3), align="scale"
     )
