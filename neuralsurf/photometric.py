@@ -581,6 +581,13 @@ def _check_integration_inputs(normals: Tensor, mask: Tensor | None, K) -> tuple[
     return normals, mask
 
 
+def _unknown_index(mask: np.ndarray) -> np.ndarray:
+    """Int64[ndarray, "h w"]: each mask pixel's unknown (0, 1, ... in row-major order), -1 elsewhere."""
+    index = np.full(mask.shape, -1, dtype=np.int64)
+    index[mask] = np.arange(int(mask.sum()))
+    return index
+
+
 def _pairs(
     mask: np.ndarray, index: np.ndarray, axis: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -647,8 +654,7 @@ def integrate_least_squares(
 
     normals, mask = _check_integration_inputs(normals, mask, K)
     m = mask.numpy()
-    index = np.full(m.shape, -1, dtype=np.int64)
-    index[m] = np.arange(int(m.sum()))
+    index = _unknown_index(m)
     p, q, _ = _gradients(normals, mask, K, pixel_size, max_slope)
     rows, cols, vals, rhs = [], [], [], []
     count = 0
@@ -700,8 +706,7 @@ def integrate_bilateral(
     normals, mask = _check_integration_inputs(normals, mask, K)
     m = mask.numpy()
     n_unknowns = int(m.sum())
-    index = np.full(m.shape, -1, dtype=np.int64)
-    index[m] = np.arange(n_unknowns)
+    index = _unknown_index(m)
     p, q, footprint = _gradients(normals, mask, K, pixel_size, max_slope)
     footprint = footprint.ravel()
     # one-sided difference operators: rows = (pixel, direction), forward and backward per axis
@@ -810,8 +815,7 @@ def continuous_pieces(
     if not torch.isfinite(depth[mask]).all():
         raise InputError("depth holds NaN or inf inside the mask: leave those pixels out of the mask")
     m = mask.numpy()
-    index = np.full(m.shape, -1, dtype=np.int64)
-    index[m] = np.arange(int(m.sum()))
+    index = _unknown_index(m)
     z = depth.double().cpu().numpy()
     t = np.log(np.where(m, z, 1.0)) if K is not None else np.where(m, z, 0.0)
     p, q, footprint = _gradients(normals, mask, K, pixel_size, max_slope)

@@ -41,8 +41,8 @@ class NormalMapResult:
     """Float[Tensor, "h w"] per view: the rig's z-depth (0 off the object), or empty."""
     sizes: tuple[float, ...] = ()
     """Per view with depth: the object's size (longest side of the box of its back-projected pixels)."""
-    pieces: tuple[Tensor, ...] = ()
-    """Int64[Tensor, "h w"] per view with depth and true normals: `continuous_pieces` of the truth."""
+    pieces: tuple[Tensor | None, ...] = ()
+    """Int64[Tensor, "h w"] per view with depth: `continuous_pieces` of the truth (None without true normals)."""
 
 
 def _check_photometric(scene: Scene) -> None:
@@ -74,8 +74,8 @@ def photometric_normals(scene: Scene, *, method: str = "robust", integrate: str 
             solved = mask & result.mask
             depth.append(INTEGRATORS[integrate](result.normals, solved, K=capture.K).depth)
             true_depth.append(torch.where(solved, capture.depth, 0.0))
-            if capture.normals is not None:
-                pieces.append(continuous_pieces(capture.depth, capture.normals, mask, K=capture.K))
+            pieces.append(None if capture.normals is None else
+                          continuous_pieces(capture.depth, capture.normals, mask, K=capture.K))
             seen = capture.depth > 0
             points = pixel_rays(capture.K, capture.height, capture.width)[seen] * capture.depth[seen, None].double()
             sizes.append(float((points.max(0).values - points.min(0).values).max()))
@@ -106,24 +106,24 @@ def score_normal_maps(result: NormalMapResult) -> dict[str, float]:
     scores = {"normal_error_mean_deg": float(angles.mean()), "normal_error_median_deg": float(angles.median()),
               "normal_coverage": float(torch.cat(solved).float().mean()), "n_pixels": len(angles)}
     if result.depth:
-        absolute = []
-        for estimate, truth, size in zip(result.depth, result.true_depth, result.sizes):
+        pieces = result.pieces or (None,) * len(result.depth)
+        absolute, by_piece, in_pieces, piece_views_pixels = [], [], 0, 0
+        for estimate, truth, size, view_pieces in zip(result.depth, result.true_depth, result.sizes, pieces,
+                                                      strict=True):
             mask = (truth > 0) & (estimate > 0)
             aligned = depth_error(estimate, truth, mask, align="scale")
             absolute.append((aligned.aligned - truth).abs()[mask].double() / size)
+            if view_pieces is not None:
+                aligned = depth_error(estimate, truth, mask, align="scale", pieces=view_pieces)
+                inside = mask & (view_pieces >= 0)
+                by_piece.append((aligned.aligned - truth).abs()[inside].double() / size)
+                in_pieces, piece_views_pixels = in_pieces + int(inside.sum()), piece_views_pixels + int(mask.sum())
         values = torch.cat(absolute)
         scores["integration_depth_error"] = float(values.mean())
         scores["integration_depth_error_median"] = float(values.median())
-    if result.pieces and len(result.pieces) == len(result.depth):
-        errors, in_pieces, scored = [], 0, 0
-        for estimate, truth, size, pieces in zip(result.depth, result.true_depth, result.sizes, result.pieces):
-            mask = (truth > 0) & (estimate > 0)
-            aligned = depth_error(estimate, truth, mask, align="scale", pieces=pieces)
-            inside = mask & (pieces >= 0)
-            errors.append((aligned.aligned - truth).abs()[inside].double() / size)
-            in_pieces, scored = in_pieces + int(inside.sum()), scored + int(mask.sum())
-        scores["integration_depth_error_pieces"] = float(torch.cat(errors).mean())
-        scores["integration_piece_coverage"] = in_pieces / scored
+        if by_piece:
+            scores["integration_depth_error_pieces"] = float(torch.cat(by_piece).mean())
+            scores["integration_piece_coverage"] = in_pieces / piece_views_pixels
     return scores
 
 
