@@ -362,16 +362,34 @@ def point_to_mesh_distance(points: Tensor, mesh: Mesh) -> Tensor:
         Float[Tensor, "n"] in the points' dtype (computed in float32 by Open3D's BVH; to
         keep relative precision the mesh and points are re-centred on the mesh first).
     """
+    scene, query = _centred_query(points, mesh, "point_to_mesh_distance")
+    return torch.from_numpy(scene.compute_distance(query).numpy()).to(points)
+
+
+def closest_faces(points: Tensor, mesh: Mesh) -> Tensor:
+    """The face of the mesh that holds each point's closest surface point.
+
+    Args:
+        points: Float[Tensor, "n 3"]; mesh: non-empty Mesh in the same frame.
+    Returns:
+        Int64[Tensor, "n"] face indices (Open3D's BVH in float32, re-centred as `point_to_mesh_distance`).
+    """
+    scene, query = _centred_query(points, mesh, "closest_faces")
+    faces = scene.compute_closest_points(query)["primitive_ids"].numpy().astype(np.int64)
+    return torch.from_numpy(faces).to(points.device)
+
+
+def _centred_query(points: Tensor, mesh: Mesh, caller: str):
+    """Open3D's ray-casting scene of the mesh and the query points, both re-centred on the mesh's mean
+    vertex (relative precision in float32)."""
     if mesh.is_empty:
-        raise InputError("point_to_mesh_distance needs a mesh with faces, got an empty mesh")
-    center = mesh.vertices.double().mean(0)
-    centred = Mesh(mesh.vertices.double() - center, mesh.faces)
-    scene = _raycasting_scene(centred)
+        raise InputError(f"{caller} needs a mesh with faces, got an empty mesh")
     import open3d as o3d
 
+    center = mesh.vertices.double().mean(0)
+    scene = _raycasting_scene(Mesh(mesh.vertices.double() - center, mesh.faces))
     query = (points.detach().cpu().double() - center.cpu()).float().numpy()
-    distance = scene.compute_distance(o3d.core.Tensor(query)).numpy()
-    return torch.from_numpy(distance).to(points)
+    return scene, o3d.core.Tensor(query)
 
 
 def mesh_signed_distance(points: Tensor, mesh: Mesh) -> Tensor:

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from neuralsurf.errors import InputError
-from neuralsurf.geometry import cloud_from_mesh, point_to_mesh_distance
+from neuralsurf.geometry import closest_faces, cloud_from_mesh, point_to_mesh_distance
 from neuralsurf.metrics import (
     chamfer_distances,
     chamfer_l1,
@@ -33,7 +33,12 @@ def naive_nearest(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch
 
 
 def naive_point_to_triangles(points: torch.Tensor, triangles: torch.Tensor) -> torch.Tensor:
-    """Exact distance of each point (p, 3) to the closest of `triangles` (t, 3, 3), float64.
+    """Exact distance of each point (p, 3) to the closest of `triangles` (t, 3, 3), float64."""
+    return naive_distances_to_each_triangle(points, triangles).amin(dim=1)
+
+
+def naive_distances_to_each_triangle(points: torch.Tensor, triangles: torch.Tensor) -> torch.Tensor:
+    """Exact distance of each point (p, 3) to each of `triangles` (t, 3, 3): (p, t), float64.
 
     The closest point of a triangle is either the projection onto its plane, when that lies inside,
     or the closest point of one of its three edges: take the minimum over all those candidates.
@@ -52,7 +57,7 @@ def naive_point_to_triangles(points: torch.Tensor, triangles: torch.Tensor) -> t
         edge = y - x
         t = (((p - x) * edge).sum(-1) / (edge * edge).sum(-1)).clamp(0, 1)
         candidates.append((p - (x + t[..., None] * edge)).norm(dim=-1))
-    return torch.stack(candidates).amin(dim=(0, 2))
+    return torch.stack(candidates).amin(dim=0)
 
 
 def naive_fscore(d_pred: torch.Tensor, d_gt: torch.Tensor, threshold: float) -> float:
@@ -164,6 +169,28 @@ def test_point_to_mesh_distance_matches_naive_point_to_triangle(mesh):
     torch.testing.assert_close(point_to_mesh_distance(points, mesh), expected, rtol=0, atol=2e-6)
 
 
+@pytest.mark.parametrize("mesh", [Torus(center=(0.1, 0.0, 0.05)).mesh(sections=12), Box().mesh()])
+def test_closest_faces_match_naive_point_to_triangle(mesh):
+    g = torch.Generator().manual_seed(8)
+    points = torch.cat([(torch.rand(300, 3, dtype=torch.float64, generator=g) - 0.5) * 1.5,
+                        cloud_from_mesh(mesh, 200, noise=0.01, seed=9).points])
+    distances = naive_distances_to_each_triangle(points, mesh.vertices[mesh.faces])
+    two = distances.topk(2, dim=1, largest=False)
+    unique = (two.values[:, 1] - two.values[:, 0]) > 1e-5  # points whose closest face is not a tie
+    assert unique.sum() > 100
+    assert torch.equal(closest_faces(points, mesh)[unique], two.indices[unique, 0])
+
+
+def test_exact_normal_consistency_of_two_planes_is_the_cosine_of_their_angle():
+    square = Mesh(torch.tensor([[-1.0, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]]), torch.tensor([[0, 1, 2], [0, 2, 3]]))
+    angle = 0.3
+    c, s = math.cos(angle), math.sin(angle)
+    tilted = Mesh(square.vertices @ torch.tensor([[1.0, 0, 0], [0, c, s], [0, -s, c]]).T, square.faces)
+    result = evaluate_samples(tilted, square, cloud_from_mesh(tilted, 500, seed=1), cloud_from_mesh(square, 500, seed=2))
+    assert result["normal_consistency_exact"] == pytest.approx(c, abs=1e-6)
+    assert result["normal_consistency"] == pytest.approx(c, abs=1e-6)  # flat: every sample has the same normal
+
+
 def test_evaluate_samples_matches_naive_reference():
     pred = Torus(center=(0.05, 0.0, 0.02), major=0.3, minor=0.12).mesh(sections=12)
     gt = Sphere(radius=0.35).mesh(subdivisions=1)
@@ -189,6 +216,11 @@ def test_evaluate_samples_matches_naive_reference():
         "completeness_exact": float(exact_gp.mean()),
         "chamfer_l1_exact": 0.5 * float(exact_pg.mean() + exact_gp.mean()),
         "hausdorff": max(float(exact_pg.max()), float(exact_gp.max())),
+        # the closest faces themselves are checked against the naive search in their own test (ties aside)
+        "normal_consistency_exact": 0.5 * float(
+            (np_ * gt.face_normals()[closest_faces(p, gt)]).sum(-1).abs().mean()
+            + (ng * pred.face_normals()[closest_faces(q, pred)]).sum(-1).abs().mean()
+        ),
     }
     for t in thresholds:
         expected[fscore_key(t)] = naive_fscore(exact_pg, exact_gp, t)
@@ -201,7 +233,7 @@ def test_evaluate_samples_matches_naive_reference():
 # ----------------------------------------------------------------------------- evaluate_mesh: analytic cases
 
 KEYS = {
-    "accuracy", "completeness", "chamfer_l1", "chamfer_l2", "chamfer_l2_sum", "normal_consistency",
+    "accuracy", "completeness", "chamfer_l1", "chamfer_l2", "chamfer_l2_sum", "normal_consistency", "normal_consistency_exact",
     "accuracy_exact", "completeness_exact", "chamfer_l1_exact", "fscore_0.5%", "fscore_1%", "hausdorff",
     "iou", "pred_watertight", "gt_watertight", "n_vertices", "n_faces",
 }  # fmt: skip
@@ -214,7 +246,7 @@ def test_identical_meshes_score_perfectly():
     assert result["chamfer_l1_exact"] < 1e-6 and result["hausdorff"] < 1e-6
     assert result["fscore_0.5%"] == 1.0 and result["fscore_1%"] == 1.0
     assert result["iou"] == 1.0 and result["pred_watertight"] == 1.0 and result["gt_watertight"] == 1.0
-    assert result["normal_consistency"] > 0.99
+    assert result["normal_consistency"] > 0.99 and result["normal_consistency_exact"] > 1 - 1e-6
     # the sampled Chamfer has a floor (independent samples), of the order of the sample spacing
     assert 0 < result["chamfer_l1"] < 0.01
     assert result["n_vertices"] == len(mesh.vertices) and result["n_faces"] == len(mesh.faces)

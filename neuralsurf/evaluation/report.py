@@ -12,7 +12,7 @@ from typing import Any
 
 TABLE_COLUMNS = [("method", "method"), ("scene", "scene"), ("status", "status"),
                  ("chamfer_l1", "Chamfer-L1"), ("chamfer_l1_exact", "Chamfer-L1 exact"),
-                 ("fscore_1%", "F@1%"), ("normal_consistency", "NC"), ("iou", "IoU"),
+                 ("fscore_1%", "F@1%"), ("normal_consistency", "NC"), ("normal_consistency_exact", "NC exact"), ("iou", "IoU"),
                  ("hausdorff", "Hausdorff"), ("depth_error_mean", "held-out depth err m"),
                  ("depth_completeness", "held-out compl."), ("normal_error_mean_deg", "normal err mean deg"),
                  ("normal_error_median_deg", "normal err median deg"),
