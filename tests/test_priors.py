@@ -392,3 +392,53 @@ def test_load_prior_rebuilds_a_trained_prior_and_refuses_other_checkpoints(tmp_p
     FitResult(single, Normalization(), auto_decoder.field).save(tmp_path / "single.pt")
     with pytest.raises(CheckpointError, match="not a learned prior"):
         load_prior(tmp_path / "single.pt")
+
+
+class _KnownOccupancy(nn.Module):
+    """Occupancy probability sigmoid(20 (0.3 - |x|) + logit(0.4)): above 0.4 exactly inside the sphere
+    of radius 0.3 (the interface `threshold_ious` uses: encode, logits)."""
+
+    def encode(self, cloud: Tensor) -> Tensor:
+        return torch.zeros(1, 1)
+
+    def logits(self, x: Tensor, code: Tensor) -> Tensor:
+        return 20 * (0.3 - x.norm(dim=-1)) + float(np.log(0.4 / 0.6))
+
+
+def test_threshold_ious_peak_at_the_probability_where_a_known_occupancy_meets_its_labels(tmp_path):
+    from neuralsurf.priors import THRESHOLDS, threshold_ious
+    from neuralsurf.shapes.cache import CACHE_KEYS
+
+    generator = np.random.default_rng(0)
+    points = generator.uniform(-0.5, 0.5, (20_000, 3)).astype(np.float32)
+    surface = generator.normal(size=(5000, 3))
+    arrays = {key: np.zeros((1, 3), np.float32) for key in CACHE_KEYS}
+    arrays.update(occ_uniform_points=points, occ_uniform_inside=np.linalg.norm(points, axis=1) < 0.3,
+                  surface_points=0.3 * surface / np.linalg.norm(surface, axis=1, keepdims=True), recipe=np.array("{}"))
+    np.savez(tmp_path / "sphere.npz", **arrays)
+    ious = threshold_ious(_KnownOccupancy(), [tmp_path / "sphere.npz"])
+    assert list(ious) == list(THRESHOLDS) and ious[0.4] == 1.0
+    assert all(iou < 0.97 for t, iou in ious.items() if abs(t - 0.4) > 0.06)  # a shell of 0.02+ misclassified
+
+
+def test_calibrated_threshold_is_chosen_on_validation_shapes_and_kept_in_the_checkpoint(tmp_path):
+    from neuralsurf.priors import THRESHOLDS, ShapeCollection, calibrate_threshold, load_prior
+
+    shapes = ShapeCollection(classes=("lamp",), n_train=1, n_val=1, n_test=0, n_sdf=500, n_occ=2000, n_surface=2000,
+                             mesh_resolution=24, root=str(tmp_path / "shapes"), workers=0)
+    shapes.build(progress=False)
+    torch.manual_seed(0)
+    net = OccupancyNetwork(PointNetEncoder(16, 16), CBNDecoder(16, 32, blocks=1), threshold=0.2)
+    observation = CollectionOccupancy(shapes.folder, shapes_per_batch=1, query_points=256, cloud_points=300)
+    fit(net, observation, steps=20, normalization=Normalization(), encoding_lr=None, progress=False,
+        run_dir=tmp_path / "run", image_every=0, mesh_every=0)
+    checkpoint = tmp_path / "run" / "checkpoints" / "last.pt"
+    ious = calibrate_threshold(net, shapes, checkpoint)
+    assert list(ious) == list(THRESHOLDS) and net.threshold == max(ious, key=ious.get)
+    assert load_prior(checkpoint).threshold == net.threshold  # rebuilt with the chosen level
+    without_val = ShapeCollection(classes=("lamp",), n_train=1, n_test=0, n_sdf=500, n_occ=2000, n_surface=2000,
+                                  mesh_resolution=24, root=str(tmp_path / "shapes_no_val"), workers=0)
+    without_val.build(progress=False)
+    assert calibrate_threshold(net, without_val, checkpoint) is None
+    with pytest.raises(ConfigError, match="occupancy probability"):
+        net.set_threshold(1.0)
