@@ -154,8 +154,8 @@ def train_prior(cfg: DictConfig, collection, run_dir: Path, config: dict, device
     from neuralsurf.io import write_mesh
     from neuralsurf.models import AutoDecoder, OccupancyNetwork
     from neuralsurf.priors import calibrate_threshold, interpolation_picture, score_completions
-    from neuralsurf.structures import Normalization
     from neuralsurf.training import CHECKPOINT_NAME
+    from neuralsurf.structures import Normalization
 
     if is_main_process():
         collection.build(progress=bool(cfg.trainer.progress))
