@@ -153,8 +153,7 @@ def train_prior(cfg: DictConfig, collection, run_dir: Path, config: dict, device
     from neuralsurf.distributed import barrier, is_main_process, leave_process_group
     from neuralsurf.io import write_mesh
     from neuralsurf.models import AutoDecoder, OccupancyNetwork
-    from neuralsurf.priors import calibrate_threshold, interpolation_picture, score_completions
-    from neuralsurf.training import CHECKPOINT_NAME
+    from neuralsurf.priors import interpolation_picture, score_completions
     from neuralsurf.structures import Normalization
 
     if is_main_process():
@@ -173,15 +172,6 @@ def train_prior(cfg: DictConfig, collection, run_dir: Path, config: dict, device
     leave_process_group()  # training is over: rank 0 scores alone (its latent fits are single-process)
     if not main:
         return {}
-    calibration = {}
-    if isinstance(result.model, OccupancyNetwork):
-        ious = calibrate_threshold(result.model, collection, run_dir / "checkpoints" / CHECKPOINT_NAME, seed=cfg.seed,
-                                   device=device)
-        if ious is not None:
-            calibration = {"threshold": result.model.threshold, "val_iou": ious[result.model.threshold]}
-            log.info("extraction threshold %.2f chosen on %d validation shapes (mean IoU of the occupancy at each "
-                     "threshold: %s)", result.model.threshold, collection.count("val"),
-                     ", ".join(f"{t:g}: {v:.4f}" for t, v in ious.items()))
     score = dict(config.get("score") or {})
     limit = score.pop("shapes", None)
     means, per_shape, mesh = score_completions(result.model, collection.test_shapes(limit), seed=cfg.seed,
@@ -191,7 +181,7 @@ def train_prior(cfg: DictConfig, collection, run_dir: Path, config: dict, device
     if isinstance(result.model, AutoDecoder) and len(result.model.codes) >= 2:  # the first and last training shapes
         interpolation_picture(result.model, 0, len(result.model.codes) - 1, run_dir / "interpolation.png",
                               resolution=cfg.extract.resolution)
-    metrics = {**means, **calibration, "fit_seconds": result.seconds, "steps": result.steps}
+    metrics = {**means, "fit_seconds": result.seconds, "steps": result.steps}
     (run_dir / "metrics.json").write_text(json.dumps({**metrics, "per_shape": per_shape}, indent=2, default=float))
     _log_hparams(run_dir, cfg, metrics)
     log.info("%s: %d test shapes completed from %s noisy points; mesh of %s in %s\n%s", collection.name,

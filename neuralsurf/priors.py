@@ -55,7 +55,6 @@ class ShapeCollection:
     n_train: int = 64
     """Training shapes per class (one latent code each)."""
     n_val: int = 0
-    """Validation shapes per class (an occupancy network's threshold is chosen on them; data=shapes: 4)."""
     n_test: int = 8
     """Test shapes per class (never trained on)."""
     seed: int = 0
@@ -168,11 +167,9 @@ def train_prior(run_dir: str | Path, collection: ShapeCollection, model: Callabl
     if path.is_file() and load_checkpoint(path).get("step", 0) >= trainer.get("steps", 2000):
         return path
     collection.build(progress=False)
-    result = fit(model(n_shapes=collection.count("train")), [build(collection) for build in observations],
-                 optimizer=optimizer or default_optimizer, device=device, seed=seed, run_dir=run_dir, config=config,
-                 normalization=Normalization(), **trainer)
-    if isinstance(result.model, OccupancyNetwork):
-        calibrate_threshold(result.model, collection, path, seed=seed, device=device)
+    fit(model(n_shapes=collection.count("train")), [build(collection) for build in observations],
+        optimizer=optimizer or default_optimizer, device=device, seed=seed, run_dir=run_dir, config=config,
+        normalization=Normalization(), **trainer)
     return path
 
 
@@ -270,51 +267,6 @@ def interpolation_picture(prior: AutoDecoder, first: int, second: int, path: str
     path = Path(path)
     labelled_row(images, labels).save(path)
     return path
-
-
-THRESHOLDS = tuple(round(0.1 + 0.05 * i, 2) for i in range(11))
-"""Occupancy probabilities `threshold_ious` tries: 0.1, 0.15, ..., 0.6."""
-
-
-def threshold_ious(prior: OccupancyNetwork, shapes: list[Path], *, n_points: int = 3000, noise: float = 0.005,
-                   seed: int = 0, thresholds: tuple[float, ...] = THRESHOLDS, device: str = "cpu") -> dict[float, float]:
-    """Mean IoU of the occupancy `p > t` for each threshold t, over shape caches (`shapes`, the validation
-    split): each shape encoded from `n_points` surface points with N(0, noise^2) noise (seed + i, as the
-    test clouds), scored on its uniform occupancy points (OccNet's IoU; no meshing, so each threshold
-    costs nothing more)."""
-    prior = prior.to(device).eval()
-    ious = np.zeros((len(shapes), len(thresholds)))
-    for i, path in enumerate(shapes):
-        arrays = load_cache(path)
-        cloud = noisy_cloud(torch.from_numpy(arrays["surface_points"]).double(), n_points, noise, seed + i)
-        points = torch.from_numpy(arrays["occ_uniform_points"]).float().to(device)
-        inside = torch.from_numpy(arrays["occ_uniform_inside"]).bool()
-        with torch.no_grad():
-            code = prior.encode(cloud.float().to(device))
-            probability = torch.sigmoid(prior.logits(points[None], code)[0]).cpu()
-        for j, threshold in enumerate(thresholds):
-            occupied = probability > threshold
-            ious[i, j] = float((occupied & inside).sum() / (occupied | inside).sum().clamp_min(1))
-    return dict(zip(thresholds, ious.mean(0).tolist(), strict=True))
-
-
-def calibrate_threshold(prior: OccupancyNetwork, collection: ShapeCollection, checkpoint: Path, *,
-                        seed: int = 0, device: str = "cpu") -> dict[float, float] | None:
-    """Choose the occupancy network's extraction threshold on the collection's validation shapes
-    (`threshold_ious`, the best mean IoU; None without validation shapes) and store it in the model
-    and in its `checkpoint`. The test shapes are never looked at."""
-    from neuralsurf.models.spec import model_spec
-    from neuralsurf.training import load_checkpoint, save_checkpoint
-
-    shapes = [cache_path(collection.folder, record) for record in collection.records("val")]
-    if not shapes:
-        return None
-    ious = threshold_ious(prior, shapes, seed=seed + 10_000, device=device)  # clouds unlike the test shapes'
-    prior.set_threshold(max(ious, key=ious.get))
-    state = load_checkpoint(checkpoint)
-    state["model_spec"] = model_spec(prior)
-    save_checkpoint(checkpoint, state)
-    return ious
 
 
 def noisy_cloud(surface: Tensor, n_points: int, noise: float, seed: int) -> Tensor:

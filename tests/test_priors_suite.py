@@ -87,9 +87,9 @@ def test_a_field_clipped_to_the_cube_keeps_its_sign_inside_and_is_the_box_distan
 def test_the_build_command_makes_the_collection_that_train_py_finds(tmp_path):
     from neuralsurf.shapes.__main__ import main
 
-    main(["build", "--out", str(tmp_path), "--classes", "lamp", "--n-train", "1", "--n-val", "1", "--n-test", "1",
-          "--workers", "0", "--n-sdf", "500", "--n-occ", "100", "--n-surface", "500", "--mesh-resolution", "24"])
-    collection = ShapeCollection(classes=("lamp",), n_train=1, n_val=1, n_test=1, n_sdf=500, n_occ=100,
-                                 n_surface=500, mesh_resolution=24, root=str(tmp_path))
+    main(["build", "--out", str(tmp_path), "--classes", "lamp", "--n-train", "1", "--n-test", "1", "--workers", "0",
+          "--n-sdf", "500", "--n-occ", "100", "--n-surface", "500", "--mesh-resolution", "24"])
+    collection = ShapeCollection(classes=("lamp",), n_train=1, n_test=1, n_sdf=500, n_occ=100, n_surface=500,
+                                 mesh_resolution=24, root=str(tmp_path))
     assert collection.build(progress=False) == tmp_path  # the same collection: nothing refused, nothing rebuilt
     assert [s.name for s in collection.test_shapes()] == ["lamp_test_0000"]

@@ -258,14 +258,6 @@ class OccupancyNetwork(nn.Module):
         self.threshold = float(threshold)
         self.latent_dim = encoder.layout.size
 
-    def set_threshold(self, threshold: float) -> None:
-        """Move the field's zero level to occupancy probability `threshold` (kept in the model's spec,
-        so a checkpoint written afterwards rebuilds with it)."""
-        if not 0 < threshold < 1:
-            raise ConfigError(f"threshold is an occupancy probability in (0, 1), got {threshold}")
-        self.threshold = float(threshold)
-        self.__dict__["constructor_arguments"]["threshold"] = float(threshold)
-
     def encode(self, cloud: Tensor) -> Tensor:
         """Float[Tensor, "b n 3"] (or "n 3") unit-frame points -> codes Float[Tensor, "b latent_dim"]."""
         return self.encoder(cloud[None] if cloud.ndim == 2 else cloud)

@@ -22,7 +22,7 @@ def main(argv: list[str] | None = None) -> int:
     build.add_argument("--out", required=True, help="output folder (created; reused to resume)")
     build.add_argument("--classes", default=",".join(SHAPE_CLASSES), help="comma-separated shape classes")
     build.add_argument("--n-train", type=int, default=64, help="training shapes per class")
-    build.add_argument("--n-val", type=int, default=4, help="validation shapes per class (OccNet threshold)")
+    build.add_argument("--n-val", type=int, default=0, help="validation shapes per class")
     build.add_argument("--n-test", type=int, default=8, help="test shapes per class")
     build.add_argument("--seed", type=int, default=0, help="collection seed (splits draw disjoint streams)")
     build.add_argument("--workers", type=int, default=2, help="processes (0: this one)")
