@@ -183,6 +183,12 @@ def test_occupancy_network_is_permutation_invariant_and_its_field_is_minus_the_s
     assert torch.allclose(net(x[:2], code[0]), net(x, code[0])[:2], atol=1e-6)
     with pytest.raises(InputError, match="encode a cloud"):
         net(x)
+    cloud = torch.rand(50, 3) - 0.5
+    cloud[7, 2] = float("inf")
+    with pytest.raises(InputError, match="NaN or inf in 1 of its 50 points"):
+        net.field_from_cloud(cloud)
+    with pytest.raises(InputError, match=r"\(n >= 1, 3\), got \(50, 2\)"):
+        net.field_from_cloud(cloud[:, :2])
 
 
 def test_collection_sdf_batches_and_terms(collection):

@@ -286,9 +286,15 @@ class OccupancyNetwork(nn.Module):
         from neuralsurf.models.field import NormalizedField
         from neuralsurf.structures import Normalization
 
+        points = torch.as_tensor(points, dtype=torch.float64)
+        if points.ndim != 2 or points.shape[-1] != 3 or len(points) == 0:
+            raise InputError(f"field_from_cloud takes a cloud of shape (n >= 1, 3), got {tuple(points.shape)}")
+        if not torch.isfinite(points).all():
+            raise InputError(f"the cloud holds NaN or inf in {int((~torch.isfinite(points).all(-1)).sum())} of its "
+                             f"{len(points)} points; drop them first")
         normalization = normalization or Normalization()
         self.eval()
         device = next(self.parameters()).device
-        unit = normalization.to_unit(torch.as_tensor(points, dtype=torch.float64)).float().to(device)
+        unit = normalization.to_unit(points).float().to(device)
         code = self.encode(unit)[0]
         return NormalizedField(self, normalization, latent=code, margin=margin).eval()
