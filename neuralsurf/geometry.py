@@ -366,17 +366,19 @@ def point_to_mesh_distance(points: Tensor, mesh: Mesh) -> Tensor:
     return torch.from_numpy(scene.compute_distance(query).numpy()).to(points)
 
 
-def closest_faces(points: Tensor, mesh: Mesh) -> Tensor:
-    """The face of the mesh that holds each point's closest surface point.
+def closest_on_mesh(points: Tensor, mesh: Mesh) -> tuple[Tensor, Tensor]:
+    """Each point's exact distance to the mesh (as `point_to_mesh_distance`) and the face holding its
+    closest surface point, from one BVH of the mesh.
 
     Args:
         points: Float[Tensor, "n 3"]; mesh: non-empty Mesh in the same frame.
     Returns:
-        Int64[Tensor, "n"] face indices (Open3D's BVH in float32, re-centred as `point_to_mesh_distance`).
+        Float[Tensor, "n"] distances in the points' dtype, Int64[Tensor, "n"] face indices.
     """
-    scene, query = _centred_query(points, mesh, "closest_faces")
+    scene, query = _centred_query(points, mesh, "closest_on_mesh")
+    distance = torch.from_numpy(scene.compute_distance(query).numpy()).to(points)
     faces = scene.compute_closest_points(query)["primitive_ids"].numpy().astype(np.int64)
-    return torch.from_numpy(faces).to(points.device)
+    return distance, torch.from_numpy(faces).to(points.device)
 
 
 def _centred_query(points: Tensor, mesh: Mesh, caller: str):

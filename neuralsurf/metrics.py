@@ -29,7 +29,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import InputError
-from neuralsurf.geometry import closest_faces, knn, mesh_contains, point_to_mesh_distance, sample_mesh_surface
+from neuralsurf.geometry import closest_on_mesh, knn, mesh_contains, sample_mesh_surface
 from neuralsurf.structures import Mesh, Normalization, PointCloud
 
 __all__ = [
@@ -283,14 +283,12 @@ def evaluate_samples(
             raise InputError(f"{name} need normals for normal consistency; sample with normals")
     pred_points, gt_points = pred_samples.points.double(), gt_samples.points.double()
     nn = chamfer_distances(pred_points, gt_points)
-    pred_to_gt = point_to_mesh_distance(pred_points, gt).double()
-    gt_to_pred = point_to_mesh_distance(gt_points, pred).double()
+    pred_to_gt, gt_faces = closest_on_mesh(pred_points, gt)
+    gt_to_pred, pred_faces = closest_on_mesh(gt_points, pred)
     pred_normals, gt_normals = pred_samples.normals.double(), gt_samples.normals.double()
     # sample-free normal consistency: each sample's normal against the other mesh's face at its closest point
-    exact_consistency = 0.5 * (
-        mean_abs_cosine(pred_normals, gt.face_normals().double()[closest_faces(pred_points, gt)])
-        + mean_abs_cosine(gt_normals, pred.face_normals().double()[closest_faces(gt_points, pred)])
-    )
+    exact_consistency = 0.5 * (mean_abs_cosine(pred_normals, gt.face_normals().double()[gt_faces])
+                               + mean_abs_cosine(gt_normals, pred.face_normals().double()[pred_faces]))
     metrics = {
         "accuracy": nn.a_to_b.mean(),
         "completeness": nn.b_to_a.mean(),

@@ -862,7 +862,8 @@ def depth_error(
     "offset" (estimate + o; orthographic integration), "scale_offset" (s * estimate + o) or "none".
 
     With `pieces` (Int[Tensor, "h w"], `continuous_pieces`), each piece is aligned on its own and the
-    mean runs over the mask's pixels in a piece (>= 0); `scale` and `offset` are then piece 0's."""
+    mean runs over the mask's pixels in a piece (>= 0); `scale` and `offset` are then those of the lowest
+    piece index scored (0, the largest, for `continuous_pieces`)."""
     if estimate.shape != truth.shape or estimate.ndim != 2:
         raise InputError(
             f"depth maps must both be (h, w), got {tuple(estimate.shape)} and {tuple(truth.shape)}"
@@ -882,13 +883,13 @@ def depth_error(
     if not (torch.isfinite(estimate[scored]).all() and torch.isfinite(truth[scored]).all()):
         raise InputError("the depth maps hold NaN or inf inside the mask: leave those pixels out of the mask")
     aligned = torch.zeros(mask.shape, dtype=torch.float64, device=estimate.device)
-    alignments = {}
-    for piece in torch.unique(pieces[pieces >= 0]).tolist():
+    alignments = []
+    for piece in torch.unique(pieces[scored]).tolist():  # ascending
         inside = pieces == piece
         e = estimate[inside].double()
-        alignments[piece] = scale, offset = _alignment(e, truth[inside].double(), align)
-        aligned[inside] = e * scale + offset
-    scale, offset = alignments.get(0, next(iter(alignments.values())))
+        alignments.append(_alignment(e, truth[inside].double(), align))
+        aligned[inside] = e * alignments[-1][0] + alignments[-1][1]
+    scale, offset = alignments[0]
     return DepthError(
         float((aligned[scored] - truth[scored].double()).abs().mean()), aligned.to(estimate.dtype), scale, offset
     )

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from neuralsurf.errors import InputError
-from neuralsurf.geometry import closest_faces, cloud_from_mesh, point_to_mesh_distance
+from neuralsurf.geometry import closest_on_mesh, cloud_from_mesh, point_to_mesh_distance
 from neuralsurf.metrics import (
     chamfer_distances,
     chamfer_l1,
@@ -178,7 +178,7 @@ def test_closest_faces_match_naive_point_to_triangle(mesh):
     two = distances.topk(2, dim=1, largest=False)
     unique = (two.values[:, 1] - two.values[:, 0]) > 1e-5  # points whose closest face is not a tie
     assert unique.sum() > 100
-    assert torch.equal(closest_faces(points, mesh)[unique], two.indices[unique, 0])
+    assert torch.equal(closest_on_mesh(points, mesh)[1][unique], two.indices[unique, 0])
 
 
 def test_exact_normal_consistency_of_two_planes_is_the_cosine_of_their_angle():
@@ -218,8 +218,8 @@ def test_evaluate_samples_matches_naive_reference():
         "hausdorff": max(float(exact_pg.max()), float(exact_gp.max())),
         # the closest faces themselves are checked against the naive search in their own test (ties aside)
         "normal_consistency_exact": 0.5 * float(
-            (np_ * gt.face_normals()[closest_faces(p, gt)]).sum(-1).abs().mean()
-            + (ng * pred.face_normals()[closest_faces(q, pred)]).sum(-1).abs().mean()
+            (np_ * gt.face_normals()[closest_on_mesh(p, gt)[1]]).sum(-1).abs().mean()
+            + (ng * pred.face_normals()[closest_on_mesh(q, pred)[1]]).sum(-1).abs().mean()
         ),
     }
     for t in thresholds:

@@ -350,8 +350,8 @@ def one_view_camera(seed: int, distance: float = 1.6) -> torch.Tensor:
 
 @lru_cache(maxsize=4)
 def shapes_one_view(collection, name: str = "shapes_one_view", width: int = ONE_VIEW_IMAGE["width"],
-                    height: int = ONE_VIEW_IMAGE["height"], fov_deg: float = ONE_VIEW_IMAGE["fov_deg"], distance: float = 1.6, noise: float = 0.001, limit: int | None = None,
-                    seed: int = 0) -> SceneSet:
+                    height: int = ONE_VIEW_IMAGE["height"], fov_deg: float = ONE_VIEW_IMAGE["fov_deg"],
+                    distance: float = 1.6, noise: float = 0.001, limit: int | None = None, seed: int = 0) -> SceneSet:
     """One synthetic depth view (Gaussian noise `noise`, unit frame) of each test shape of
     `collection`, from a random side (`one_view_camera`); point methods get its back-projection."""
     from neuralsurf.scenes.scanner import scan_depth
