@@ -818,7 +818,7 @@ def continuous_pieces(
     index = _unknown_index(m)
     z = depth.double().cpu().numpy()
     t = np.log(np.where(m, z, 1.0)) if K is not None else np.where(m, z, 0.0)
-    p, q, footprint = _gradients(normals, mask, K, pixel_size, max_slope)
+    p, q, footprint = _gradients(normals, mask, K, pixel_size, math.inf)  # unclipped: steep pairs are tested below
     rows, cols = [], []
     for axis, target in ((1, p.ravel()), (0, q.ravel())):
         a, b, ia, ib = _pairs(m, index, axis)
