@@ -8,12 +8,16 @@ from any folder.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
 import random
+import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import hydra
 import numpy as np
@@ -21,6 +25,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from neuralsurf.errors import ConfigError, NeuralsurfError
 from neuralsurf.training import fit
 
 log = logging.getLogger("neuralsurf")
@@ -71,7 +76,6 @@ def config_differences(stored: dict, current: dict) -> list[str]:
 
 def check_resume(run_dir: Path, cfg: dict) -> None:
     """Resume only into a run made with the same settings: else a ConfigError naming the keys."""
-    from neuralsurf.errors import ConfigError
     from neuralsurf.training import CHECKPOINT_NAME, load_checkpoint
 
     path = run_dir / "checkpoints" / CHECKPOINT_NAME
@@ -87,8 +91,58 @@ def check_resume(run_dir: Path, cfg: dict) -> None:
 
 
 def build_observations(cfg: DictConfig, scene) -> list:
-    """The configured observations (cfg.observation: name -> partial of an Observation.from_scene) of `scene`."""
-    return [instantiate(config, _convert_="all")(scene) for config in cfg.observation.values()]
+    """The selected observations (`observation_configs`: name -> partial of an Observation.from_scene) of `scene`."""
+    return [instantiate(config, _convert_="all")(scene) for config in observation_configs(cfg).values()]
+
+
+def observation_configs(cfg: DictConfig, overrides: list[str] | None = None,
+                        choices: dict | None = None) -> dict[str, DictConfig]:
+    """The entries of `cfg.observation` that the selected observation group options define (with a `_target_`).
+
+    A data config that switches the observation group (data=rgbd: observation=depth_rays) replaces the group's
+    entries, but options an experiment merges afterwards (bunny_sdf: observation.points.batch_size) survive as a
+    bare entry without `_target_`. Such leftovers tune an observation that is not selected: they are left out and
+    logged. One that the command line sets (`overrides`) is a ConfigError naming the key and the selected
+    observation, since the user asked for it. `overrides` and `choices` default to Hydra's task overrides and
+    group choices of the running job (none outside one).
+    """
+    from hydra.core.hydra_config import HydraConfig
+
+    from neuralsurf.errors import ConfigError
+
+    runtime = HydraConfig.get() if HydraConfig.initialized() else None
+    if overrides is None:
+        overrides = list(runtime.overrides.task) if runtime else []
+    if choices is None:
+        choices = dict(runtime.runtime.choices) if runtime else {}
+    selected = {name: entry for name, entry in cfg.observation.items()
+                if isinstance(entry, DictConfig) and "_target_" in entry}
+    if not selected:
+        raise ConfigError(f"no observation is selected (cfg.observation holds {list(cfg.observation)}, none with a "
+                          f"_target_); choose one with observation=<points|depth_rays|normal_maps|shape_sdf|...>")
+    context = [f"{group}={choices[group]}" for group in ("observation", "data") if choices.get(group)]
+    described = ", ".join(map(repr, selected)) + (f" ({', '.join(context)})" if context else "")
+    keys = {_override_key(override): override for override in overrides}
+    for name in [name for name in cfg.observation if name not in selected]:
+        asked = [override for key, override in keys.items()
+                 if key == f"observation.{name}" or key.startswith(f"observation.{name}.")]
+        if asked:
+            raise ConfigError(
+                f"{asked[0]} sets options of observation {name!r}, which is not selected: the selected observation "
+                f"is {described}. Drop the override or set the selected one's options instead "
+                f"(observation.{next(iter(selected))}.<option>=...)")
+        entry = cfg.observation[name]
+        options = ", ".join(map(str, entry.keys())) if isinstance(entry, DictConfig) else repr(entry)
+        source = f"experiment={choices['experiment']}" if choices.get("experiment") else "a config's defaults"
+        report = log.warning if "experiment" in keys else log.info  # the user chose that experiment
+        report("observation.%s (%s) left unused: %s tunes observation %r, but the selected observation is %s",
+               name, options, source, name, described)
+    return selected
+
+
+def _override_key(override: str) -> str:
+    """The dotted key of a command-line override: "+observation.points.batch_size=10" -> "observation.points.batch_size"."""
+    return override.split("=", 1)[0].lstrip("~+").strip()
 
 
 def train(cfg: DictConfig) -> dict[str, float]:
@@ -211,22 +265,35 @@ def _log_hparams(run_dir: Path, cfg: DictConfig, metrics: dict) -> None:
 
 
 def evaluate(cfg: DictConfig) -> list[dict]:
-    """Run the selected methods on the selected scenes (cfg.methods x cfg.scenes) and write
-    <run dir>/results.csv, results.json, results.md, plots/, renders/, meshes/ and report.html.
-    Returns the rows (one dict per method x scene)."""
+    """Run the selected methods on the selected scenes (cfg.methods x cfg.scenes; with cfg.shards > 1,
+    only part cfg.shard of those rows) and write <results dir>/rows/ (one file per row, as soon as it is
+    done; rows stored with the same settings are reused), meshes/, renders/, and the report rebuilt from
+    every stored row after each one: results.csv, results.json, results.md, plots/ and report.html.
+    The results dir: cfg.results_dir, else Hydra's run directory (a multirun: its sweep directory, shared
+    by the jobs). With cfg.report set, only rebuilds the report of that folder. Returns this job's rows."""
     import functools
 
-    from neuralsurf.errors import ConfigError
-    from neuralsurf.evaluation import run_benchmark, write_report
+    from neuralsurf.evaluation import run_benchmark
+    from neuralsurf.evaluation.jobs import job_threads, row_settings, set_threads, shard_pairs
     from neuralsurf.evaluation.runner import environment
+    from neuralsurf.evaluation.store import cached_scene, rebuild_report, settings_key
 
-    run_dir = run_directory(cfg)
+    if cfg.get("report"):
+        rows, table = rebuild_report(cfg.report, {"environment": environment()})
+        log.info("report of %d stored rows rebuilt in %s (report.html, results.csv, results.json)\n%s",
+                 len(rows), Path(cfg.report).resolve(), table)
+        return rows
+    launcher, results_dir = evaluation_job(cfg)
+    threads = job_threads(cfg.get("threads"), launcher)
+    if threads is not None:
+        set_threads(threads)
     scenes, methods = list(cfg.scenes), list(cfg.methods)
     for kind, names, known in (("scene", scenes, cfg.scene), ("method", methods, cfg.method)):
         unknown = [name for name in names if name not in known]
         if unknown:
             raise ConfigError(f"unknown {kind}(s) {unknown}; choose from {sorted(known)} "
                               f"(configs/{kind}/*.yaml)")
+    pairs = shard_pairs(scenes, methods, cfg.get("shard", 0), cfg.get("shards", 1))
 
     def unwrapped(build, *args, **kwargs):
         """instantiate, re-raising the target's own error (SceneUnavailable stays a skip)."""
@@ -239,8 +306,16 @@ def evaluate(cfg: DictConfig) -> list[dict]:
                 raise error.__cause__ from None
             raise
 
+    scene_configs = {name: OmegaConf.to_container(cfg.scene[name], resolve=True) for name in scenes}
+
     def scene_factory(name: str):
-        return lambda: unwrapped(instantiate, cfg.scene[name])
+        def build():
+            return unwrapped(instantiate, cfg.scene[name])
+
+        if not cfg.get("scene_cache", True):
+            return build
+        key = settings_key({"scene": scene_configs[name]})
+        return lambda: cached_scene(results_dir / "scenes", name, key, build)
 
     def method_factory(name: str):
         config = OmegaConf.to_container(cfg.method[name], resolve=True)
@@ -252,18 +327,47 @@ def evaluate(cfg: DictConfig) -> list[dict]:
         return build
 
     configs = {name: OmegaConf.to_container(cfg.method[name], resolve=True) for name in methods}
-    started = time.perf_counter()
+    common = {key: cfg[key] for key in ("seed", "n_samples", "render", "render_size", "save_meshes")}
+    settings = {(s, m): row_settings(scene_configs[s], configs[m], common) for s, m in pairs}
+    started, computed = time.perf_counter(), []
+
+    def report() -> tuple[list[dict], str]:
+        extra = {"environment": environment(), "total_seconds": time.perf_counter() - started,
+                 "config": OmegaConf.to_container(cfg, resolve=True)}
+        return rebuild_report(results_dir, extra, scenes, methods)
+
+    log.info("%d of %d rows in this job (shard %d of %d), %s threads; results in %s", len(pairs),
+             len(scenes) * len(methods), cfg.get("shard", 0), cfg.get("shards", 1), threads or "default",
+             results_dir.resolve())
     rows = run_benchmark({name: scene_factory(name) for name in scenes},
-                         {name: method_factory(name) for name in methods}, run_dir, seed=cfg.seed,
+                         {name: method_factory(name) for name in methods}, results_dir, seed=cfg.seed,
                          n_samples=cfg.n_samples, render=cfg.render, render_size=cfg.render_size,
-                         save_meshes=cfg.save_meshes, configs=configs, log=log.info)
+                         save_meshes=cfg.save_meshes, configs=configs, log=log.info, pairs=pairs,
+                         settings=settings, on_row=lambda row: (computed.append(row), report()))
     seconds = time.perf_counter() - started
-    extra = {"environment": environment(), "scenes": scenes, "methods": methods, "total_seconds": seconds,
-             "config": OmegaConf.to_container(cfg, resolve=True)}
-    table = write_report(rows, run_dir, extra)
-    log.info("%d rows in %.1f min; results in %s (report.html, results.csv, results.json)\n%s",
-             len(rows), seconds / 60, run_dir.resolve(), table)
+    stored, table = report()
+    reused = len(rows) - len(computed)
+    log.info("%d rows in %.1f min (%d computed, %d reused); %d rows in %s (report.html, results.csv, "
+             "results.json)\n%s", len(rows), seconds / 60, len(rows) - reused, reused, len(stored),
+             results_dir.resolve(), table)
     return rows
+
+
+def evaluation_job(cfg: DictConfig) -> tuple[dict, Path]:
+    """(Hydra's launcher config as a dict, or {} without Hydra; the results dir): cfg.results_dir, else
+    the sweep directory of a multirun (one folder for all its jobs), else the run directory."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized():
+        return {}, Path(cfg.get("results_dir") or run_directory(cfg))
+    hydra_cfg = HydraConfig.get()
+    launcher = OmegaConf.to_container(hydra_cfg.launcher, resolve=True) if "launcher" in hydra_cfg else {}
+    if cfg.get("results_dir"):
+        return launcher, Path(cfg.results_dir)
+    if hydra_cfg.mode == RunMode.MULTIRUN:
+        return launcher, Path(hydra_cfg.sweep.dir)
+    return launcher, run_directory(cfg)
 
 
 def check_run_dir_argument(argv: list[str]) -> None:
@@ -280,39 +384,82 @@ def check_run_dir_argument(argv: list[str]) -> None:
                 sys.exit(f"error: {key}={value}: {blocking} is a file, not a folder; choose another run directory")
 
 
+def user_error(error: BaseException) -> NeuralsurfError | None:
+    """The neuralsurf error behind Hydra's "Error in call to target" wrapper, a ConfigError for a
+    mandatory key left out (`data=file` without `data.path`), or None for anything else (a bug)."""
+    from hydra.errors import InstantiationException
+    from omegaconf.errors import MissingMandatoryValue
+
+    while isinstance(error, InstantiationException) and error.__cause__ is not None:
+        error = error.__cause__
+    if isinstance(error, MissingMandatoryValue):
+        key = getattr(error, "full_key", None) or "a mandatory key"
+        return ConfigError(f"{key} is required: add {key}=<value> to the command (docs/configs.md lists the keys)")
+    return error if isinstance(error, NeuralsurfError) else None
+
+
+def reporting_errors(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
+    """`task` with its errors in the run's log: a neuralsurf error (also behind Hydra's wrappers) is
+    logged as one line and ends the process with status 1, no traceback; anything else is logged
+    with its traceback and raised."""
+    @functools.wraps(task)
+    def run(cfg: DictConfig) -> Any:
+        try:
+            return task(cfg)
+        except Exception as error:
+            known = user_error(error)
+            if known is None:
+                log.exception("%s failed", task.__name__)
+                raise
+            log.error("%s: %s", type(known).__name__, known)
+            sys.exit(1)
+
+    return run
+
+
+def _hydra_main(task: Callable[[DictConfig], Any], config_name: str) -> None:
+    """Hydra's command line around `task`, with Python's warnings in the run's log."""
+    check_run_dir_argument(sys.argv[1:])
+    logging.captureWarnings(True)
+    hydra.main(version_base="1.3", config_path="configs", config_name=config_name)(reporting_errors(task))()
+
+
 def train_main() -> None:
     """`neuralsurf-train [overrides]`: Hydra's command line around `train`."""
-    import sys
-
-    check_run_dir_argument(sys.argv[1:])
     if int(os.environ.get("RANK", "0")) > 0:  # torchrun: logs and the run's config from rank 0 only
         sys.argv += ["hydra.output_subdir=null", "hydra/job_logging=disabled"]
-    hydra.main(version_base="1.3", config_path="configs", config_name="train")(train)()
+    _hydra_main(train, "train")
 
 
 def evaluate_main() -> None:
     """`neuralsurf-evaluate [overrides]`: Hydra's command line around `evaluate`."""
-    import sys
-
-    check_run_dir_argument(sys.argv[1:])
-    hydra.main(version_base="1.3", config_path="configs", config_name="evaluate")(evaluate)()
+    _hydra_main(evaluate, "evaluate")
 
 
-def score_main(argv: list[str] | None = None) -> dict[str, float]:
-    """`neuralsurf-score PRED GT [--samples N] [--json]`: the metrics of a mesh file against a
-    ground-truth mesh file (evaluate_mesh: the ground truth's box centred, longest side 1)."""
+def score_main(argv: list[str] | None = None) -> int:
+    """`neuralsurf-score PRED GT [--samples N] [--seed S] [--json]`: prints the metrics of a mesh file
+    against a ground-truth mesh file; exit status 0, or 1 with the reason for an unreadable file."""
     import argparse
 
     from neuralsurf.io import read_mesh
     from neuralsurf.metrics import evaluate_mesh
 
-    parser = argparse.ArgumentParser(prog="neuralsurf-score", description=score_main.__doc__.split(":")[1].strip())
+    parser = argparse.ArgumentParser(
+        prog="neuralsurf-score",
+        description="Score a reconstructed mesh against a ground-truth mesh with the metrics of the literature "
+                    "(Chamfer-L1/-L2, exact point-to-mesh Chamfer-L1, F-scores, normal consistency, Hausdorff, "
+                    "volumetric IoU when both are watertight), in the ground truth's normalised frame: its "
+                    "bounding box centred, longest side 1.")
     parser.add_argument("pred", help="the reconstructed mesh (ply, obj, off, stl, glb)")
-    parser.add_argument("gt", help="the ground-truth mesh")
-    parser.add_argument("--samples", type=int, default=100_000, help="surface samples per mesh")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    parser.add_argument("gt", help="the ground-truth mesh (same formats)")
+    parser.add_argument("--samples", type=int, default=100_000, help="surface samples per mesh (default 100000)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the surface samples (default 0)")
+    parser.add_argument("--json", action="store_true", help="print JSON instead of a Markdown table")
     args = parser.parse_args(argv)
-    metrics = evaluate_mesh(read_mesh(args.pred), read_mesh(args.gt), n_samples=args.samples, seed=args.seed)
+    try:
+        metrics = evaluate_mesh(read_mesh(args.pred), read_mesh(args.gt), n_samples=args.samples, seed=args.seed)
+    except NeuralsurfError as error:
+        print(f"neuralsurf-score: {error}", file=sys.stderr)
+        return 1
     print(json.dumps(metrics, indent=2) if args.json else format_table(metrics))
-    return metrics
+    return 0

@@ -3,6 +3,7 @@ with TensorBoard, atomic checkpoints, exact resume, and the saved field that `lo
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import time
@@ -23,6 +24,8 @@ from neuralsurf.models.field import NormalizedField
 from neuralsurf.models.spec import REBUILDABLE, build_model, model_spec
 from neuralsurf.observations import Observation, PointSamples, union_bounds
 from neuralsurf.structures import Normalization, PointCloud
+
+log = logging.getLogger(__name__)
 
 CHECKPOINT_NAME = "last.pt"
 
@@ -276,6 +279,8 @@ def fit(
                desc="fit", dynamic_ncols=True)
     started, window_start, window_steps = time.perf_counter(), time.perf_counter(), 0
     done = start_step
+    report_every = max(1, steps // 10)  # a progress line in the log per tenth of the fit, at a logging step
+    next_report, reported, report_start = start_step + 1, start_step, started
     for p in frozen:
         p.requires_grad_(False)
     loss_terms = LossTerms(model, observations, samplers)
@@ -328,6 +333,10 @@ def fit(
                 for name, value in record.items():
                     history.setdefault(name, []).append(value)
                 bar.set_postfix(loss=f"{record['total']:.2e}")
+                if done >= next_report or done == steps:
+                    log.info(progress_line(record, steps, (done - reported) / (now - report_start)))
+                    next_report = (done // report_every + 1) * report_every
+                    reported, report_start = done, now
                 if writer is not None:
                     for name, value in record.items():
                         if name != "step":
@@ -351,6 +360,15 @@ def fit(
         writer.close()
     return FitResult(model, normalization, world_field.eval(), history, max(done, start_step),
                      seconds_before + time.perf_counter() - started)
+
+
+def progress_line(record: dict[str, float], steps: int, steps_per_s: float) -> str:
+    """One line of the run log: "step 70/700 (10%): loss 1.2e-02 (points/sdf 3.4e-03, ...), lr 1.0e-03, 21.5 steps/s"."""
+    named = {"step", "total", "lr", "grad_norm", "steps_per_s"}
+    terms = ", ".join(f"{name} {value:.3g}" for name, value in record.items() if name not in named)
+    step = int(record["step"])
+    return (f"step {step}/{steps} ({100 * step / steps:.0f}%): loss {record['total']:.4g} ({terms}), "
+            f"lr {record['lr']:.3g}, {steps_per_s:.1f} steps/s")
 
 
 def _diverged(terms: dict, total: torch.Tensor, step: int) -> NeuralsurfError:

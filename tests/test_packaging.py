@@ -15,12 +15,24 @@ from neuralsurf.scenes import Sphere
 REPO = Path(__file__).resolve().parents[1]
 
 
-def test_score_compares_two_mesh_files(tmp_path, capsys):
+def test_score_compares_two_mesh_files_and_exits_0(tmp_path, capsys):
     write_mesh(tmp_path / "gt.ply", Sphere(radius=1.0).mesh())
     write_mesh(tmp_path / "pred.ply", Sphere(radius=1.02).mesh())
-    metrics = score_main([str(tmp_path / "pred.ply"), str(tmp_path / "gt.ply"), "--samples", "2000", "--json"])
-    assert json.loads(capsys.readouterr().out)["chamfer_l1_exact"] == pytest.approx(metrics["chamfer_l1_exact"])
+    assert score_main([str(tmp_path / "pred.ply"), str(tmp_path / "gt.ply"), "--samples", "2000", "--json"]) == 0
+    metrics = json.loads(capsys.readouterr().out)
     assert metrics["chamfer_l1_exact"] == pytest.approx(0.02 / 2, rel=0.05)  # gap / diameter
+    assert score_main([str(tmp_path / "missing.ply"), str(tmp_path / "gt.ply")]) == 1
+    assert "missing.ply" in capsys.readouterr().err
+
+
+def test_score_console_script_exits_0_and_its_help_is_whole(tmp_path):
+    write_mesh(tmp_path / "a.ply", Sphere(radius=1.0).mesh())
+    score = Path(sys.executable).parent / "neuralsurf-score"
+    done = subprocess.run([score, "a.ply", "a.ply", "--samples", "1000"], cwd=tmp_path, capture_output=True,
+                          text=True, check=False)
+    assert done.returncode == 0 and "chamfer_l1_exact" in done.stdout, done.stderr[-2000:]
+    help_text = subprocess.run([score, "--help"], capture_output=True, text=True, check=True).stdout
+    assert "longest side 1." in help_text and "--samples" in help_text and "--json" in help_text
 
 
 def test_python_dash_m_names_its_commands():
