@@ -2,8 +2,10 @@
 
 from neuralsurf import baselines, geometry, io, losses, metrics, models, observations, photometric, scenes
 from neuralsurf.errors import (
+    CheckpointError,
     ConfigError,
     DeviceError,
+    DownloadError,
     ExtractionError,
     FileFormatError,
     InputError,
@@ -14,4 +16,17 @@ from neuralsurf.extract import GridSamples, extract_mesh, sample_grid
 from neuralsurf.structures import DepthFrames, Mesh, Normalization, PointCloud
 from neuralsurf.training import FitResult, fit, load_field
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"  # the one version source: pyproject.toml reads it
+
+__all__ = [
+    # subpackages of the public API
+    "baselines", "geometry", "io", "losses", "metrics", "models", "observations", "photometric", "scenes",
+    # structures
+    "DepthFrames", "Mesh", "Normalization", "PointCloud",
+    # fitting and extraction
+    "FitResult", "fit", "load_field", "GridSamples", "extract_mesh", "sample_grid",
+    # errors
+    "NeuralsurfError", "CheckpointError", "ConfigError", "DeviceError", "DownloadError", "ExtractionError", "FileFormatError", "InputError",
+    "MissingDependencyError",
+    "__version__",
+]

@@ -59,3 +59,15 @@ def test_pip_install_then_train_from_an_empty_folder(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     metrics = list(folder.glob("outputs/bunny_sdf/bunny/*/metrics.json"))
     assert len(metrics) == 1 and json.loads(metrics[0].read_text())["steps"] == 5
+
+
+def test_one_version_everywhere_and_a_public_api():
+    import importlib.metadata
+
+    import neuralsurf
+
+    assert importlib.metadata.version("neuralsurf") == neuralsurf.__version__
+    assert f"\nversion: {neuralsurf.__version__}\n" in (REPO / "CITATION.cff").read_text()
+    assert f"\n## {neuralsurf.__version__}\n" in (REPO / "CHANGELOG.md").read_text()
+    assert all(hasattr(neuralsurf, name) for name in neuralsurf.__all__)
+    assert (Path(neuralsurf.__file__).parent / "py.typed").is_file()
