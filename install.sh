@@ -6,7 +6,7 @@
 # systems refuse pip on the system interpreter). PYTHON chooses the interpreter that makes .venv.
 # Safe to run again.
 set -euo pipefail
-cd "$(dirname "$0")"
+cd "$(dirname "$(readlink -f "$0")")"
 PYTHON="${PYTHON:-python3}"
 extras="data"
 [ "${1:-}" = "dev" ] && extras="data,dev"
