@@ -1,4 +1,7 @@
-"""Writing the results: results.csv, results.json, a Markdown table, PNG plots, report.html."""
+"""Writing the results: results.csv, results.json, a Markdown table, PNG plots, report.html.
+
+Every file is replaced whole (a temporary file, then a rename): a reader, or a job rebuilding the
+report beside another, never sees half of one."""
 
 from __future__ import annotations
 
@@ -9,6 +12,8 @@ import json
 import math
 from pathlib import Path
 from typing import Any
+
+from neuralsurf.locks import replaced, write_atomic
 
 TABLE_COLUMNS = [("method", "method"), ("scene", "scene"), ("status", "status"),
                  ("chamfer_l1", "Chamfer-L1"), ("chamfer_l1_exact", "Chamfer-L1 exact"),
@@ -50,13 +55,13 @@ def write_tables(rows: list[dict[str, Any]], run_dir: Path, extra: dict[str, Any
     columns: list[str] = []
     for row in rows:  # lists (a scene set's per-shape values) go to results.json only
         columns += [key for key in row if key not in columns and not isinstance(row[key], list)]
-    with open(run_dir / "results.csv", "w", newline="") as handle:
+    with replaced(run_dir / "results.csv") as temporary, open(temporary, "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=columns, extrasaction="ignore")
         writer.writeheader()
         writer.writerows(rows)
     clean = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
              for row in rows]
-    (run_dir / "results.json").write_text(json.dumps({"rows": clean, **(extra or {})}, indent=2, default=str))
+    write_atomic(run_dir / "results.json", json.dumps({"rows": clean, **(extra or {})}, indent=2, default=str))
 
 
 def write_plots(rows: list[dict[str, Any]], run_dir: Path) -> list[str]:
@@ -81,7 +86,8 @@ def write_plots(rows: list[dict[str, Any]], run_dir: Path) -> list[str]:
     folder = run_dir / "plots"
     folder.mkdir(parents=True, exist_ok=True)
     for name, image in plots.items():
-        image.save(folder / name)
+        with replaced(folder / name) as temporary:
+            image.save(temporary)
     return [f"plots/{name}" for name in plots]
 
 
@@ -126,9 +132,7 @@ def write_html(rows: list[dict[str, Any]], run_dir: Path, plots: list[str], titl
         parts.append("<h2>Environment and config</h2><pre>" + html.escape(json.dumps(extra, indent=2, default=str))
                      + "</pre>")
     parts.append("</body></html>")
-    path = run_dir / "report.html"
-    path.write_text("\n".join(parts))
-    return path
+    return write_atomic(run_dir / "report.html", "\n".join(parts))
 
 
 def write_report(rows: list[dict[str, Any]], run_dir: str | Path, extra: dict[str, Any] | None = None) -> str:
@@ -138,5 +142,5 @@ def write_report(rows: list[dict[str, Any]], run_dir: str | Path, extra: dict[st
     plots = write_plots(rows, run_dir)
     write_html(rows, run_dir, plots, extra=extra)
     table = markdown_table(rows)
-    (run_dir / "results.md").write_text(table + "\n")
+    write_atomic(run_dir / "results.md", table + "\n")
     return table

@@ -1,4 +1,5 @@
-"""The method x scene loop: build each scene once, run every method on it, measure, render.
+"""The method x scene loop: build each scene once, run every method on it, measure, render; each row
+stored as soon as it is done (`neuralsurf.evaluation.store`), and reused by a rerun with the same settings.
 
 Plain Python: scenes and methods come in as factories (cli.evaluate builds them from the configs),
 so research code can call `run_benchmark` without Hydra.
@@ -23,6 +24,7 @@ import torch
 from neuralsurf.errors import ConfigError
 from neuralsurf.evaluation.methods import NotApplicable
 from neuralsurf.evaluation.photometric import NormalMapResult, normal_map_picture, score_normal_maps
+from neuralsurf.locks import replaced
 from neuralsurf.scenes import Scene, SceneUnavailable
 from neuralsurf.scenes.recipes import SceneSet
 from neuralsurf.structures import Mesh
@@ -103,6 +105,9 @@ def run_benchmark(
     save_meshes: bool = True,
     configs: dict[str, Any] | None = None,
     log: Callable[[str], None] = print,
+    pairs: list[tuple[str, str]] | None = None,
+    settings: dict[tuple[str, str], dict[str, Any]] | None = None,
+    on_row: Callable[[dict[str, Any]], None] | None = None,
 ) -> list[dict[str, Any]]:
     """Run every method on every scene; one row (a dict) per (method, scene), in scene-major order.
 
@@ -110,100 +115,150 @@ def run_benchmark(
     wall time, scene building excluded), peak_rss_mb, cuda_peak_mb, n_vertices, n_faces, watertight,
     every `evaluate_mesh` metric (gt's normalised frame), file paths of the mesh and render (relative
     to `run_dir`), the method's config (JSON) and the environment (versions, machine).
+
+    Every row is stored the moment it is done, as `run_dir/rows/<scene>__<method>.json` (after its mesh
+    and render; see `neuralsurf.evaluation.store`), so a killed run keeps its finished rows.
+    `pairs` (list of (scene, method)) restricts the run to those rows. With `settings` ((scene, method)
+    -> a JSON-able dict of everything that decides the row), a row already stored with the same
+    settings is reused, not computed (logged as "reused"); without, every row is computed. `on_row` is
+    called with each computed row once it is stored (evaluate.py rebuilds the report there).
     """
-    from neuralsurf.metrics import depth_metrics, evaluate_mesh
+    from neuralsurf.evaluation.store import reusable_row, settings_key, store_row
 
     unsafe = [name for name in [*scenes, *methods] if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.-]*", name)]
     if unsafe:
         raise ConfigError(f"scene and method names become file names in the run directory: {unsafe} may hold only "
                           f"letters, digits, '_', '-' and '.', and may not start with '.' (no '/' or '..')")
+    wanted = set(pairs) if pairs is not None else {(s, m) for s in scenes for m in methods}
+    unknown = sorted(wanted - {(s, m) for s in scenes for m in methods})
+    if unknown:
+        raise ConfigError(f"rows {unknown} name scenes or methods not given to run_benchmark; choose from "
+                          f"scenes {sorted(scenes)} and methods {sorted(methods)}")
     run_dir = Path(run_dir)
     configs = configs or {}
     env = environment()
     rows: list[dict[str, Any]] = []
     for scene_name, make_scene in scenes.items():
-        base = {"scene": scene_name, "seed": seed, **env}
-        try:
-            scene = make_scene()
-            scene_error = None
-        except SceneUnavailable as error:
-            scene, scene_error = None, ("skipped", f"scene unavailable: {error}")
-        except Exception as error:  # noqa: BLE001 - a broken scene must not stop the run
-            scene, scene_error = None, ("failed", f"scene failed: {type(error).__name__}: {error}")
-            _write_traceback(run_dir, f"scene_{scene_name}")
-        if scene is not None:
-            log(f"scene {scene_name}: {scene.description}")
-            base["scene_description"] = scene.description
-        gt_image = None
+        built: dict[str, Any] = {}  # the scene, built at its first row that is not reused
         for method_name, make_method in methods.items():
+            if (scene_name, method_name) not in wanted:
+                continue
+            row_settings = settings.get((scene_name, method_name)) if settings is not None else None
+            key = settings_key(row_settings) if row_settings is not None else None
+            stored = reusable_row(run_dir, scene_name, method_name, key) if key is not None else None
+            if stored is not None:
+                log(f"  {method_name:>12} on {scene_name}: reused (stored with the same settings, {key})")
+                rows.append(stored)
+                continue
+            if not built:
+                built.update(build_scene(scene_name, make_scene, run_dir, log))
+            base = {"scene": scene_name, "seed": seed, **env}
+            if built["scene"] is not None:
+                base["scene_description"] = built["scene"].description
             row = {"method": method_name, **base, "status": "ok", "reason": "",
                    "config": json.dumps(configs.get(method_name, {}), sort_keys=True, default=str)}
+            final = run_row(row, built, make_method, run_dir, seed=seed, n_samples=n_samples, render=render,
+                            render_size=render_size, save_meshes=save_meshes, log=log)
+            store_row(run_dir, row, key, row_settings, final)
             rows.append(row)
-            if scene_error is not None:
-                row["status"], row["reason"] = scene_error
-                log(f"  {method_name:>12} on {scene_name}: {row['status']} ({row['reason']})")
-                continue
-            seed_everything(seed)
-            reset_peak_memory()
-            started = time.perf_counter()
-            try:
-                method = make_method()
-                fits = run_dir / "fits" / f"{scene_name}__{method_name}"
-                if isinstance(scene, SceneSet):  # a split of shapes: one row, the means of their metrics
-                    output, set_metrics, row["per_shape"] = run_scene_set(scene, method, seed, fits, n_samples)
-                else:
-                    output = method(scene, seed=seed, run_dir=fits)
-                if isinstance(output, NormalMapResult):  # photometric stereo: scored by angular error
-                    row["seconds"] = time.perf_counter() - started
-                    row["peak_rss_mb"], row["cuda_peak_mb"] = peak_memory_mb()
-                    row.update(score_normal_maps(output))
-                    if render:
-                        row["render"] = normal_map_picture(output, scene_name, method_name, run_dir)
-                    log(f"  {method_name:>12} on {scene_name}: normal error mean {row['normal_error_mean_deg']:.3f} "
-                        f"deg, median {row['normal_error_median_deg']:.3f} deg  {row['seconds']:.1f} s")
-                    continue
-                mesh = check_mesh(output)
-                row["seconds"] = time.perf_counter() - started
-                row["peak_rss_mb"], row["cuda_peak_mb"] = peak_memory_mb()
-                metrics = {}
-                if isinstance(scene, SceneSet):
-                    metrics = set_metrics
-                elif scene.ground_truth is not None:
-                    metrics = evaluate_mesh(mesh, scene.ground_truth, n_samples=n_samples, seed=seed)
-                    if not math.isfinite(metrics["chamfer_l1"]):
-                        raise ValueError(f"the metrics are not finite (chamfer_l1 = {metrics['chamfer_l1']})")
-                if getattr(scene, "held_out", None) is not None:
-                    metrics.update(depth_metrics(mesh, scene.held_out))
-            except NotApplicable as error:
-                row["status"], row["reason"] = "skipped", str(error)
-                log(f"  {method_name:>12} on {scene_name}: skipped ({error})")
-                continue
-            except Exception as error:  # noqa: BLE001 - a failing method is a row, the run goes on
-                row.setdefault("seconds", time.perf_counter() - started)
-                row["status"], row["reason"] = "failed", f"{type(error).__name__}: {error}"
-                _write_traceback(run_dir, f"{scene_name}__{method_name}")
-                log(f"  {method_name:>12} on {scene_name}: FAILED ({row['reason']})")
-                continue
-            row.update(metrics)
-            row.update(n_vertices=len(mesh.vertices), n_faces=len(mesh.faces), watertight=bool(mesh.is_watertight))
-            if save_meshes:
-                from neuralsurf.io import write_mesh
-
-                path = Path("meshes") / f"{scene_name}__{method_name}.ply"
-                write_mesh(run_dir / path, mesh)
-                row["mesh"] = str(path)
-            shown = shown_scene(scene)  # of a scene set: its first scene
-            if render and shown.ground_truth is not None:
-                try:
-                    gt_image = gt_image if gt_image is not None else _gt_render(shown, run_dir, render_size)
-                    row["render"] = _render_row(shown, mesh, method_name, gt_image, run_dir, render_size)
-                except Exception as error:  # noqa: BLE001 - a render problem must not lose the numbers
-                    row["render_error"] = f"{type(error).__name__}: {error}"
-            log(f"  {method_name:>12} on {scene_name}: chamfer_l1 {row.get('chamfer_l1', math.nan):.5f}  "
-                f"F@1% {row.get('fscore_1%', math.nan):.3f}  depth error {row.get('depth_error_mean', math.nan):.4f}  "
-                f"completeness {row.get('depth_completeness', math.nan):.3f}  {row['seconds']:.1f} s  "
-                f"{row['peak_rss_mb']:.0f} MiB  {row['n_faces']} faces")
+            if on_row is not None:
+                on_row(row)
     return rows
+
+
+def build_scene(name: str, make_scene: SceneFactory, run_dir: Path,
+                log: Callable[[str], None]) -> dict[str, Any]:
+    """{"scene": the built scene or None, "error": None or (status, reason), "gt_image": None}: a scene
+    that cannot be built (data missing: "skipped"; any other error: "failed") makes its rows that."""
+    try:
+        scene, error = make_scene(), None
+    except SceneUnavailable as unavailable:
+        scene, error = None, ("skipped", f"scene unavailable: {unavailable}")
+    except Exception as failure:  # noqa: BLE001 - a broken scene must not stop the run
+        scene, error = None, ("failed", f"scene failed: {type(failure).__name__}: {failure}")
+        _write_traceback(run_dir, f"scene_{name}")
+    if scene is not None:
+        log(f"scene {name}: {scene.description}")
+    return {"scene": scene, "error": error, "gt_image": None}
+
+
+def run_row(row: dict[str, Any], built: dict[str, Any], make_method: MethodFactory, run_dir: Path, *, seed: int,
+            n_samples: int, render: bool, render_size: int, save_meshes: bool,
+            log: Callable[[str], None]) -> bool:
+    """Run one method on one built scene (`build_scene`'s dict; its ground-truth render is kept there)
+    and fill `row` in place: metrics, files, or the reason it was skipped or failed. Returns whether
+    the row is final (reusable by a later run with the same settings): ok, or skipped because the method
+    does not apply; failed rows and rows of unavailable scenes are computed again."""
+    from neuralsurf.metrics import depth_metrics, evaluate_mesh
+
+    scene_name, method_name, scene = row["scene"], row["method"], built["scene"]
+    if built["error"] is not None:
+        row["status"], row["reason"] = built["error"]
+        log(f"  {method_name:>12} on {scene_name}: {row['status']} ({row['reason']})")
+        return False
+    seed_everything(seed)
+    reset_peak_memory()
+    started = time.perf_counter()
+    try:
+        method = make_method()
+        fits = run_dir / "fits" / f"{scene_name}__{method_name}"
+        if isinstance(scene, SceneSet):  # a split of shapes: one row, the means of their metrics
+            output, set_metrics, row["per_shape"] = run_scene_set(scene, method, seed, fits, n_samples)
+        else:
+            output = method(scene, seed=seed, run_dir=fits)
+        if isinstance(output, NormalMapResult):  # photometric stereo: scored by angular error
+            row["seconds"] = time.perf_counter() - started
+            row["peak_rss_mb"], row["cuda_peak_mb"] = peak_memory_mb()
+            row.update(score_normal_maps(output))
+            if render:
+                row["render"] = normal_map_picture(output, scene_name, method_name, run_dir)
+            log(f"  {method_name:>12} on {scene_name}: normal error mean {row['normal_error_mean_deg']:.3f} "
+                f"deg, median {row['normal_error_median_deg']:.3f} deg  {row['seconds']:.1f} s")
+            return True
+        mesh = check_mesh(output)
+        row["seconds"] = time.perf_counter() - started
+        row["peak_rss_mb"], row["cuda_peak_mb"] = peak_memory_mb()
+        metrics = {}
+        if isinstance(scene, SceneSet):
+            metrics = set_metrics
+        elif scene.ground_truth is not None:
+            metrics = evaluate_mesh(mesh, scene.ground_truth, n_samples=n_samples, seed=seed)
+            if not math.isfinite(metrics["chamfer_l1"]):
+                raise ValueError(f"the metrics are not finite (chamfer_l1 = {metrics['chamfer_l1']})")
+        if getattr(scene, "held_out", None) is not None:
+            metrics.update(depth_metrics(mesh, scene.held_out))
+    except NotApplicable as error:
+        row["status"], row["reason"] = "skipped", str(error)
+        log(f"  {method_name:>12} on {scene_name}: skipped ({error})")
+        return True
+    except Exception as error:  # noqa: BLE001 - a failing method is a row, the run goes on
+        row.setdefault("seconds", time.perf_counter() - started)
+        row["status"], row["reason"] = "failed", f"{type(error).__name__}: {error}"
+        _write_traceback(run_dir, f"{scene_name}__{method_name}")
+        log(f"  {method_name:>12} on {scene_name}: FAILED ({row['reason']})")
+        return False
+    row.update(metrics)
+    row.update(n_vertices=len(mesh.vertices), n_faces=len(mesh.faces), watertight=bool(mesh.is_watertight))
+    if save_meshes:
+        from neuralsurf.io import write_mesh
+
+        path = Path("meshes") / f"{scene_name}__{method_name}.ply"
+        with replaced(run_dir / path) as temporary:
+            write_mesh(temporary, mesh)
+        row["mesh"] = str(path)
+    shown = shown_scene(scene)  # of a scene set: its first scene
+    if render and shown.ground_truth is not None:
+        try:
+            if built["gt_image"] is None:
+                built["gt_image"] = _gt_render(shown, run_dir, render_size)
+            row["render"] = _render_row(shown, mesh, method_name, built["gt_image"], run_dir, render_size)
+        except Exception as error:  # noqa: BLE001 - a render problem must not lose the numbers
+            row["render_error"] = f"{type(error).__name__}: {error}"
+    log(f"  {method_name:>12} on {scene_name}: chamfer_l1 {row.get('chamfer_l1', math.nan):.5f}  "
+        f"F@1% {row.get('fscore_1%', math.nan):.3f}  depth error {row.get('depth_error_mean', math.nan):.4f}  "
+        f"completeness {row.get('depth_completeness', math.nan):.3f}  {row['seconds']:.1f} s  "
+        f"{row['peak_rss_mb']:.0f} MiB  {row['n_faces']} faces")
+    return True
 
 
 def run_scene_set(scenes: SceneSet, method: Callable[..., Mesh], seed: int, run_dir: Path,
@@ -267,6 +322,6 @@ def _render_row(scene: Scene, mesh: Mesh, method: str, gt_image, run_dir: Path, 
                                                                      size, size)]
     labels = [f"{scene.name}: ground truth", f"{method}", f"{method}: distance (red >= 1%)"]
     path = Path("renders") / f"{scene.name}__{method}.png"
-    (run_dir / path).parent.mkdir(parents=True, exist_ok=True)
-    labelled_row(images, labels).save(run_dir / path)
+    with replaced(run_dir / path) as temporary:
+        labelled_row(images, labels).save(temporary)
     return str(path)
