@@ -158,18 +158,22 @@ def train_prior(run_dir: str | Path, collection: ShapeCollection, model: Callabl
                 seed: int = 0, device: str = "cpu", config: dict | None = None) -> Path:
     """Train `model(n_shapes=...)` over `collection` (built here if needed) with the observations
     `observations[i](collection)` and `fit`'s `trainer` options, into `run_dir` (resumed there; a
-    finished run is reused as it is). Returns its checkpoint, for `load_prior`."""
+    finished run is reused as it is). Returns its checkpoint, for `load_prior`. Processes that ask for
+    the same `run_dir` together (the jobs of an evaluation sweep) train it once: the first holds the
+    lock `<run_dir>.lock` while it trains, the others wait and then reuse its checkpoint."""
+    from neuralsurf.locks import file_lock
     from neuralsurf.structures import Normalization
     from neuralsurf.training import CHECKPOINT_NAME, default_optimizer, fit, load_checkpoint
 
     trainer = {"progress": False, "image_every": 0, "mesh_every": 0, **(trainer or {})}
     path = Path(run_dir) / "checkpoints" / CHECKPOINT_NAME
-    if path.is_file() and load_checkpoint(path).get("step", 0) >= trainer.get("steps", 2000):
-        return path
-    collection.build(progress=False)
-    fit(model(n_shapes=collection.count("train")), [build(collection) for build in observations],
-        optimizer=optimizer or default_optimizer, device=device, seed=seed, run_dir=run_dir, config=config,
-        normalization=Normalization(), **trainer)
+    with file_lock(Path(run_dir).with_name(f"{Path(run_dir).name}.lock")):
+        if path.is_file() and load_checkpoint(path).get("step", 0) >= trainer.get("steps", 2000):
+            return path
+        collection.build(progress=False)
+        fit(model(n_shapes=collection.count("train")), [build(collection) for build in observations],
+            optimizer=optimizer or default_optimizer, device=device, seed=seed, run_dir=run_dir, config=config,
+            normalization=Normalization(), **trainer)
     return path
 
 

@@ -198,10 +198,20 @@ def build_collection(out: str | Path, records: Sequence[ShapeRecord], recipe: Ca
                      on_done: Callable[[str, str], None] | None = None) -> dict[str, int]:
     """Write the cache of every record under `out` (and `collection.json`), skipping shapes already
     cached with the same recipe: an interrupted build resumes where it stopped. `workers` > 0 builds
-    in that many processes, 0 in this one. Returns counts {"built": ..., "cached": ...}."""
+    in that many processes, 0 in this one. Returns counts {"built": ..., "cached": ...}. Processes that
+    build the same folder together (the jobs of an evaluation sweep) take turns under the lock
+    `<out>/.build.lock`: the first builds, the others then find every shape cached."""
+    from neuralsurf.locks import file_lock
+
+    with file_lock(Path(out) / ".build.lock"):
+        return _build_collection(Path(out), records, recipe, workers, progress, on_done)
+
+
+def _build_collection(out: Path, records: Sequence[ShapeRecord], recipe: CacheRecipe, workers: int,
+                      progress: bool, on_done: Callable[[str, str], None] | None) -> dict[str, int]:
+    """`build_collection` without its lock."""
     from tqdm.auto import tqdm
 
-    out = Path(out)
     write_manifest(out, records, recipe)
     cached = [record for record in records if is_cached(record, out, recipe)]
     counts = {"built": 0, "cached": len(cached)}
