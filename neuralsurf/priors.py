@@ -180,8 +180,8 @@ def train_prior(run_dir: str | Path, collection: ShapeCollection, model: Callabl
 def load_prior(path: str | Path, device: str | torch.device = "cpu") -> nn.Module:
     """The trained prior (an AutoDecoder or OccupancyNetwork, unit frame, eval mode) of a run's
     `checkpoints/last.pt`. Rebuilt from the allowlist of model classes (`models.spec`)."""
-    from neuralsurf.models.spec import build_model
-    from neuralsurf.training import load_checkpoint
+    from neuralsurf.models.spec import REBUILDABLE, build_checked
+    from neuralsurf.training import PRIOR_CLASSES, load_checkpoint, stored_class
 
     path = Path(path)
     if not path.is_file():
@@ -190,14 +190,11 @@ def load_prior(path: str | Path, device: str | torch.device = "cpu") -> nn.Modul
     state = load_checkpoint(path)
     if not isinstance(state.get("model_spec"), dict) or "model" not in state:
         raise CheckpointError(f"{path} holds no rebuildable model; it was not written by a neuralsurf fit")
-    model = build_model(state["model_spec"])
-    if not isinstance(model, (AutoDecoder, OccupancyNetwork)):
-        raise CheckpointError(f"{path} holds a {type(model).__name__}, not a learned prior (AutoDecoder or "
-                              f"OccupancyNetwork); load single-shape fits with neuralsurf.load_field")
-    try:
-        model.load_state_dict(state["model"])
-    except RuntimeError as error:
-        raise CheckpointError(f"{path} does not match its model: {error}") from None
+    name = stored_class(state)
+    if name in REBUILDABLE and name not in PRIOR_CLASSES:
+        raise CheckpointError(f"{path} holds a {name}, not a learned prior (AutoDecoder or OccupancyNetwork): a "
+                              f"single-shape field; load it with neuralsurf.load_field")
+    model = build_checked(state["model_spec"], state["model"], f"{path}: model")
     return model.to(device).eval()
 
 

@@ -21,7 +21,7 @@ from neuralsurf.distributed import mean_over_ranks, rank_and_world
 from neuralsurf.errors import CheckpointError, ConfigError, InputError, NeuralsurfError
 from neuralsurf.graphs import GraphedStep, graphable
 from neuralsurf.models.field import NormalizedField
-from neuralsurf.models.spec import REBUILDABLE, build_model, model_spec
+from neuralsurf.models.spec import REBUILDABLE, build_checked, check_weights, model_spec
 from neuralsurf.observations import Observation, PointSamples, union_bounds
 from neuralsurf.structures import Normalization, PointCloud
 
@@ -49,9 +49,32 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
 def load_checkpoint(path: Path) -> dict[str, Any]:
     """Read a checkpoint written by `save_checkpoint` (tensors and plain containers only)."""
     try:
-        return torch.load(path, map_location="cpu", weights_only=True)
+        state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # noqa: BLE001 - a truncated or foreign file, whatever torch raises
         raise CheckpointError(f"cannot read checkpoint {path}: {error}; delete it to start afresh") from None
+    if not isinstance(state, dict):
+        raise CheckpointError(f"{path} holds a {type(state).__name__}, not a neuralsurf checkpoint (a dict of "
+                              f"'model', 'model_spec', ...); pass the last.pt of a run or a file of FitResult.save")
+    return state
+
+
+PRIOR_CLASSES = ("AutoDecoder", "OccupancyNetwork")
+"""Model classes of learned priors (`neuralsurf.priors.load_prior`), not single-shape fields."""
+
+
+def stored_class(state: dict[str, Any]) -> str | None:
+    """The model class name a checkpoint's spec names (None when it has no spec)."""
+    spec = state.get("model_spec")
+    return spec.get("class") if isinstance(spec, dict) and isinstance(spec.get("class"), str) else None
+
+
+def stored_margin(state: dict[str, Any], path: Path) -> float:
+    """A checkpoint's box margin: a finite number >= 0, else a CheckpointError naming `path`."""
+    margin = state["margin"]
+    if isinstance(margin, bool) or not isinstance(margin, (int, float)) or not 0 <= margin < math.inf:
+        raise CheckpointError(f"{path}: margin is {margin!r:.60}, not a finite number >= 0; the checkpoint was "
+                              f"tampered with or is damaged")
+    return float(margin)
 
 
 @dataclass
@@ -104,13 +127,22 @@ def load_field(path: str | Path, model: nn.Module | None = None, device: str | t
     if model is None and state["model_spec"] is None:
         raise CheckpointError(f"{path} holds a model of a class neuralsurf cannot rebuild; pass it: "
                               f"load_field(path, model=YourModel(...))")
-    model = build_model(state["model_spec"]) if model is None else model
+    if stored_class(state) in PRIOR_CLASSES:
+        raise CheckpointError(f"{path} holds a learned prior ({stored_class(state)}), not a single-shape field; "
+                              f"load it with neuralsurf.priors.load_prior and complete a shape with complete_cloud")
+    margin = stored_margin(state, path)
+    if model is None:
+        model = build_checked(state["model_spec"], state["model"], f"{path}: model")
+    else:
+        try:
+            model.load_state_dict(check_weights(state["model"], f"{path}: model"))
+        except (RuntimeError, KeyError, TypeError, ValueError) as error:
+            raise CheckpointError(f"{path} does not match its model: {error}") from None
     try:
-        model.load_state_dict(state["model"])
         normalization = Normalization.from_state_dict(state["normalization"])
-    except (RuntimeError, KeyError, TypeError, ValueError) as error:
-        raise CheckpointError(f"{path} does not match its model: {error}") from None
-    return NormalizedField(model, normalization, margin=float(state["margin"])).to(resolve_device(device)).eval()
+    except (RuntimeError, KeyError, TypeError, ValueError, AttributeError) as error:
+        raise CheckpointError(f"{path}: its normalization is not readable: {error}") from None
+    return NormalizedField(model, normalization, margin=margin).to(resolve_device(device)).eval()
 
 
 def default_optimizer(params, lr: float = 1e-3, eps: float = 1e-15) -> torch.optim.Optimizer:

@@ -67,11 +67,11 @@ class HashGrid(nn.Module):
         sizes = [min((r + 1) ** 3, table) for r in resolutions]
         self.bound = bound
         self.out_dim = 3 + levels * features_per_level
-        offsets = torch.tensor([0, *sizes]).cumsum(0)
-        if offsets[-1] >= 2**31:
-            raise ConfigError(f"HashGrid's {int(offsets[-1])} table rows exceed int32 indices; "
+        if sum(sizes) >= 2**31:
+            raise ConfigError(f"HashGrid's {sum(sizes)} table rows exceed int32 indices; "
                               f"lower log2_table_size or levels")
-        self.table = nn.Parameter(init_scale * (2 * torch.rand(int(offsets[-1]), features_per_level) - 1))
+        offsets = torch.tensor([0, *sizes]).cumsum(0)
+        self.table = nn.Parameter(init_scale * (2 * torch.rand(sum(sizes), features_per_level) - 1))
         # per level (shaped to broadcast over [2, L, 3, n]): resolution, and what multiplies each
         # axis's corner coordinate: (side^2, side, 1) for a dense level, the primes for a hashed one,
         # reduced modulo the table size (the masked product is the same); levels grow finer, so the

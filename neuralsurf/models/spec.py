@@ -10,9 +10,12 @@ from __future__ import annotations
 
 import functools
 import inspect
+import threading
 from typing import Any
 
-from torch import nn
+import torch
+from torch import Tensor, nn
+from torch.nn.modules import module as torch_module
 
 from neuralsurf.errors import CheckpointError
 
@@ -88,4 +91,99 @@ def build_model(spec: Any, where: str = "model") -> nn.Module:
         if not isinstance(key, str) or key not in inspect.signature(cls).parameters:
             raise CheckpointError(f"{where}: {cls.__name__} takes no argument {key!r:.100}")
         arguments[key] = _value(value, f"{where}.{key}")
-    return cls(**arguments)
+    try:
+        return cls(**arguments)
+    except (TypeError, ValueError, OverflowError, ZeroDivisionError, RuntimeError) as error:
+        raise CheckpointError(f"{where}: {cls.__name__} cannot be built from the stored arguments ({error}); "
+                              f"the checkpoint was tampered with or written by another version") from None
+
+
+def check_weights(weights: Any, where: str) -> dict[str, Tensor]:
+    """`weights` (a state dict read from a file) as {name: tensor}, every floating tensor finite;
+    a CheckpointError naming `where` and the bad entry otherwise."""
+    if not isinstance(weights, dict):
+        raise CheckpointError(f"{where}: the weights are a {type(weights).__name__}, not a dict of tensors; "
+                              f"the checkpoint was not written by neuralsurf or was tampered with")
+    bad = [repr(k)[:60] for k, v in weights.items() if not (isinstance(k, str) and isinstance(v, Tensor))]
+    if bad:
+        raise CheckpointError(f"{where}: weight entries {bad[:5]} are not named tensors; the checkpoint was not "
+                              f"written by neuralsurf or was tampered with")
+    for name, value in weights.items():
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            count = int((~torch.isfinite(value)).sum())
+            raise CheckpointError(f"{where}: weight {name!r} holds {count} NaN or inf of {value.numel()} values; "
+                                  f"the fit diverged before it was saved or the file is damaged: fit again")
+    return weights
+
+
+def _integers(value: Any, where: str):
+    """(where, value) of every int (not bool) in a spec's arguments, nested specs and lists included."""
+    if isinstance(value, dict):
+        for key, item in value.items():
+            yield from _integers(item, f"{where}.{key}" if key != "arguments" else where)
+    elif isinstance(value, (list, tuple)):
+        for item in value:
+            yield from _integers(item, where)
+    elif isinstance(value, int) and not isinstance(value, bool):
+        yield where, value
+
+
+def _meta_skeleton(spec: Any, tensors: int, elements: int, where: str) -> nn.Module:
+    """`build_model(spec)` on the meta device (no memory), stopped with a CheckpointError once it
+    registers more modules or parameter values than `tensors` and `elements` (the stored weights')
+    can account for."""
+    limits = {"modules": 8 * tensors + 64, "values": 4 * elements + 2**20}
+    counts = dict.fromkeys(limits, 0)
+    thread = threading.get_ident()
+
+    def count(kind: str, amount: int) -> None:
+        if threading.get_ident() != thread:
+            return
+        counts[kind] += amount
+        if counts[kind] > limits[kind]:
+            raise CheckpointError(f"{where}: the stored arguments describe a model larger than its stored weights "
+                                  f"({tensors} tensors, {elements} values); the checkpoint was tampered with")
+
+    hooks = [
+        torch_module.register_module_module_registration_hook(lambda m, n, sub: count("modules", 1)),
+        torch_module.register_module_parameter_registration_hook(
+            lambda m, n, p: count("values", 0 if p is None else p.numel())),
+        torch_module.register_module_buffer_registration_hook(
+            lambda m, n, b: count("values", 0 if b is None else b.numel())),
+    ]
+    try:
+        with torch.device("meta"):
+            return build_model(spec, where)
+    finally:
+        for hook in hooks:
+            hook.remove()
+
+
+def build_checked(spec: Any, weights: Any, where: str = "model") -> nn.Module:
+    """The model of `spec` (`model_spec`'s output) holding `weights` (its state dict, read from a file).
+
+    Nothing is allocated before the spec is known to agree with the weights: every integer argument
+    must stay within the stored values' count, the model is first built on the meta device (its
+    construction stopped if it outgrows the stored weights), and its state dict's names and shapes
+    must equal the stored ones. Raises CheckpointError, naming `where`, otherwise.
+    """
+    weights = check_weights(weights, where)
+    elements = sum(value.numel() for value in weights.values())
+    for name, value in _integers(spec, where):
+        if abs(value) > max(elements, 64):
+            raise CheckpointError(f"{name}={value} exceeds the {elements} values the checkpoint stores: its "
+                                  f"model arguments disagree with its weights (tampered with or damaged)")
+    skeleton = _meta_skeleton(spec, len(weights), elements, where).state_dict()
+    missing, unexpected = sorted(set(skeleton) - set(weights)), sorted(set(weights) - set(skeleton))
+    shapes = [f"{k} {tuple(weights[k].shape)} != {tuple(v.shape)}" for k, v in skeleton.items()
+              if k in weights and weights[k].shape != v.shape]
+    if missing or unexpected or shapes:
+        raise CheckpointError(f"{where}: the stored arguments and weights disagree (missing {missing[:5]}, "
+                              f"unexpected {unexpected[:5]}, shapes {shapes[:5]}); the checkpoint was tampered "
+                              f"with or is damaged")
+    model = build_model(spec, where)
+    try:
+        model.load_state_dict(weights)
+    except (RuntimeError, ValueError, TypeError) as error:
+        raise CheckpointError(f"{where}: the weights do not load into the model: {error}") from None
+    return model

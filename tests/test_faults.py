@@ -1,0 +1,120 @@
+"""Faults: damaged or crafted inputs and misuse end in a NeuralsurfError (or a warning) that names the
+problem and the fix, never in a raw exception, a silent wrong result or a huge allocation."""
+
+import math
+import time
+
+import pytest
+import torch
+
+from neuralsurf.errors import CheckpointError
+from neuralsurf.models import SDFMLP, HashGrid
+from neuralsurf.priors import deepsdf, load_prior
+from neuralsurf.structures import Normalization
+from neuralsurf.training import field_state, load_checkpoint, load_field, save_checkpoint
+
+
+def small_field():
+    torch.manual_seed(0)
+    return SDFMLP(width=16, depth=2, skip_layers=(), weight_norm=False,
+                  encoding=HashGrid(levels=2, log2_table_size=8, max_resolution=16))
+
+
+@pytest.fixture
+def field_path(tmp_path):
+    """A checkpoint of a small SDFMLP field, as FitResult.save writes it."""
+    path = tmp_path / "field.pt"
+    save_checkpoint(path, field_state(small_field(), Normalization(), 0.05, 0))
+    return path
+
+
+@pytest.fixture
+def prior_path(tmp_path):
+    """A checkpoint of a small DeepSDF prior (AutoDecoder)."""
+    torch.manual_seed(0)
+    path = tmp_path / "prior.pt"
+    save_checkpoint(path, field_state(deepsdf(3, latent_dim=4, width=16, depth=2, skip_layers=()),
+                                      Normalization(), 0.05, 0))
+    return path
+
+
+def tampered(path, change):
+    """A copy of the checkpoint at `path` with `change(state)` applied; returns its path."""
+    state = load_checkpoint(path)
+    change(state)
+    out = path.with_name("tampered.pt")
+    save_checkpoint(out, state)
+    return out
+
+
+def set_argument(name, value):
+    return lambda state: state["model_spec"]["arguments"].__setitem__(name, value)
+
+
+def test_a_huge_width_in_a_checkpoint_fails_fast_without_allocating(field_path):
+    path = tampered(field_path, set_argument("width", 10**9))
+    started = time.perf_counter()
+    with pytest.raises(CheckpointError, match=r"width=1000000000 exceeds .* values the checkpoint stores"):
+        load_field(path)
+    assert time.perf_counter() - started < 5.0  # was: 12 GB allocated over ~50 s
+
+
+def test_arguments_that_disagree_with_the_weights_are_refused_before_building(field_path):
+    with pytest.raises(CheckpointError, match=r"arguments and weights disagree.*layers\.0\.weight"):
+        load_field(tampered(field_path, set_argument("width", 200)))
+
+
+def test_a_deep_spec_stops_building_once_it_outgrows_the_stored_weights(field_path):
+    started = time.perf_counter()
+    with pytest.raises(CheckpointError, match="larger than its stored weights"):
+        load_field(tampered(field_path, set_argument("depth", 1000)))
+    assert time.perf_counter() - started < 5.0
+
+
+def test_load_field_refuses_a_prior_and_load_prior_refuses_a_field(field_path, prior_path):
+    with pytest.raises(CheckpointError, match=r"learned prior \(AutoDecoder\).*neuralsurf\.priors\.load_prior"):
+        load_field(prior_path)
+    with pytest.raises(CheckpointError, match=r"holds a SDFMLP, not a learned prior.*load_field"):
+        load_prior(field_path)
+    assert load_prior(prior_path).codes.weight.shape == (3, 4)  # the right loader still reads each
+
+
+@pytest.mark.parametrize("content", [torch.zeros(3), [1, 2, 3], "text"])
+@pytest.mark.parametrize("loader", [load_field, load_prior])
+def test_a_file_that_is_not_a_checkpoint_dict_is_a_checkpoint_error(tmp_path, content, loader):
+    path = tmp_path / "foreign.pt"
+    torch.save(content, path)
+    with pytest.raises(CheckpointError, match=rf"{path.name} holds a \w+, not a neuralsurf checkpoint"):
+        loader(path)
+
+
+FIELD_TAMPERING = {
+    "width_text": (set_argument("width", "abc"), r"SDFMLP cannot be built from the stored arguments"),
+    "margin_text": (lambda s: s.__setitem__("margin", "abc"), r"margin is 'abc', not a finite number"),
+    "margin_nan": (lambda s: s.__setitem__("margin", math.nan), r"margin is nan, not a finite number"),
+    "weights_text": (lambda s: s.__setitem__("model", "x"), r"the weights are a str, not a dict of tensors"),
+    "weights_nan": (lambda s: s["model"]["layers.0.weight"].fill_(math.nan),
+                    r"weight 'layers.0.weight' holds 112 NaN or inf"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(FIELD_TAMPERING))
+def test_a_tampered_field_checkpoint_names_the_file_and_the_fault(field_path, case):
+    change, message = FIELD_TAMPERING[case]
+    path = tampered(field_path, change)
+    with pytest.raises(CheckpointError, match=message) as error:
+        load_field(path)
+    assert str(path) in str(error.value)
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda s: s.__setitem__("model", "x"), r"the weights are a str"),
+    (lambda s: s["model"]["codes.weight"].fill_(math.inf), r"weight 'codes.weight' holds 12 NaN or inf"),
+    (lambda s: s["model_spec"]["arguments"]["codes"]["arguments"].__setitem__("count", "abc"),
+     r"LatentCodes cannot be built"),
+])
+def test_a_tampered_prior_checkpoint_names_the_file_and_the_fault(prior_path, change, message):
+    path = tampered(prior_path, change)
+    with pytest.raises(CheckpointError, match=message) as error:
+        load_prior(path)
+    assert str(path) in str(error.value)
