@@ -274,7 +274,18 @@ class Normalization:
 
 
 def _check_rigid(cam_to_world: Tensor, name: str, tolerance: float = 1e-3) -> None:
-    """Raise InputError unless every 4x4 matrix is a rigid motion (R^T R = I, det R = 1, last row 0 0 0 1)."""
+    """Raise InputError unless every 4x4 matrix (n, 4, 4) is finite and a rigid motion (R^T R = I,
+    det R = 1, last row 0 0 0 1)."""
+    finite = torch.isfinite(cam_to_world).all(dim=(1, 2))
+    if not finite.all():
+        first = int((~finite).nonzero()[0])
+        pose = cam_to_world[first]
+        part = ("rotation" if not torch.isfinite(pose[:3, :3]).all() else
+                "translation" if not torch.isfinite(pose[:3, 3]).all() else "last row")
+        raise InputError(
+            f"{name}[{first}] holds NaN or inf (in its {part}; {int((~finite).sum())} bad poses of "
+            f"{len(cam_to_world)}); drop those frames or fix their poses (a failed tracking step?)"
+        )
     rotation = cam_to_world[:, :3, :3].double()
     identity = torch.eye(3, dtype=torch.float64, device=cam_to_world.device)
     orthogonal_error = (rotation.transpose(1, 2) @ rotation - identity).abs().amax(dim=(1, 2))

@@ -118,3 +118,16 @@ def test_a_tampered_prior_checkpoint_names_the_file_and_the_fault(prior_path, ch
     with pytest.raises(CheckpointError, match=message) as error:
         load_prior(path)
     assert str(path) in str(error.value)
+
+
+@pytest.mark.parametrize("entry, part", [((0, 3), "translation"), ((1, 1), "rotation")])
+def test_a_nan_in_a_camera_pose_is_an_input_error_naming_the_frame(entry, part):
+    from neuralsurf.errors import InputError
+    from neuralsurf.structures import DepthFrames
+
+    K = torch.tensor([[5.0, 0.0, 4.0], [0.0, 5.0, 3.0], [0.0, 0.0, 1.0]])
+    poses = torch.eye(4).repeat(3, 1, 1)
+    DepthFrames(torch.ones(3, 6, 8), K, poses)  # the valid frames pass
+    poses[1][entry] = math.nan
+    with pytest.raises(InputError, match=rf"cam_to_world\[1\] holds NaN or inf \(in its {part}"):
+        DepthFrames(torch.ones(3, 6, 8), K, poses)
