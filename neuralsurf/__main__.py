@@ -1,15 +1,23 @@
-"""python -m neuralsurf {train,evaluate,score} [arguments]"""
+"""python -m neuralsurf {train,evaluate,score,data} [arguments]"""
 
 import sys
 
 from neuralsurf.cli import evaluate_main, score_main, train_main
 
-COMMANDS = {"train": train_main, "evaluate": evaluate_main, "score": score_main}
+
+def data_main() -> None:
+    """``python -m neuralsurf data {list,fetch}``: exits with `neuralsurf.data.main`'s status."""
+    from neuralsurf.data import main
+
+    sys.exit(main(sys.argv[1:]))
+
+
+COMMANDS = {"train": train_main, "evaluate": evaluate_main, "score": score_main, "data": data_main}
 
 if __name__ == "__main__":
     if len(sys.argv) < 2 or sys.argv[1] not in COMMANDS:
         sys.exit(f"usage: python -m neuralsurf {{{','.join(COMMANDS)}}} [arguments]  "
-                 f"(train/evaluate take Hydra overrides, e.g. experiment=bunny_sdf)")
+                 f"(train/evaluate take Hydra overrides, e.g. experiment=bunny_sdf; data: list or fetch data sets)")
     command = COMMANDS[sys.argv.pop(1)]
     sys.argv[0] = f"neuralsurf-{command.__name__.split('_')[0]}"
     command()

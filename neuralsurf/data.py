@@ -3,48 +3,73 @@
 `fetch(name)` returns the folder of a data set, in the layout the tests and configs expect:
 
 - ``stanford_bunny/``: ``data/`` (ten range scans ``bun*.ply``, ``chin.ply``, ``ear_back.ply``,
-  ``top2.ply``, ``top3.ply`` and ``bun.conf``) and ``reconstruction/`` (``bun_zipper*.ply``), as in
-  Stanford's archive (Stanford 3D Scanning Repository; free for research, credit the Stanford
-  Computer Graphics Laboratory).
+  ``top2.ply``, ``top3.ply``, ``bun.conf`` and ``README``) and ``reconstruction/``
+  (``bun_zipper*.ply`` and ``README``), as in Stanford's archive (Stanford 3D Scanning Repository;
+  free for research, credit the Stanford Computer Graphics Laboratory).
 - ``7scenes_redkitchen_every10/``: ``frames/frame-XXXXXX.{color.png,depth.png,pose.txt}``, every
   10th frame of the first 1,000 of sequence 1 of Microsoft 7-Scenes' redkitchen (non-commercial
   research use), and ``camera-intrinsics.txt`` (the published fx = fy = 585, cx = 320, cy = 240).
+  The images are copied from the archive byte for byte; each pose and the intrinsics are written as
+  4 x 4 (3 x 3) float64 values in ``%.18e`` notation, one row per line (what ``numpy.savetxt``
+  writes), so that their bytes depend on the values only.
 
 Where it looks, in order:
 
 1. ``$NEURALSURF_DATA/<folder>``: a local copy (e.g. a lab's shared disk); nothing is downloaded.
 2. ``<cache>/<folder>``, the cache being ``$NEURALSURF_CACHE`` or ``~/.cache/neuralsurf``.
 3. Otherwise the archive is downloaded into ``<cache>/downloads/`` (an HTTP Range request resumes
-   an interrupted download), checked against its sha256 when the registry has one, and unpacked
-   into ``<cache>/<folder>``. The archive is kept; delete ``<cache>/downloads`` to reclaim the space.
+   an interrupted download), checked against its sha256 when the registry has one, unpacked, and
+   the unpacked files are checked against the data set's manifest before the folder appears as
+   ``<cache>/<folder>``. The archive is kept; delete ``<cache>/downloads`` to reclaim the space.
 
-Checksums: the registry below carries ``sha256=None`` for both archives, because they could not be
-downloaded where this module was written; such a download is not verified and says so in a
-warning. Fill in the sha256 (``sha256sum`` of the archive) to have every later download checked.
+Scenes (`neuralsurf.scenes.recipes.data_path`) look in the same two places, so a fetched set needs
+no environment variable. A local copy may hold ``color.jpg`` images instead (neuralsurf.io reads both). From the shell: ``python -m neuralsurf data list`` and
+``python -m neuralsurf data fetch <name> [<name> ...]``.
+
+Checksums. Each data set has a manifest, ``neuralsurf/data_manifests/<name>.sha256`` in
+``sha256sum`` format (``cd <folder> && sha256sum -c <manifest>`` checks a copy by hand): the sha256
+of the files it unpacks to, by path relative to its folder. A missing or different file is a
+DownloadError naming it, and neither the unpacked files nor the archive are kept. The manifests hold
+the files whose bytes are known:
+
+- stanford_bunny: all 17 files.
+- 7scenes_redkitchen: ``camera-intrinsics.txt`` and the 100 ``pose.txt`` (their bytes follow from
+  their values, see above). The colour and depth images are not in it: their bytes in Microsoft's
+  archive are not known to this registry. The unpacker checks that every frame has its three files.
+
+The registry carries ``sha256=None`` for both archives (the archive-level sha256 is unknown), and a
+fetch says so in a warning; the manifest check is what verifies a download. Fill in the sha256
+(``sha256sum`` of the archive) to have every later download checked before it is unpacked.
 """
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import http.client
 import os
 import re
 import shutil
+import sys
 import tarfile
 import urllib.error
 import urllib.request
 import warnings
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from neuralsurf.errors import ConfigError, DownloadError, FileFormatError
+from neuralsurf.errors import ConfigError, DownloadError, FileFormatError, NeuralsurfError
 
-__all__ = ["DATASETS", "Dataset", "cache_dir", "download", "fetch", "locate"]
+__all__ = ["DATASETS", "Dataset", "cache_dir", "check_manifest", "download", "fetch", "locate", "main",
+           "read_manifest"]
 
 _CHUNK = 1 << 20
 """Bytes read from the network per step."""
+
+MANIFESTS = Path(__file__).parent / "data_manifests"
+"""The folder of the registry's manifests (package data): ``<name>.sha256``."""
 
 
 @dataclass(frozen=True)
@@ -56,11 +81,30 @@ class Dataset:
     url: str
     """Where its archive is published."""
     sha256: str | None
-    """Hex sha256 of the archive, or None when not known (the download is then not verified)."""
+    """Hex sha256 of the archive, or None when not known (the archive is then not verified)."""
     prepare: Callable[[Path, Path], None]
     """(archive, empty folder) -> fills the folder with the data set's layout."""
     terms: str
-    """Licence or terms of use, shown in the docs."""
+    """Licence or terms of use, shown by ``data list`` and in the docs."""
+    manifest: Mapping[str, str]
+    """Hex sha256 of unpacked files, by path relative to `folder` (posix): checked after every unpack."""
+    size: str = ""
+    """What a fetch downloads and keeps, in words (``data list``)."""
+
+
+def read_manifest(path: str | Path) -> dict[str, str]:
+    """A ``sha256sum``-format file (``<64 hex>  <relative path>`` per line) as {relative path: hex}.
+
+    Raises FileFormatError naming the file and line when a line is not in that format."""
+    path = Path(path)
+    manifest = {}
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        match = re.fullmatch(r"([0-9a-fA-F]{64}) [ *](\S.*)", line)
+        if match is None:
+            raise FileFormatError(f"{str(path)!r} line {number} is not '<sha256>  <path>' (sha256sum "
+                                  f"format): {line[:80]!r}")
+        manifest[match.group(2)] = match.group(1).lower()
+    return manifest
 
 
 def _unpack_bunny(archive: Path, folder: Path) -> None:
@@ -70,48 +114,104 @@ def _unpack_bunny(archive: Path, folder: Path) -> None:
         for member in tar.getmembers():
             parts = Path(member.name).parts
             if len(parts) > 1 and parts[1] in ("data", "reconstruction") and (member.isfile() or member.isdir()):
+                if ".." in parts or Path(member.name).is_absolute():
+                    raise FileFormatError(f"{str(archive)!r} holds {member.name!r}, outside its folder; it is not "
+                                          f"Stanford's bunny archive")
                 member.name = str(Path(*parts[1:]))
                 members.append(member)
         if not any(m.name.endswith("bun.conf") for m in members):
             raise FileFormatError(f"{str(archive)!r} holds no bunny/data/bun.conf; it is not Stanford's bunny archive")
-        tar.extractall(folder, members=members, filter="data")
+        if hasattr(tarfile, "data_filter"):  # Python >= 3.11.4: also drops special permission bits
+            tar.extractall(folder, members=members, filter="data")
+        else:  # regular files and folders only, inside `folder` (checked above)
+            tar.extractall(folder, members=members)
 
 
-SEVEN_SCENES_K = "585 0 320\n0 585 240\n0 0 1\n"
-"""The intrinsics 7-Scenes publishes for its depth camera (640 x 480)."""
+SEVEN_SCENES_K = ((585.0, 0.0, 320.0), (0.0, 585.0, 240.0), (0.0, 0.0, 1.0))
+"""The intrinsics 7-Scenes publishes for its depth camera (640 x 480), 3 x 3."""
+
+
+def _matrix_text(values: Sequence[float], columns: int) -> str:
+    """`values` (rows * columns floats, row-major) as text: one row per line, ``%.18e``, space-separated."""
+    rows = [values[i : i + columns] for i in range(0, len(values), columns)]
+    return "".join(" ".join(f"{value:.18e}" for value in row) + "\n" for row in rows)
+
+
+def _pose_text(text: str, where: str) -> str:
+    """A 7-Scenes pose file (16 numbers, any spacing) rewritten by `_matrix_text` (4 x 4).
+
+    Raises FileFormatError naming `where` when it does not hold 16 numbers."""
+    try:
+        values = [float(token) for token in text.split()]
+    except ValueError:
+        values = []
+    if len(values) != 16:
+        raise FileFormatError(f"{where} is not a 4x4 matrix of numbers; the archive is not 7-Scenes' "
+                              f"redkitchen.zip")
+    return _matrix_text(values, 4)
+
+
+_FRAME = re.compile(r"frame-(\d{6})\.(color\.png|depth\.png|pose\.txt)$")
+"""A 7-Scenes frame file: index and kind."""
 
 
 def _unpack_redkitchen(archive: Path, folder: Path, sequence: str = "seq-01", step: int = 10, first: int = 1000) -> None:
-    """From redkitchen.zip (one inner zip per sequence), frames 0, step, ... below `first` of `sequence`."""
-    pattern = re.compile(r"frame-(\d{6})\.(color\.png|depth\.png|pose\.txt)$")
+    """From redkitchen.zip (one inner zip per sequence), frames 0, step, ... below `first` of `sequence`:
+    images copied as they are, poses rewritten by `_pose_text`, plus camera-intrinsics.txt.
+
+    Raises FileFormatError when the sequence is missing, a pose is not a matrix or a frame lacks one of
+    its three files."""
     with zipfile.ZipFile(archive) as outer:
         inner_name = next((n for n in outer.namelist() if n.endswith(f"{sequence}.zip")), None)
         if inner_name is None:
             raise FileFormatError(f"{str(archive)!r} holds no {sequence}.zip; it is not 7-Scenes' redkitchen.zip")
         (folder / "frames").mkdir(parents=True)
+        kinds: dict[int, set[str]] = {}
         with outer.open(inner_name) as stream, zipfile.ZipFile(stream) as inner:
             for name in inner.namelist():
-                match = pattern.search(name)
-                if match and int(match.group(1)) % step == 0 and int(match.group(1)) < first:
-                    with inner.open(name) as source, open(folder / "frames" / Path(name).name, "wb") as target:
-                        shutil.copyfileobj(source, target)
-    (folder / "camera-intrinsics.txt").write_text(SEVEN_SCENES_K)
+                match = _FRAME.search(name)
+                if not match or int(match.group(1)) % step or int(match.group(1)) >= first:
+                    continue
+                kinds.setdefault(int(match.group(1)), set()).add(match.group(2))
+                target = folder / "frames" / Path(name).name
+                if match.group(2) == "pose.txt":
+                    text = inner.read(name).decode("ascii", errors="replace")
+                    target.write_text(_pose_text(text, f"{name} in {inner_name}"))
+                else:
+                    with inner.open(name) as source, open(target, "wb") as file:
+                        shutil.copyfileobj(source, file)
+    _check_frames(kinds, f"{inner_name} in {str(archive)!r}")
+    (folder / "camera-intrinsics.txt").write_text(_matrix_text([v for row in SEVEN_SCENES_K for v in row], 3))
+
+
+def _check_frames(kinds: Mapping[int, set[str]], where: str) -> None:
+    """Every frame index in `kinds` has its colour, depth and pose file; raises FileFormatError otherwise."""
+    if not kinds:
+        raise FileFormatError(f"{where} holds no frame-XXXXXX.* files; it is not a 7-Scenes sequence")
+    for index, have in sorted(kinds.items()):
+        lacking = sorted({"color.png", "depth.png", "pose.txt"} - have)
+        if lacking:
+            raise FileFormatError(f"{where} has no frame-{index:06d}.{lacking[0]}; the archive is incomplete")
 
 
 DATASETS: dict[str, Dataset] = {
     "stanford_bunny": Dataset(
         folder="stanford_bunny",
-        url="http://graphics.stanford.edu/pub/3Dscanrep/bunny.tar.gz",
-        sha256=None,  # not computed: no network where this was written (see the module docstring)
+        url="https://graphics.stanford.edu/pub/3Dscanrep/bunny.tar.gz",
+        sha256=None,  # the archive's sha256 is not known; the manifest checks what it unpacks to
         prepare=_unpack_bunny,
         terms="Stanford 3D Scanning Repository: free for research; credit the Stanford Computer Graphics Laboratory",
+        manifest=read_manifest(MANIFESTS / "stanford_bunny.sha256"),
+        size="bunny.tar.gz (a few MB); unpacked about 22 MB",
     ),
     "7scenes_redkitchen": Dataset(
         folder="7scenes_redkitchen_every10",
-        url="http://download.microsoft.com/download/2/8/5/28564B23-0828-408F-8631-23B1EFF1DAC8/redkitchen.zip",
-        sha256=None,  # not computed: no network where this was written (see the module docstring)
+        url="https://download.microsoft.com/download/2/8/5/28564B23-0828-408F-8631-23B1EFF1DAC8/redkitchen.zip",
+        sha256=None,  # the archive's sha256 is not known; the manifest checks what it unpacks to
         prepare=_unpack_redkitchen,
         terms="Microsoft 7-Scenes: non-commercial research use",
+        manifest=read_manifest(MANIFESTS / "7scenes_redkitchen.sha256"),
+        size="redkitchen.zip (several GB: all seven sequences, kept in <cache>/downloads); 100 frames unpacked",
     ),
 }
 """The data sets `fetch` knows, by name."""
@@ -128,23 +228,35 @@ def _dataset(name: str) -> Dataset:
     return DATASETS[name]
 
 
+def _roots() -> list[tuple[str, Path]]:
+    """Where data sets are looked for, in order: [(label, root)]: ("NEURALSURF_DATA", its folder) when
+    set, then ("cache", cache_dir())."""
+    local = os.environ.get("NEURALSURF_DATA")
+    return ([("NEURALSURF_DATA", Path(local).expanduser())] if local else []) + [("cache", cache_dir())]
+
+
+def find_folder(folder: str | Path) -> tuple[str, Path] | None:
+    """(where, path) of the first of $NEURALSURF_DATA/`folder`, <cache>/`folder` that exists, where being
+    "NEURALSURF_DATA" or "cache"; None when neither does. Never downloads."""
+    for where, root in _roots():
+        if (root / folder).exists():
+            return where, root / folder
+    return None
+
+
 def locate(name: str) -> Path | None:
     """The folder of data set `name` if a local copy (NEURALSURF_DATA) or the cache holds it, else None;
-    never downloads."""
-    dataset = _dataset(name)
-    local = os.environ.get("NEURALSURF_DATA")
-    for root in ([Path(local).expanduser()] if local else []) + [cache_dir()]:
-        if (root / dataset.folder).is_dir():
-            return root / dataset.folder
-    return None
+    never downloads. Raises ConfigError for an unknown name."""
+    found = find_folder(_dataset(name).folder)
+    return found[1] if found is not None and found[1].is_dir() else None
 
 
 def fetch(name: str, progress: bool = True) -> Path:
     """The folder of data set `name` (see the module docstring): the local copy under NEURALSURF_DATA,
-    else the cache, else downloaded, checked and unpacked into the cache first.
+    else the cache, else downloaded, unpacked and checked against its manifest into the cache first.
 
-    Raises ConfigError for an unknown name, DownloadError when the download fails or its checksum
-    does not match, FileFormatError when the archive does not hold the expected files.
+    Raises ConfigError for an unknown name, DownloadError when the download fails or a checksum
+    (archive or manifest) does not match, FileFormatError when the archive does not hold the expected files.
     """
     found = locate(name)
     if found is not None:
@@ -153,29 +265,76 @@ def fetch(name: str, progress: bool = True) -> Path:
     if os.environ.get("NEURALSURF_DATA"):
         warnings.warn(
             f"NEURALSURF_DATA={os.environ['NEURALSURF_DATA']!r} has no {dataset.folder}/ folder; downloading "
-            f"{name} into {str(cache_dir())!r} instead",
+            f"{name} into {str(cache_dir())!r} instead (scenes look there too)",
             stacklevel=2,
         )
-    archive = download(dataset.url, cache_dir() / "downloads" / dataset.url.rsplit("/", 1)[-1], dataset.sha256, progress)
+    if dataset.sha256 is None:
+        warnings.warn(
+            f"the archive of {name} ({dataset.url}) has no sha256 in the registry and is not verified; the "
+            f"{len(dataset.manifest)} files of its manifest are checked once it is unpacked",
+            stacklevel=2,
+        )
+    archive = download(dataset.url, cache_dir() / "downloads" / dataset.url.rsplit("/", 1)[-1], dataset.sha256,
+                       progress, warn_unverified=False)
     target = cache_dir() / dataset.folder
     staging = target.with_name(f".{target.name}.unpacking")
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)
     try:
-        dataset.prepare(archive, staging)
-    except (tarfile.TarError, zipfile.BadZipFile, EOFError) as error:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise FileFormatError(
-            f"cannot unpack {str(archive)!r} ({type(error).__name__}: {error}); delete it and run fetch({name!r}) again"
-        ) from error
+        _unpack_checked(name, dataset, archive, staging)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    os.replace(staging, target)  # a folder appears only complete
+    os.replace(staging, target)  # a folder appears only complete and checked
     return target
 
 
+def _unpack_checked(name: str, dataset: Dataset, archive: Path, folder: Path) -> None:
+    """Unpack `archive` into the empty `folder` and check it against the manifest of data set `name`.
+
+    On failure deletes the archive (the next fetch downloads it again) and raises FileFormatError
+    (not unpackable, not the expected layout) or DownloadError (files missing or different)."""
+    rerun = f"run `python -m neuralsurf data fetch {name}` again"
+    try:
+        dataset.prepare(archive, folder)
+    except (tarfile.TarError, zipfile.BadZipFile, EOFError) as error:
+        archive.unlink(missing_ok=True)
+        raise FileFormatError(f"cannot unpack {str(archive)!r} ({type(error).__name__}: {error}); the "
+                              f"archive was deleted: {rerun}") from error
+    except FileFormatError as error:
+        archive.unlink(missing_ok=True)
+        raise FileFormatError(f"{error}; the archive was deleted: {rerun}") from error
+    problems = check_manifest(folder, dataset.manifest)
+    if problems:
+        archive.unlink(missing_ok=True)
+        shown = "; ".join(problems[:5]) + (f"; and {len(problems) - 5} more" if len(problems) > 5 else "")
+        raise DownloadError(
+            f"{name}: {len(problems)} of the {len(dataset.manifest)} files in its manifest do not match what "
+            f"{dataset.url} unpacks to: {shown}. The archive is damaged or changed upstream; the unpacked "
+            f"files and the archive were deleted: {rerun}, and if it fails the same way, the data changed "
+            f"upstream (report it)"
+        )
+    if not dataset.manifest:
+        warnings.warn(f"data set {name} has no manifest: its unpacked files are not verified", stacklevel=3)
+
+
+def check_manifest(folder: str | Path, manifest: Mapping[str, str]) -> list[str]:
+    """What in `folder` differs from `manifest` ({relative path: hex sha256}): one line per file that is
+    missing or has another sha256, naming it; [] when every listed file matches. Files the manifest does
+    not list are not looked at."""
+    folder = Path(folder)
+    problems = []
+    for relative, expected in sorted(manifest.items()):
+        path = folder / relative
+        if not path.is_file():
+            problems.append(f"{relative} is missing")
+        elif (actual := _sha256(path)) != expected.lower():
+            problems.append(f"{relative} has sha256 {actual}, expected {expected.lower()}")
+    return problems
+
+
 def _sha256(path: Path) -> str:
+    """Hex sha256 of the file at `path`."""
     digest = hashlib.sha256()
     with open(path, "rb") as file:
         for block in iter(lambda: file.read(_CHUNK), b""):
@@ -183,14 +342,16 @@ def _sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
-def download(url: str, path, sha256: str | None = None, progress: bool = True, timeout: float = 60.0) -> Path:
+def download(url: str, path, sha256: str | None = None, progress: bool = True, timeout: float = 60.0,
+             warn_unverified: bool = True) -> Path:
     """Download `url` to `path`, resuming an earlier interrupted attempt, and check its sha256.
 
     Bytes arrive in `path` + ".part"; a rerun after an interruption asks the server for the rest
     only (HTTP Range), or starts over when the server does not support ranges. The file gets its
     final name once complete and, when `sha256` is given, matching: on a mismatch nothing is left
     behind and DownloadError says so. With `sha256=None` the file is not verified (a warning says
-    so). An existing `path` is returned as is (after the check, when `sha256` is given).
+    so, unless `warn_unverified` is False: the caller checks it otherwise). An existing `path` is
+    returned as is (after the check, when `sha256` is given).
 
     Returns the Path of the complete file. Raises DownloadError naming the URL and what to do.
     """
@@ -198,7 +359,7 @@ def download(url: str, path, sha256: str | None = None, progress: bool = True, t
 
     path = Path(path)
     if path.is_file():
-        _verify(path, url, sha256)
+        _verify(path, url, sha256, warn_unverified)
         return path
     part = path.with_name(path.name + ".part")
     try:
@@ -253,14 +414,16 @@ def download(url: str, path, sha256: str | None = None, progress: bool = True, t
                     f"downloading {url} was interrupted after {received} of {total} bytes; run again to resume "
                     f"(the {received} bytes are kept in {str(part)!r})"
                 )
-    _verify(part, url, sha256)
+    _verify(part, url, sha256, warn_unverified)
     os.replace(part, path)
     return path
 
 
-def _verify(path: Path, url: str, sha256: str | None) -> None:
+def _verify(path: Path, url: str, sha256: str | None, warn_unverified: bool = True) -> None:
     """Check the sha256 of a downloaded file; on a mismatch delete it and raise DownloadError."""
     if sha256 is None:
+        if not warn_unverified:
+            return
         warnings.warn(
             f"the checksum of {url} is not verified: the registry has no sha256 for it; check "
             f"{str(path)!r} by hand or add its sha256 to neuralsurf.data.DATASETS",
@@ -274,3 +437,63 @@ def _verify(path: Path, url: str, sha256: str | None) -> None:
             f"the file downloaded from {url} has sha256 {actual}, expected {sha256.lower()}: it is corrupt or "
             f"changed upstream, and was deleted; run again, or check the URL and the checksum"
         )
+
+
+def _folder_size(folder: Path) -> int:
+    """Bytes of the files under `folder`."""
+    return sum(path.stat().st_size for path in folder.rglob("*") if path.is_file())
+
+
+def _describe(name: str) -> str:
+    """Lines of ``data list`` for data set `name`: name, folder, where it is found, size and terms."""
+    dataset = DATASETS[name]
+    found = find_folder(dataset.folder)
+    if found is not None and found[1].is_dir():
+        where = f"found in {found[0]}: {found[1]} ({_folder_size(found[1]) / 1e6:.1f} MB)"
+    else:
+        where = f"not present; get it with: python -m neuralsurf data fetch {name}"
+    return (f"{name}\n  folder:   {dataset.folder}/\n  where:    {where}\n  download: {dataset.size}\n"
+            f"  terms:    {dataset.terms}")
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The argument parser of ``python -m neuralsurf data``."""
+    roots = ("$NEURALSURF_DATA/<folder> (a local copy), else the cache ($NEURALSURF_CACHE or "
+             "~/.cache/neuralsurf)")
+    parser = argparse.ArgumentParser(
+        prog="python -m neuralsurf data",
+        description=f"Real data sets: list them, or fetch them into the cache. A data set is looked for in "
+                    f"{roots}; scenes (stanford_scans, redkitchen) find it there without any setting.",
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="{list,fetch}")
+    commands.add_parser("list", help="each data set: its folder, where it is found now, download size, terms",
+                        description="Each data set: its folder, where it is found now (NEURALSURF_DATA, "
+                                    "cache, or not present), what a fetch downloads, and its terms of use.")
+    fetch_parser = commands.add_parser(
+        "fetch", help="download, unpack and check data sets into the cache (nothing when already present)",
+        description=f"Find each data set in {roots}; when absent, download it, unpack it into the cache and "
+                    "check it against its sha256 manifest. Prints each data set's folder, one per line.")
+    fetch_parser.add_argument("names", nargs="+", metavar="name", help=f"one of: {', '.join(DATASETS)}")
+    fetch_parser.add_argument("--no-progress", action="store_true", help="no download progress bar")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m neuralsurf data {list,fetch}``: returns the exit status (0 on success, 1 when a data set
+    is unknown or cannot be fetched: the message goes to stderr, without a traceback)."""
+    args = _parser().parse_args(argv)
+    try:
+        if args.command == "list":
+            print(f"cache: {cache_dir()}")
+            print(f"NEURALSURF_DATA: {os.environ.get('NEURALSURF_DATA') or '(not set)'}")
+            for name in DATASETS:
+                print(_describe(name))
+            return 0
+        for name in args.names:
+            _dataset(name)  # every name checked before anything is downloaded
+        for name in args.names:
+            print(fetch(name, progress=not args.no_progress), flush=True)
+        return 0
+    except NeuralsurfError as error:
+        print(f"neuralsurf data {args.command}: {error}", file=sys.stderr)
+        return 1

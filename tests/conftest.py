@@ -5,7 +5,8 @@ import pytest
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = Path(os.environ.get("NEURALSURF_DATA", REPO.parent / "shared" / "data"))
+SHARED_DATA = Path(os.environ["NEURALSURF_DATA"]).expanduser() if os.environ.get("NEURALSURF_DATA") else None
+"""The folder of real captures, from NEURALSURF_DATA only; None when it is not set."""
 os.environ.setdefault("NEURALSURF_PROGRESS", "0")  # no progress bars in test output (neuralsurf.progress)
 
 
@@ -16,7 +17,9 @@ def _few_threads():
 
 @pytest.fixture
 def shared_data() -> Path:
-    """The folder of real captures (NEURALSURF_DATA or ../shared/data); skips when absent."""
+    """The folder of real captures ($NEURALSURF_DATA); skips when it is not set or not a folder."""
+    if SHARED_DATA is None:
+        pytest.skip("NEURALSURF_DATA is not set; point it at the folder of real captures to run this test")
     if not SHARED_DATA.is_dir():
-        pytest.skip(f"real captures not found at {SHARED_DATA}; set NEURALSURF_DATA to run this test")
+        pytest.skip(f"NEURALSURF_DATA={str(SHARED_DATA)!r} is not a folder; point it at the real captures")
     return SHARED_DATA

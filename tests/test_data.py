@@ -1,26 +1,35 @@
 """neuralsurf.data: local copies first, then downloads from a local HTTP server (never the network):
-checksums, resuming with an HTTP Range request, unpacking into the layout the tests use."""
+checksums of the archive and of the unpacked files (the manifest), resuming with an HTTP Range request,
+unpacking into the layout the tests use, `python -m neuralsurf data`, and scenes that find fetched data."""
 
 import hashlib
 import http.server
 import io
+import os
+import subprocess
+import sys
 import tarfile
 import threading
 import zipfile
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from neuralsurf import data
-from neuralsurf.errors import ConfigError, DownloadError
+from neuralsurf.errors import ConfigError, DownloadError, FileFormatError
+from neuralsurf.scenes import recipes
 
+REPO = Path(__file__).resolve().parents[1]
 PAYLOAD = bytes(range(256)) * 4096  # 1 MiB
 SHA = hashlib.sha256(PAYLOAD).hexdigest()
 
 
 class Server:
-    """A file server on 127.0.0.1 that honours Range requests and can drop the connection after `cut` bytes."""
+    """A file server on 127.0.0.1 that honours Range requests and can drop the connection after `cut`
+    bytes; it shuts itself down after `lifetime_s` seconds if `close` is never called."""
 
-    def __init__(self, files: dict[str, bytes]):
+    def __init__(self, files: dict[str, bytes], lifetime_s: float = 120.0):
         self.files, self.cut, self.ranges = files, None, []
         server = self
 
@@ -51,10 +60,15 @@ class Server:
                 pass
 
         self.httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.httpd.timeout = 10
         self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}"
         threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
+        self.deadline = threading.Timer(lifetime_s, self.httpd.shutdown)
+        self.deadline.daemon = True
+        self.deadline.start()
 
     def close(self):
+        self.deadline.cancel()
         self.httpd.shutdown()
         self.httpd.server_close()
 
@@ -99,24 +113,72 @@ def test_unreachable_server_and_missing_file_are_download_errors(tmp_path, serve
         data.download("http://127.0.0.1:9/nothing", tmp_path / "nothing", progress=False, timeout=5)
 
 
-def _bunny_tarball() -> bytes:
+# ----------------------------------------------------------------------------------------------
+# archives in the upstream layouts, built here from small fixture files
+
+
+def _sha(content: bytes) -> str:
+    return hashlib.sha256(content).hexdigest()
+
+
+def _bunny_files() -> dict[str, bytes]:
+    """What Stanford's archive unpacks to (a small stand-in), by path under stanford_bunny/."""
+    ply = b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\n" \
+          b"end_header\n0 0 0\n"
+    return {"data/bun.conf": b"camera 0 0 0 0 0 0 1\nbmesh bun000.ply 0 0 0 0 0 0 1\n", "data/bun000.ply": ply,
+            "data/README": b"Range Data\n", "reconstruction/bun_zipper.ply": ply,
+            "reconstruction/README": b"Surface Reconstructions\n"}  # fmt: skip
+
+
+def _bunny_tarball(files: dict[str, bytes]) -> bytes:
+    """bunny.tar.gz: `files` under bunny/, plus a file outside data/ and reconstruction/ (not unpacked)."""
     buffer = io.BytesIO()
     with tarfile.open(fileobj=buffer, mode="w:gz") as tar:
-        for name, text in [("bunny/data/bun.conf", b"bmesh bun000.ply 0 0 0 0 0 0 1\n"),
-                           ("bunny/data/bun000.ply", b"ply\n"), ("bunny/reconstruction/bun_zipper.ply", b"ply\n"),
-                           ("bunny/README", b"elsewhere")]:  # fmt: skip
+        for name, content in {**{f"bunny/{k}": v for k, v in files.items()}, "bunny/README": b"elsewhere"}.items():
             info = tarfile.TarInfo(name)
-            info.size = len(text)
-            tar.addfile(info, io.BytesIO(text))
+            info.size = len(content)
+            tar.addfile(info, io.BytesIO(content))
     return buffer.getvalue()
 
 
-def _redkitchen_zip() -> bytes:
+def _pose(i: int) -> np.ndarray:
+    """A camera-to-world matrix of frame `i`, 4 x 4 float64 with values of 8 significant digits."""
+    pose = np.eye(4)
+    pose[:3, 3] = [0.1234567 * i, -0.3404563, 2.9656917e-3 * i]
+    pose[0, 1], pose[1, 0] = 0.27262229, -0.27248618
+    return pose
+
+
+def _upstream_pose_text(pose: np.ndarray) -> str:
+    """A pose as 7-Scenes writes it: %.7e with three-digit exponents, tab-separated, a tab before each newline."""
+    def number(value):
+        mantissa, exponent = f"{value:.7e}".split("e")
+        return f"{mantissa}e{exponent[0]}{int(exponent[1:]):03d}"
+    return "".join("\t".join(number(v) for v in row) + "\t\n" for row in pose)
+
+
+def _savetxt(matrix: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.savetxt(buffer, matrix)
+    return buffer.getvalue()
+
+
+def _redkitchen_files(n: int = 25) -> dict[str, bytes]:
+    """seq-01.zip's frames 0 .. n-1 in the upstream layout, by name in that zip."""
+    files = {}
+    for i in range(n):
+        files[f"seq-01/frame-{i:06d}.color.png"] = b"\x89PNG colour %d" % i
+        files[f"seq-01/frame-{i:06d}.depth.png"] = b"\x89PNG depth %d" % i
+        files[f"seq-01/frame-{i:06d}.pose.txt"] = _upstream_pose_text(_pose(i)).encode()
+    return files
+
+
+def _redkitchen_zip(files: dict[str, bytes]) -> bytes:
+    """redkitchen.zip: one inner zip per sequence, seq-01.zip holding `files`."""
     inner = io.BytesIO()
     with zipfile.ZipFile(inner, "w") as seq:
-        for i in range(25):
-            for suffix in ("color.png", "depth.png", "pose.txt"):
-                seq.writestr(f"seq-01/frame-{i:06d}.{suffix}", f"{i} {suffix}")
+        for name, content in files.items():
+            seq.writestr(name, content)
     outer = io.BytesIO()
     with zipfile.ZipFile(outer, "w") as kitchen:
         kitchen.writestr("redkitchen/seq-01.zip", inner.getvalue())
@@ -124,32 +186,128 @@ def _redkitchen_zip() -> bytes:
     return outer.getvalue()
 
 
-@pytest.mark.parametrize("name", ["stanford_bunny", "7scenes_redkitchen"])
-def test_fetch_downloads_unpacks_into_the_cache_and_then_reuses_it(tmp_path, monkeypatch, name):
-    archive = _bunny_tarball() if name == "stanford_bunny" else _redkitchen_zip()
-    server = Server({"/archive": archive})
-    try:
-        dataset = data.DATASETS[name]
+K_TEXT = (b"5.850000000000000000e+02 0.000000000000000000e+00 3.200000000000000000e+02\n"
+          b"0.000000000000000000e+00 5.850000000000000000e+02 2.400000000000000000e+02\n"
+          b"0.000000000000000000e+00 0.000000000000000000e+00 1.000000000000000000e+00\n")  # fmt: skip
+"""camera-intrinsics.txt as the unpacker writes it (numpy.savetxt of the 3 x 3 K)."""
+
+
+def _redkitchen_manifest(n: int = 25) -> dict[str, str]:
+    """The manifest of `_redkitchen_files(n)` unpacked: the intrinsics and every 10th pose, as numpy.savetxt
+    writes them."""
+    manifest = {"camera-intrinsics.txt": _sha(K_TEXT)}
+    for i in range(0, n, 10):
+        manifest[f"frames/frame-{i:06d}.pose.txt"] = _sha(_savetxt(_pose(i)))
+    return manifest
+
+
+def _archive_and_manifest(name: str) -> tuple[bytes, dict[str, str]]:
+    """A good archive of data set `name` in its upstream layout, and the manifest of what it unpacks to."""
+    if name == "stanford_bunny":
+        return _bunny_tarball(_bunny_files()), {k: _sha(v) for k, v in _bunny_files().items()}
+    return _redkitchen_zip(_redkitchen_files()), _redkitchen_manifest()
+
+
+@pytest.fixture
+def registry(tmp_path, monkeypatch):
+    """serve(name, archive, manifest): data set `name` of the registry published by a local server (its
+    archive-level sha256 None, as in the real registry), with an empty cache in tmp_path/cache and
+    NEURALSURF_DATA unset. Returns the Server."""
+    monkeypatch.setenv("NEURALSURF_CACHE", str(tmp_path / "cache"))
+    monkeypatch.delenv("NEURALSURF_DATA", raising=False)
+    servers = []
+
+    def serve(name, archive, manifest, sha256=None):
+        server = Server({"/archive.bin": archive})
+        servers.append(server)
+        real = data.DATASETS[name]
         monkeypatch.setitem(data.DATASETS, name, data.Dataset(
-            dataset.folder, f"{server.url}/archive", hashlib.sha256(archive).hexdigest(), dataset.prepare, dataset.terms
-        ))  # fmt: skip
-        monkeypatch.setenv("NEURALSURF_CACHE", str(tmp_path / "cache"))
-        monkeypatch.delenv("NEURALSURF_DATA", raising=False)
-        assert data.locate(name) is None
-        folder = data.fetch(name, progress=False)
-        assert folder == tmp_path / "cache" / dataset.folder
-        if name == "stanford_bunny":
-            assert sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*.*")) == [
-                "data/bun.conf", "data/bun000.ply", "reconstruction/bun_zipper.ply"]  # fmt: skip
-        else:
-            frames = sorted(p.name for p in (folder / "frames").iterdir())
-            assert frames[:3] == ["frame-000000.color.png", "frame-000000.depth.png", "frame-000000.pose.txt"]
-            assert len(frames) == 9 and frames[-1] == "frame-000020.pose.txt"  # frames 0, 10, 20
-            assert (folder / "camera-intrinsics.txt").read_text().split()[0] == "585"
-        server.files.clear()  # a second fetch must not need the server
-        assert data.fetch(name, progress=False) == folder
-    finally:
+            real.folder, f"{server.url}/archive.bin", sha256, real.prepare, real.terms, manifest, real.size))  # fmt: skip
+        return server
+
+    yield serve
+    for server in servers:
         server.close()
+
+
+def _left_in(cache: Path) -> list[str]:
+    return sorted(p.relative_to(cache).as_posix() for p in cache.rglob("*")) if cache.exists() else []
+
+
+@pytest.mark.parametrize("name", ["stanford_bunny", "7scenes_redkitchen"])
+def test_fetch_downloads_unpacks_checks_the_manifest_and_then_reuses_it(tmp_path, registry, name):
+    archive, manifest = _archive_and_manifest(name)
+    server = registry(name, archive, manifest)
+    assert data.locate(name) is None
+    with pytest.warns(UserWarning, match=f"archive of {name} .* has no sha256 .* {len(manifest)} files of its manifest"):
+        folder = data.fetch(name, progress=False)
+    assert folder == tmp_path / "cache" / data.DATASETS[name].folder
+    assert data.check_manifest(folder, manifest) == []
+    if name == "stanford_bunny":
+        assert sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file()) == sorted(manifest)
+    else:
+        frames = sorted(p.name for p in (folder / "frames").iterdir())
+        assert frames[:3] == ["frame-000000.color.png", "frame-000000.depth.png", "frame-000000.pose.txt"]
+        assert len(frames) == 9 and frames[-1] == "frame-000020.pose.txt"  # frames 0, 10, 20
+        assert (folder / "frames" / "frame-000010.depth.png").read_bytes() == b"\x89PNG depth 10"  # as it is
+        assert np.allclose(np.loadtxt(folder / "frames" / "frame-000010.pose.txt"), _pose(10), rtol=0, atol=1e-15)
+    server.files.clear()  # a second fetch must not need the server
+    assert data.fetch(name, progress=False) == folder
+
+
+@pytest.mark.parametrize("name", ["stanford_bunny", "7scenes_redkitchen"])
+def test_a_tampered_file_is_an_error_naming_it_and_nothing_is_left_behind(tmp_path, registry, name):
+    good, manifest = _archive_and_manifest(name)
+    if name == "stanford_bunny":
+        tampered, culprit = _bunny_tarball({**_bunny_files(), "data/bun000.ply": b"ply\nchanged\n"}), "data/bun000.ply"
+    else:
+        files = _redkitchen_files()
+        files["seq-01/frame-000010.pose.txt"] = _upstream_pose_text(_pose(10) * 1.001).encode()
+        tampered, culprit = _redkitchen_zip(files), "frames/frame-000010.pose.txt"
+    server = registry(name, tampered, manifest)
+    with pytest.warns(UserWarning), pytest.raises(DownloadError, match=(
+            f"{name}: 1 of the {len(manifest)} files in its manifest do not match .*{culprit} has sha256 "
+            f"[0-9a-f]{{64}}, expected {manifest[culprit]}.*archive were deleted.*data fetch {name}` again")):  # fmt: skip
+        data.fetch(name, progress=False)
+    assert _left_in(tmp_path / "cache") == ["downloads"]  # no folder, no staging folder, no archive
+    server.files["/archive.bin"] = good  # the next fetch downloads again
+    with pytest.warns(UserWarning):
+        assert data.check_manifest(data.fetch(name, progress=False), manifest) == []
+
+
+def test_a_file_missing_from_the_archive_is_named(tmp_path, registry):
+    files = _bunny_files()
+    del files["reconstruction/bun_zipper.ply"]
+    registry("stanford_bunny", _bunny_tarball(files), {k: _sha(v) for k, v in _bunny_files().items()})
+    with pytest.warns(UserWarning), pytest.raises(DownloadError, match="reconstruction/bun_zipper.ply is missing"):
+        data.fetch("stanford_bunny", progress=False)
+    assert _left_in(tmp_path / "cache") == ["downloads"]
+
+
+def test_a_frame_without_its_depth_image_or_with_a_broken_pose_is_a_file_format_error(tmp_path, registry):
+    files = _redkitchen_files()
+    del files["seq-01/frame-000020.depth.png"]
+    server = registry("7scenes_redkitchen", _redkitchen_zip(files), _redkitchen_manifest())
+    with pytest.warns(UserWarning), pytest.raises(FileFormatError, match="no frame-000020.depth.png.*data fetch"):
+        data.fetch("7scenes_redkitchen", progress=False)
+    assert _left_in(tmp_path / "cache") == ["downloads"]
+    files = _redkitchen_files()
+    files["seq-01/frame-000010.pose.txt"] = b"<html>not a pose</html>"
+    server.files["/archive.bin"] = _redkitchen_zip(files)
+    with pytest.warns(UserWarning), pytest.raises(FileFormatError, match="frame-000010.pose.txt .* not a 4x4 matrix"):
+        data.fetch("7scenes_redkitchen", progress=False)
+    assert _left_in(tmp_path / "cache") == ["downloads"]
+
+
+def test_an_interrupted_fetch_resumes_and_a_known_archive_sha256_is_checked(tmp_path, registry):
+    archive, manifest = _archive_and_manifest("stanford_bunny")
+    server = registry("stanford_bunny", archive, manifest, sha256=_sha(archive))
+    server.cut = 100
+    with pytest.raises(DownloadError, match="interrupted after 100 .*run again to resume"):
+        data.fetch("stanford_bunny", progress=False)
+    assert _left_in(tmp_path / "cache") == ["downloads", "downloads/archive.bin.part"]
+    folder = data.fetch("stanford_bunny", progress=False)  # no warning: the archive's sha256 is known
+    assert server.ranges == ["bytes=100-"] and data.check_manifest(folder, manifest) == []
 
 
 def test_a_local_copy_under_neuralsurf_data_comes_first(tmp_path, monkeypatch):
@@ -157,14 +315,131 @@ def test_a_local_copy_under_neuralsurf_data_comes_first(tmp_path, monkeypatch):
     monkeypatch.setenv("NEURALSURF_DATA", str(tmp_path / "mine"))
     monkeypatch.setenv("NEURALSURF_CACHE", str(tmp_path / "cache"))
     monkeypatch.setitem(data.DATASETS, "stanford_bunny", data.Dataset(
-        "stanford_bunny", "http://127.0.0.1:9/never", None, lambda a, f: None, ""))  # fmt: skip
+        "stanford_bunny", "http://127.0.0.1:9/never", None, lambda a, f: None, "", {}))  # fmt: skip
     assert data.fetch("stanford_bunny") == tmp_path / "mine" / "stanford_bunny"
     with pytest.raises(ConfigError, match="unknown data set 'bunny'; choose one of stanford_bunny, 7scenes_redkitchen"):
         data.fetch("bunny")
 
 
-def test_the_real_registry_names_its_urls_and_the_shared_layout():
-    assert data.DATASETS["stanford_bunny"].url == "http://graphics.stanford.edu/pub/3Dscanrep/bunny.tar.gz"
+def test_a_manifest_line_not_in_sha256sum_format_is_named(tmp_path):
+    (tmp_path / "m.sha256").write_text(f"{'a' * 64}  data/bun.conf\n{'b' * 63}  data/README\n")
+    with pytest.raises(FileFormatError, match="m.sha256' line 2 is not '<sha256>  <path>'"):
+        data.read_manifest(tmp_path / "m.sha256")
+
+
+# ----------------------------------------------------------------------------------------------
+# python -m neuralsurf data
+
+
+def test_data_main_fetches_from_the_server_and_prints_the_folder(tmp_path, registry, capsys):
+    archive, manifest = _archive_and_manifest("7scenes_redkitchen")
+    registry("7scenes_redkitchen", archive, manifest)
+    with pytest.warns(UserWarning):
+        assert data.main(["fetch", "--no-progress", "7scenes_redkitchen"]) == 0
+    folder = tmp_path / "cache" / "7scenes_redkitchen_every10"
+    assert capsys.readouterr().out == f"{folder}\n" and data.check_manifest(folder, manifest) == []
+    assert data.main(["list"]) == 0
+    out = capsys.readouterr().out
+    assert f"where:    found in cache: {folder}" in out
+    assert "where:    not present; get it with: python -m neuralsurf data fetch stanford_bunny" in out
+
+
+def _neuralsurf(*args: str, env: dict[str, str]) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "neuralsurf", *args], capture_output=True, text=True, cwd=REPO,
+                          env=env, timeout=120, check=False)
+
+
+def test_python_dash_m_neuralsurf_data_list_and_fetch(tmp_path):
+    (tmp_path / "mine" / "stanford_bunny").mkdir(parents=True)
+    (tmp_path / "cache" / "7scenes_redkitchen_every10").mkdir(parents=True)
+    env = {**os.environ, "NEURALSURF_DATA": str(tmp_path / "mine"), "NEURALSURF_CACHE": str(tmp_path / "cache")}
+    listed = _neuralsurf("data", "list", env=env)
+    assert listed.returncode == 0, listed.stderr[-2000:]
+    assert f"found in NEURALSURF_DATA: {tmp_path / 'mine' / 'stanford_bunny'}" in listed.stdout
+    assert f"found in cache: {tmp_path / 'cache' / '7scenes_redkitchen_every10'}" in listed.stdout
+    assert "non-commercial research use" in listed.stdout  # the terms
+    fetched = _neuralsurf("data", "fetch", "stanford_bunny", "7scenes_redkitchen", env=env)
+    assert fetched.returncode == 0, fetched.stderr[-2000:]
+    assert fetched.stdout.splitlines() == [str(tmp_path / "mine" / "stanford_bunny"),
+                                           str(tmp_path / "cache" / "7scenes_redkitchen_every10")]  # fmt: skip
+    unknown = _neuralsurf("data", "fetch", "stanford_bunny", "bunny", env=env)
+    assert unknown.returncode == 1 and unknown.stdout == ""  # nothing fetched before every name is checked
+    assert "unknown data set 'bunny'; choose one of stanford_bunny" in unknown.stderr
+    assert "Traceback" not in unknown.stderr
+
+
+def test_data_help_names_both_commands(capsys):
+    with pytest.raises(SystemExit) as done:
+        data.main(["--help"])
+    assert done.value.code == 0 and "{list,fetch}" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as done:
+        data.main(["fetch", "--help"])
+    assert done.value.code == 0 and "sha256 manifest" in capsys.readouterr().out
+
+
+# ----------------------------------------------------------------------------------------------
+# scenes find fetched data without NEURALSURF_DATA
+
+
+def test_data_root_is_the_fetch_cache_when_neuralsurf_data_is_unset(tmp_path, monkeypatch):
+    monkeypatch.delenv("NEURALSURF_DATA", raising=False)
+    monkeypatch.setenv("NEURALSURF_CACHE", str(tmp_path / "cache"))
+    assert recipes.data_root() == tmp_path / "cache" == data.cache_dir()
+    assert recipes.data_root(tmp_path / "given") == tmp_path / "given"
+    with pytest.raises(recipes.SceneUnavailable, match=(
+            "stanford_bunny/data/bun.conf not found: run `python -m neuralsurf data fetch stanford_bunny`, pass "
+            "data_root=<folder holding stanford_bunny/> or set NEURALSURF_DATA")):  # fmt: skip
+        recipes.stanford_scans.__wrapped__()  # not the per-process cache of built scenes
+    with pytest.raises(recipes.SceneUnavailable, match="data fetch 7scenes_redkitchen`"):
+        recipes.redkitchen()
+    (tmp_path / "cache" / "stanford_bunny").mkdir(parents=True)
+    monkeypatch.setenv("NEURALSURF_DATA", str(tmp_path / "elsewhere"))  # without the set: the cache still has it
+    assert recipes.data_path(None, "stanford_bunny") == tmp_path / "cache" / "stanford_bunny"
+
+
+def test_scenes_read_real_data_from_the_cache(tmp_path, monkeypatch, shared_data):
+    folder = shared_data / "7scenes_redkitchen_every10"
+    if not folder.is_dir():
+        pytest.skip(f"{folder} not present")
+    (tmp_path / "cache").mkdir()
+    (tmp_path / "cache" / folder.name).symlink_to(folder)
+    monkeypatch.delenv("NEURALSURF_DATA", raising=False)
+    monkeypatch.setenv("NEURALSURF_CACHE", str(tmp_path / "cache"))
+    scene = recipes.redkitchen(max_frames=2, hold_out_every=0)
+    assert len(scene.frames.depth) == 2 and len(scene.cloud) > 1000
+
+
+# ----------------------------------------------------------------------------------------------
+# the real registry
+
+
+def test_the_real_registry_has_https_urls_and_a_manifest_per_data_set():
+    assert data.DATASETS["stanford_bunny"].url == "https://graphics.stanford.edu/pub/3Dscanrep/bunny.tar.gz"
+    assert data.DATASETS["7scenes_redkitchen"].url.startswith("https://download.microsoft.com/")
     assert data.DATASETS["7scenes_redkitchen"].folder == "7scenes_redkitchen_every10"
-    for dataset in data.DATASETS.values():  # None until computed from the real archive (module docstring)
+    bunny, kitchen = data.DATASETS["stanford_bunny"].manifest, data.DATASETS["7scenes_redkitchen"].manifest
+    assert len(bunny) == 17 and "data/bun.conf" in bunny and "reconstruction/bun_zipper.ply" in bunny
+    assert len(kitchen) == 101 and sum(k.endswith(".pose.txt") for k in kitchen) == 100
+    assert not any(k.endswith((".png", ".jpg")) for k in kitchen)  # image bytes are not known
+    assert kitchen["camera-intrinsics.txt"] == _sha(K_TEXT)  # what the unpacker writes
+    for dataset in data.DATASETS.values():
         assert dataset.sha256 is None or len(dataset.sha256) == 64
+
+
+@pytest.mark.parametrize("name", ["stanford_bunny", "7scenes_redkitchen"])
+def test_the_real_manifests_match_the_copies_under_neuralsurf_data(shared_data, name):
+    folder = shared_data / data.DATASETS[name].folder
+    if not folder.is_dir():
+        pytest.skip(f"{folder} not present")
+    assert data.check_manifest(folder, data.DATASETS[name].manifest) == []
+
+
+def test_the_redkitchen_poses_unpack_to_the_bytes_of_the_manifest(shared_data):
+    """Each pose of the copy, written the way 7-Scenes writes it, unpacks to the bytes its manifest names."""
+    folder = shared_data / "7scenes_redkitchen_every10" / "frames"
+    if not folder.is_dir():
+        pytest.skip(f"{folder} not present")
+    manifest = data.DATASETS["7scenes_redkitchen"].manifest
+    for path in sorted(folder.glob("*.pose.txt")):
+        upstream = _upstream_pose_text(np.loadtxt(path))
+        assert _sha(data._pose_text(upstream, path.name).encode()) == manifest[f"frames/{path.name}"], path.name

@@ -58,8 +58,31 @@ class Scene:
 
 
 def data_root(root: str | Path | None = None) -> Path:
-    """The folder of real captures: `root` if given, else $NEURALSURF_DATA, else ../shared/data."""
-    return Path(root or os.environ.get("NEURALSURF_DATA") or "../shared/data")
+    """The folder of real captures: `root` if given, else $NEURALSURF_DATA, else the cache that
+    `python -m neuralsurf data fetch` fills (neuralsurf.data.cache_dir())."""
+    from neuralsurf.data import cache_dir
+
+    return Path(root or os.environ.get("NEURALSURF_DATA") or cache_dir()).expanduser()
+
+
+def data_path(root: str | Path | None, relative: str | Path) -> Path:
+    """Where `relative` (a path under a data root, e.g. "stanford_bunny/data/bun.conf") is read from:
+    under `root` if given; else the first of $NEURALSURF_DATA, the fetch cache that holds it (where
+    neuralsurf.data.fetch looks too); else under `data_root()`, for the message that it is missing."""
+    from neuralsurf.data import find_folder
+
+    found = None if root else find_folder(relative)
+    return found[1] if found is not None else data_root(root) / relative
+
+
+def _unavailable(path: Path, holder: str) -> SceneUnavailable:
+    """The error of a scene whose data `path` is missing: the command that fetches the data set of folder
+    `holder` (when neuralsurf.data has one), or point data_root at the folder holding `holder`/."""
+    from neuralsurf.data import DATASETS
+
+    name = next((name for name, dataset in DATASETS.items() if dataset.folder == holder), None)
+    get = f"run `python -m neuralsurf data fetch {name}`, " if name else ""
+    return SceneUnavailable(f"{path} not found: {get}pass data_root=<folder holding {holder}/> or set NEURALSURF_DATA")
 
 
 def _bunny_mesh() -> Mesh:
@@ -150,11 +173,11 @@ def rgbd_scene(path: str, name: str | None = None, stride: int = 1, max_frames: 
 
 def redkitchen(name: str = "redkitchen", root: str | None = None, folder: str = "7scenes_redkitchen_every10",
                stride: int = 1, max_frames: int | None = None, hold_out_every: int = 10, cloud_stride: int = 4) -> Scene:
-    """The real 7-Scenes redkitchen frames under the data root (`data_root(root)`)."""
-    path = data_root(root) / folder
+    """The real 7-Scenes redkitchen frames: `folder` under `root`, $NEURALSURF_DATA or the fetch cache
+    (`data_path`)."""
+    path = data_path(root, folder)
     if not path.is_dir():
-        raise SceneUnavailable(f"{path} not found: pass data_root=<folder holding {folder}/> or set NEURALSURF_DATA "
-                               f"(the 7-Scenes redkitchen frames, see the README's data section)")
+        raise _unavailable(path, folder)
     return rgbd_scene(str(path), name, stride, max_frames, hold_out_every, cloud_stride)
 
 
@@ -166,11 +189,12 @@ def stanford_scans(name: str = "stanford_scans", root: str | None = None, conf: 
     TSDF fusion; ground truth: Stanford's zippered reconstruction."""
     from neuralsurf.io import read_mesh, read_range_scan_frames, read_range_scans
 
-    conf_path, gt_path = data_root(root) / conf, data_root(root) / ground_truth
+    holder = Path(conf).parts[0]
+    base = data_path(root, holder).parent  # both files from the same copy
+    conf_path, gt_path = base / conf, base / ground_truth
     for path in (conf_path, gt_path):
         if not path.is_file():
-            raise SceneUnavailable(f"{path} not found; pass data_root=<folder holding stanford_bunny/> or set "
-                                   f"NEURALSURF_DATA")
+            raise _unavailable(path, holder)
     clouds = read_range_scans(conf_path)
     points = torch.cat([c.points.double() for c in clouds])
     normals = torch.cat([c.normals.double() for c in clouds]) if all(c.has_normals for c in clouds) else None
@@ -239,9 +263,9 @@ def bunny_specular_ps(name: str = "bunny_specular_ps", root: str | None = None,
     from neuralsurf.io import read_photometric
     from neuralsurf.photometric import integrate_least_squares
 
-    path = data_root(root) / folder
+    path = data_path(root, folder)
     if not path.is_dir():
-        raise SceneUnavailable(f"{path} not found: pass data_root=<folder holding {folder}/> or set NEURALSURF_DATA")
+        raise _unavailable(path, folder)
     capture = read_photometric(path)
     if capture.normals is None:
         raise SceneUnavailable(f"{path} has no ground-truth normals (Normal_gt.png / .mat) to score against")
