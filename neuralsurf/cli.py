@@ -149,40 +149,42 @@ def train(cfg: DictConfig) -> dict[str, float]:
     """Fit the configured model to the configured scene, extract, measure and write the outputs:
     <run dir>/mesh.ply, metrics.json, checkpoints/last.pt and TensorBoard events."""
     from neuralsurf.devices import resolve_device
-    from neuralsurf.distributed import init_from_environment
+    from neuralsurf.distributed import init_from_environment, is_main_process
     from neuralsurf.evaluation.methods import extract_scene_mesh
     from neuralsurf.io import write_mesh
     from neuralsurf.metrics import depth_metrics, evaluate_mesh
     from neuralsurf.priors import ShapeCollection
+    from neuralsurf.runlock import run_lock
 
     device = resolve_device(init_from_environment(cfg.device))  # torchrun: the process group, a GPU per rank
     run_dir = shared_run_directory(cfg)
-    config = OmegaConf.to_container(cfg, resolve=True)
-    check_resume(run_dir, config)
-    seed_everything(cfg.seed)
-    scene = instantiate(cfg.data)
-    log.info("scene %s: %s", scene.name, scene.description)
-    if isinstance(scene, ShapeCollection):
-        return train_prior(cfg, scene, run_dir, config, device)
-    model = instantiate(cfg.model, _convert_="all")
-    result = fit(model, build_observations(cfg, scene), optimizer=instantiate(cfg.optimizer), device=device,
-                 seed=cfg.seed, run_dir=run_dir, config=config, **config["trainer"])
+    with run_lock(run_dir, hold=is_main_process()):  # one run per run directory
+        config = OmegaConf.to_container(cfg, resolve=True)
+        check_resume(run_dir, config)
+        seed_everything(cfg.seed)
+        scene = instantiate(cfg.data)
+        log.info("scene %s: %s", scene.name, scene.description)
+        if isinstance(scene, ShapeCollection):
+            return train_prior(cfg, scene, run_dir, config, device)
+        model = instantiate(cfg.model, _convert_="all")
+        result = fit(model, build_observations(cfg, scene), optimizer=instantiate(cfg.optimizer), device=device,
+                     seed=cfg.seed, run_dir=run_dir, config=config, **config["trainer"])
 
-    started = time.perf_counter()
-    mesh = extract_scene_mesh(result.field, scene, config["extract"])
-    extract_seconds = time.perf_counter() - started
-    mesh_path = run_dir / "mesh.ply"
-    write_mesh(mesh_path, mesh)
+        started = time.perf_counter()
+        mesh = extract_scene_mesh(result.field, scene, config["extract"])
+        extract_seconds = time.perf_counter() - started
+        mesh_path = run_dir / "mesh.ply"
+        write_mesh(mesh_path, mesh)
 
-    metrics = evaluate_mesh(mesh, scene.ground_truth, seed=cfg.seed) if scene.ground_truth is not None else {}
-    if scene.held_out is not None:
-        metrics.update(depth_metrics(mesh, scene.held_out))
-    metrics = {**metrics, "watertight": mesh.is_watertight, "fit_seconds": result.seconds,
-               "extract_seconds": extract_seconds, "steps": result.steps}
-    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
-    _log_hparams(run_dir, cfg, metrics)
-    log.info("scene %s: mesh written to %s\n%s", scene.name, mesh_path.resolve(), format_table(metrics))
-    return metrics
+        metrics = evaluate_mesh(mesh, scene.ground_truth, seed=cfg.seed) if scene.ground_truth is not None else {}
+        if scene.held_out is not None:
+            metrics.update(depth_metrics(mesh, scene.held_out))
+        metrics = {**metrics, "watertight": mesh.is_watertight, "fit_seconds": result.seconds,
+                   "extract_seconds": extract_seconds, "steps": result.steps}
+        (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
+        _log_hparams(run_dir, cfg, metrics)
+        log.info("scene %s: mesh written to %s\n%s", scene.name, mesh_path.resolve(), format_table(metrics))
+        return metrics
 
 
 def shared_run_directory(cfg: DictConfig) -> Path:

@@ -3,6 +3,7 @@ problem and the fix, never in a raw exception, a silent wrong result or a huge a
 
 import math
 import time
+from pathlib import Path
 
 import pytest
 import torch
@@ -131,3 +132,49 @@ def test_a_nan_in_a_camera_pose_is_an_input_error_naming_the_frame(entry, part):
     poses[1][entry] = math.nan
     with pytest.raises(InputError, match=rf"cam_to_world\[1\] holds NaN or inf \(in its {part}"):
         DepthFrames(torch.ones(3, 6, 8), K, poses)
+
+
+def test_a_second_run_into_a_busy_run_directory_is_refused_and_a_dead_ones_lock_taken_over(tmp_path):
+    import json
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    from neuralsurf.errors import ConfigError
+    from neuralsurf.runlock import LOCK_NAME, run_lock
+
+    holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (tmp_path / LOCK_NAME).write_text(json.dumps({"pid": holder.pid, "host": socket.gethostname()}))
+        with pytest.raises(ConfigError, match=rf"in use by pid {holder.pid} on .*choose another hydra\.run\.dir"):
+            with run_lock(tmp_path):
+                pass
+    finally:
+        holder.kill()
+        holder.wait()
+    with run_lock(tmp_path):  # the holder died (kill -9): its lock is stale and taken over
+        record = json.loads((tmp_path / LOCK_NAME).read_text())
+        assert record["pid"] == os.getpid()
+        with pytest.raises(ConfigError, match=rf"in use by pid {os.getpid()}"):
+            with run_lock(tmp_path):
+                pass
+    assert not (tmp_path / LOCK_NAME).exists()  # released at the end
+
+
+def test_train_refuses_a_run_directory_another_train_holds(tmp_path):
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from neuralsurf.cli import train
+    from neuralsurf.errors import ConfigError
+    from neuralsurf.runlock import run_lock
+
+    configs = Path(__file__).resolve().parents[1] / "configs"
+    with initialize_config_dir(config_dir=str(configs), version_base="1.3"):
+        cfg = compose("train", overrides=["experiment=sphere_sdf", "device=cpu"])
+    OmegaConf.set_struct(cfg, False)
+    cfg.run_dir = str(tmp_path)
+    with run_lock(tmp_path), pytest.raises(ConfigError, match="is in use by pid"):
+        train(cfg)
+    assert not (tmp_path / "checkpoints").exists()
