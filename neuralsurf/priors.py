@@ -200,6 +200,28 @@ def load_prior(path: str | Path, device: str | torch.device = "cpu") -> nn.Modul
 
 # ----------------------------------------------------------------------------- completion
 
+UNIT_FRAME_REACH = 0.75
+"""|coordinate| beyond which a cloud is taken to lie outside a prior's unit frame (the cube
+[-0.5, 0.5]^3, plus room for noise)."""
+
+
+def warn_outside_unit_frame(points: Tensor, where: str) -> None:
+    """Warn when the finite points of Float[Tensor, "n 3"] reach beyond UNIT_FRAME_REACH: a prior
+    knows only shapes in its unit cube, so a cloud in world units (metres, millimetres) completes to
+    nonsense. Malformed clouds are left to the completion's own checks."""
+    if not (isinstance(points, Tensor) and points.ndim == 2 and points.shape[-1] == 3):
+        return
+    finite = points[torch.isfinite(points).all(dim=1)]
+    if not len(finite):
+        return
+    low, high = finite.min(dim=0).values.tolist(), finite.max(dim=0).values.tolist()
+    if max(map(abs, low + high)) > UNIT_FRAME_REACH:
+        bounds = ", ".join(f"[{lo:.3g}, {hi:.3g}]" for lo, hi in zip(low, high))
+        warnings.warn(f"{where}: the cloud spans x, y, z = {bounds}, outside the prior's unit frame (its shapes lie "
+                      f"in [-0.5, 0.5]^3): the completion will be meaningless. Normalise the cloud first: "
+                      f"n = neuralsurf.structures.Normalization.from_points(points); complete n.to_unit(points), "
+                      f"and map the result back with n.to_world", stacklevel=3)
+
 
 def complete_cloud(prior: nn.Module, points: Tensor, *, latent_steps: int = 200, lr: float = 1e-2,
                    seed: int = 0, device: str = "cpu") -> nn.Module:
@@ -212,6 +234,7 @@ def complete_cloud(prior: nn.Module, points: Tensor, *, latent_steps: int = 200,
     from neuralsurf.observations import PointSamples
     from neuralsurf.shapes.completion import reconstruct_latent
 
+    warn_outside_unit_frame(points, "complete_cloud")
     if isinstance(prior, OccupancyNetwork):
         return prior.to(device).field_from_cloud(points)
     if isinstance(prior, AutoDecoder):
@@ -239,6 +262,7 @@ def complete_view(prior: nn.Module, frames: DepthFrames, points: Tensor, *, late
     from neuralsurf.observations import DepthRays
     from neuralsurf.shapes.completion import reconstruct_latent
 
+    warn_outside_unit_frame(points, "complete_view")
     if isinstance(prior, OccupancyNetwork):
         pick = torch.randperm(len(points), generator=torch.Generator().manual_seed(seed))[:cloud_points]
         return prior.to(device).field_from_cloud(points[pick])

@@ -178,3 +178,18 @@ def test_train_refuses_a_run_directory_another_train_holds(tmp_path):
     with run_lock(tmp_path), pytest.raises(ConfigError, match="is in use by pid"):
         train(cfg)
     assert not (tmp_path / "checkpoints").exists()
+
+
+def test_completing_a_cloud_outside_the_priors_unit_frame_warns_with_its_bounds_and_the_fix():
+    import warnings
+
+    from neuralsurf.priors import complete_cloud, occupancy_network
+
+    torch.manual_seed(0)
+    prior = occupancy_network(2, latent_dim=8, encoder_hidden=8, hidden=8, blocks=1)
+    sphere = torch.nn.functional.normalize(torch.randn(200, 3), dim=1) * 0.4
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        complete_cloud(prior, sphere)  # in the unit frame: no warning
+    with pytest.warns(UserWarning, match=r"spans x, y, z = \[60.*outside the prior's unit frame.*Normalization"):
+        complete_cloud(prior, sphere * 100 + 100)
