@@ -23,6 +23,7 @@ Chrome-ball calibration: light directions from the highlight on a mirror sphere.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,7 +84,35 @@ def _check_inputs(images: Tensor, lights: Tensor, mask: Tensor | None) -> tuple[
     if not finite[mask].all():
         raise InputError(f"images hold NaN or inf at {int((~finite & mask).sum())} masked pixels: give finite "
                          f"intensities, or leave those pixels out of the mask")
+    _check_exposure(images, mask)
     return images, lights / norms, mask
+
+
+SATURATED_SHARE = 0.1
+"""Share of the masked intensities at their image's maximum above which the images count as clipped."""
+
+
+def _check_exposure(images: Tensor, mask: Tensor) -> None:
+    """InputError for an empty mask or images black inside it; a warning when more than
+    SATURATED_SHARE of the masked intensities of images[n, h, w(, 3)] sit at their image's maximum
+    (a clipped, saturated exposure: the Lambertian fit turns such pixels towards the camera)."""
+    h, w = mask.shape
+    if not mask.any():
+        raise InputError(f"the mask is empty (0 of {h} x {w} pixels): nothing to solve; check the mask "
+                         f"(mask.png: white where the object is) or pass mask=None for every pixel")
+    masked = images[:, mask]  # (n, p) or (n, p, 3)
+    peak = masked.reshape(len(masked), -1).amax(dim=1)  # each image's brightest masked intensity
+    if not (peak > 0).any():
+        raise InputError(f"every image is black inside the mask ({int(mask.sum())} pixels, all intensities <= 0): "
+                         f"check the exposure, the light intensities and that the files are the capture's")
+    at_peak = masked >= peak.reshape(-1, *[1] * (masked.ndim - 1)) * (1 - 1e-6)
+    share = float(at_peak[peak > 0].float().mean())
+    if share > SATURATED_SHARE:
+        pixels = int(at_peak.reshape(len(masked), masked.shape[1], -1).any(-1).any(0).sum())
+        warnings.warn(f"{share:.0%} of the masked intensities sit at their image's maximum ({pixels} of "
+                      f"{masked.shape[1]} pixels in at least one image): the images look saturated (clipped), "
+                      f"and the normals of those pixels will face the camera; lower the exposure, or leave "
+                      f"saturated pixels out of the mask", stacklevel=4)
 
 
 def _bad_rows(values: Tensor) -> list[int]:

@@ -193,3 +193,44 @@ def test_completing_a_cloud_outside_the_priors_unit_frame_warns_with_its_bounds_
         complete_cloud(prior, sphere)  # in the unit frame: no warning
     with pytest.warns(UserWarning, match=r"spans x, y, z = \[60.*outside the prior's unit frame.*Normalization"):
         complete_cloud(prior, sphere * 100 + 100)
+
+
+def lit_sphere(size=16):
+    """Images (4, size, size) of a Lambertian sphere under four lights, its disc mask and the lights."""
+    from neuralsurf.photometric import render_lambertian
+
+    y, x = torch.meshgrid(torch.linspace(-1, 1, size), torch.linspace(-1, 1, size), indexing="ij")
+    mask = x**2 + y**2 < 0.8
+    normals = torch.stack([x, y, -torch.sqrt((1 - x**2 - y**2).clamp_min(0))], -1).double()
+    lights = torch.tensor([[0.0, 0, -1], [0.5, 0, -1], [0, 0.5, -1], [-0.5, 0, -1]], dtype=torch.float64)
+    images = render_lambertian(normals, torch.full(mask.shape, 0.7, dtype=torch.float64), lights).float()
+    return images, mask, lights.float()
+
+
+@pytest.mark.parametrize("method", ["least_squares", "robust"])
+def test_photometric_stereo_refuses_an_empty_mask_and_black_images(method):
+    from neuralsurf.errors import InputError
+    from neuralsurf.photometric import METHODS
+
+    images, mask, lights = lit_sphere()
+    assert METHODS[method](images, lights, mask).mask.sum() > 0
+    with pytest.raises(InputError, match=r"the mask is empty \(0 of 16 x 16 pixels\)"):
+        METHODS[method](images, lights, torch.zeros_like(mask))
+    with pytest.raises(InputError, match="every image is black inside the mask"):
+        METHODS[method](torch.zeros_like(images), lights, mask)
+
+
+def test_photometric_stereo_warns_with_the_share_of_saturated_intensities():
+    import warnings
+
+    from neuralsurf.photometric import least_squares_stereo
+
+    images, mask, lights = lit_sphere()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        least_squares_stereo(images, lights, mask)  # a well exposed capture: no warning
+    with pytest.warns(UserWarning, match=r"100% of the masked intensities sit at their image's maximum.*saturated"):
+        least_squares_stereo(torch.ones_like(images), lights, mask)
+    clipped = images.clamp(max=0.3)  # part of the sphere clipped in each image
+    with pytest.warns(UserWarning, match=r"\d+% of the masked intensities .*saturated"):
+        least_squares_stereo(clipped, lights, mask)
