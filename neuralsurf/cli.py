@@ -373,9 +373,11 @@ def evaluation_job(cfg: DictConfig) -> tuple[dict, Path]:
 
 
 def check_run_dir_argument(argv: list[str]) -> None:
-    """Exit with a clear message when `hydra.run.dir=` names a path under a file (Hydra's own mkdir
-    would fail with a raw FileExistsError before any neuralsurf code runs)."""
+    """Exit with a clear message when `hydra.run.dir=` (or `hydra.sweep.dir=`) names a path under a
+    file or one that cannot be created (a read-only or virtual file system such as /proc, no
+    permission): Hydra's own mkdir would fail with a raw OSError before any neuralsurf code runs."""
     import sys
+    import tempfile
 
     for argument in argv:
         if argument.startswith(("hydra.run.dir=", "hydra.sweep.dir=")):
@@ -384,6 +386,14 @@ def check_run_dir_argument(argv: list[str]) -> None:
             blocking = next((p for p in (path, *path.parents) if p.exists() and not p.is_dir()), None)
             if blocking is not None:
                 sys.exit(f"error: {key}={value}: {blocking} is a file, not a folder; choose another run directory")
+            if "${" in value:  # resolved by Hydra later
+                continue
+            existing = next(p for p in (path.absolute(), *path.absolute().parents) if p.exists())
+            try:  # a folder made and removed where the run directory's first missing folder would go
+                os.rmdir(tempfile.mkdtemp(dir=existing, prefix=".neuralsurf-check-"))
+            except OSError as error:
+                sys.exit(f"error: {key}={value}: the run directory cannot be created in {existing} "
+                         f"({error.strerror or error}); choose a folder you can write to")
 
 
 def user_error(error: BaseException) -> NeuralsurfError | None:

@@ -234,3 +234,31 @@ def test_photometric_stereo_warns_with_the_share_of_saturated_intensities():
     clipped = images.clamp(max=0.3)  # part of the sphere clipped in each image
     with pytest.warns(UserWarning, match=r"\d+% of the masked intensities .*saturated"):
         least_squares_stereo(clipped, lights, mask)
+
+
+def test_a_scene_name_cannot_write_outside_the_run_directory(tmp_path):
+    from neuralsurf.evaluation import run_benchmark
+    from neuralsurf.evaluation.filenames import safe_name
+    from neuralsurf.scenes import analytic_scene
+
+    name = "../../escape/<script>"
+    run_dir = tmp_path / "a" / "b" / "run"
+    rows = run_benchmark({"sphere": lambda: analytic_scene(n_points=500, name=name)},
+                         {"gt": lambda: (lambda scene, **_: scene.ground_truth)}, run_dir, n_samples=500,
+                         render_size=32, save_meshes=False, log=lambda line: None)
+    assert rows[0]["status"] == "ok" and "render_error" not in rows[0]
+    written = [p for p in tmp_path.rglob("*") if p.is_file()]
+    assert all(run_dir in p.parents for p in written), [str(p) for p in written]
+    assert (run_dir / rows[0]["render"]).is_file() and "/" not in rows[0]["render"].removeprefix("renders/")
+    assert safe_name("sphere") == "sphere" and "/" not in safe_name(name) and not safe_name("..").startswith(".")
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs a /proc file system")
+def test_a_run_directory_that_cannot_be_created_is_a_clear_exit(tmp_path):
+    from neuralsurf.cli import check_run_dir_argument
+
+    with pytest.raises(SystemExit, match=r"hydra\.run\.dir=/proc/nsprobe/run: the run directory cannot be created "
+                                         r"in /proc .*choose a folder you can write to"):
+        check_run_dir_argument(["hydra.run.dir=/proc/nsprobe/run"])
+    check_run_dir_argument([f"hydra.run.dir={tmp_path}/new/run", "hydra.sweep.dir=${now:%H}"])  # fine: no exit
+    assert list(tmp_path.iterdir()) == []  # the check leaves nothing behind

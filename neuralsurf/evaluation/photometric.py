@@ -21,6 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from neuralsurf.evaluation.methods import NotApplicable, extract_scene_mesh
+from neuralsurf.evaluation.store import row_stem
 from neuralsurf.scenes import Scene
 from neuralsurf.structures import Mesh
 
@@ -156,7 +157,7 @@ def normal_map_picture(result: NormalMapResult, scene_name: str, method: str, ru
             image = np.where(mask.cpu().numpy()[..., None], colors, 1.0)
             images.append((np.clip(image, 0, 1) * 255).astype(np.uint8))
             labels.append(f"error (red >= {max_error_deg:g} deg)")
-    path = Path("renders") / f"{scene_name}__{method}.png"
+    path = Path("renders") / f"{row_stem(scene_name, method)}.png"
     (Path(run_dir) / path).parent.mkdir(parents=True, exist_ok=True)
     labelled_row(images, labels).save(Path(run_dir) / path)
     return str(path)

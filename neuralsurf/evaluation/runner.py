@@ -24,6 +24,7 @@ import torch
 from neuralsurf.errors import ConfigError
 from neuralsurf.evaluation.methods import NotApplicable
 from neuralsurf.evaluation.photometric import NormalMapResult, normal_map_picture, score_normal_maps
+from neuralsurf.evaluation.store import row_stem
 from neuralsurf.locks import replaced
 from neuralsurf.scenes import Scene, SceneUnavailable
 from neuralsurf.scenes.recipes import SceneSet
@@ -201,7 +202,7 @@ def run_row(row: dict[str, Any], built: dict[str, Any], make_method: MethodFacto
     started = time.perf_counter()
     try:
         method = make_method()
-        fits = run_dir / "fits" / f"{scene_name}__{method_name}"
+        fits = run_dir / "fits" / row_stem(scene_name, method_name)
         if isinstance(scene, SceneSet):  # a split of shapes: one row, the means of their metrics
             output, set_metrics, row["per_shape"] = run_scene_set(scene, method, seed, fits, n_samples)
         else:
@@ -234,7 +235,7 @@ def run_row(row: dict[str, Any], built: dict[str, Any], make_method: MethodFacto
     except Exception as error:  # noqa: BLE001 - a failing method is a row, the run goes on
         row.setdefault("seconds", time.perf_counter() - started)
         row["status"], row["reason"] = "failed", f"{type(error).__name__}: {error}"
-        _write_traceback(run_dir, f"{scene_name}__{method_name}")
+        _write_traceback(run_dir, row_stem(scene_name, method_name))
         log(f"  {method_name:>12} on {scene_name}: FAILED ({row['reason']})")
         return False
     row.update(metrics)
@@ -242,7 +243,7 @@ def run_row(row: dict[str, Any], built: dict[str, Any], make_method: MethodFacto
     if save_meshes:
         from neuralsurf.io import write_mesh
 
-        path = Path("meshes") / f"{scene_name}__{method_name}.ply"
+        path = Path("meshes") / f"{row_stem(scene_name, method_name)}.ply"
         with replaced(run_dir / path) as temporary:
             write_mesh(temporary, mesh)
         row["mesh"] = str(path)
@@ -321,7 +322,7 @@ def _render_row(scene: Scene, mesh: Mesh, method: str, gt_image, run_dir: Path, 
     images = [gt_image, shade(mesh, view, size, size), distance_image(mesh, scene.ground_truth, view, max_distance,
                                                                      size, size)]
     labels = [f"{scene.name}: ground truth", f"{method}", f"{method}: distance (red >= 1%)"]
-    path = Path("renders") / f"{scene.name}__{method}.png"
+    path = Path("renders") / f"{row_stem(scene.name, method)}.png"
     with replaced(run_dir / path) as temporary:
         labelled_row(images, labels).save(temporary)
     return str(path)

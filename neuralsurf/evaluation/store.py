@@ -23,6 +23,7 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
+from neuralsurf.evaluation.filenames import safe_name
 from neuralsurf.locks import file_lock, replaced, write_atomic
 
 ROWS = "rows"
@@ -32,8 +33,8 @@ log = logging.getLogger("neuralsurf")
 
 
 def row_stem(scene: str, method: str) -> str:
-    """The file stem of a row's files: "<scene>__<method>"."""
-    return f"{scene}__{method}"
+    """The file stem of a row's files: "<scene>__<method>", each name made safe (`safe_name`)."""
+    return f"{safe_name(scene)}__{safe_name(method)}"
 
 
 def settings_key(settings: dict[str, Any]) -> str:
@@ -151,7 +152,7 @@ def cached_scene(folder: str | Path, name: str, key: str, build: Callable[[], An
     SCENE_CLASSES) is built again and not kept. Errors of `build` (SceneUnavailable, ...) propagate."""
     import torch
 
-    path = Path(folder) / f"{name}-{key}.pt"
+    path = Path(folder) / f"{safe_name(name)}-{key}.pt"
 
     def load(file: Path) -> Any:
         with torch.serialization.safe_globals(_scene_classes()):
