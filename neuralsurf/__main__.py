@@ -5,11 +5,11 @@ import sys
 from neuralsurf.cli import evaluate_main, score_main, train_main
 
 
-def data_main() -> None:
-    """``python -m neuralsurf data {list,fetch}``: exits with `neuralsurf.data.main`'s status."""
+def data_main() -> int:
+    """``python -m neuralsurf data {list,fetch}``: `neuralsurf.data.main`'s exit status."""
     from neuralsurf.data import main
 
-    sys.exit(main(sys.argv[1:]))
+    return main(sys.argv[1:])
 
 
 COMMANDS = {"train": train_main, "evaluate": evaluate_main, "score": score_main, "data": data_main}
@@ -20,4 +20,4 @@ if __name__ == "__main__":
                  f"(train/evaluate take Hydra overrides, e.g. experiment=bunny_sdf; data: list or fetch data sets)")
     command = COMMANDS[sys.argv.pop(1)]
     sys.argv[0] = f"neuralsurf-{command.__name__.split('_')[0]}"
-    command()
+    sys.exit(command())  # score and data return their status; train and evaluate None (0)

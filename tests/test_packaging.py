@@ -31,6 +31,9 @@ def test_score_console_script_exits_0_and_its_help_is_whole(tmp_path):
     done = subprocess.run([score, "a.ply", "a.ply", "--samples", "1000"], cwd=tmp_path, capture_output=True,
                           text=True, check=False)
     assert done.returncode == 0 and "chamfer_l1_exact" in done.stdout, done.stderr[-2000:]
+    done = subprocess.run([sys.executable, "-m", "neuralsurf", "score", "a.ply", "a.ply", "--samples", "1000"],
+                          cwd=tmp_path, capture_output=True, text=True, check=False)
+    assert done.returncode == 0 and "chamfer_l1_exact" in done.stdout, done.stderr[-2000:]
     help_text = subprocess.run([score, "--help"], capture_output=True, text=True, check=True).stdout
     assert "longest side 1." in help_text and "--samples" in help_text and "--json" in help_text
 
