@@ -251,9 +251,11 @@ def marching_cubes(values: np.ndarray, grid: Grid, level: float = 0.0, valid: np
     finite = values if valid is None else np.where(valid, values, level + 1.0).astype(values.dtype)
     low, high = float(finite.min()), float(finite.max())
     if not low < level < high:
+        constant = ("; the field is constant there, as a diverged fit leaves it: lower the learning rate and fit "
+                    "again" if high - low <= 1e-6 * max(1.0, abs(low), abs(high)) else "")
         raise ExtractionError(
             f"the field has no {level:g}-level set in the box: its values there lie in [{low:.4g}, {high:.4g}]; "
-            f"pass bounds that contain the surface, or a level between those values"
+            f"pass bounds that contain the surface, or a level between those values{constant}"
         )
     on_gpu = torch.device(device).type == "cuda" and valid is None
     finite = off_level(torch.from_numpy(finite).to(device if on_gpu else "cpu"), level)

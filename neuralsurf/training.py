@@ -386,6 +386,7 @@ def fit(
     bar.close()
     model.eval()
     _check_converged(history)
+    _check_field(model, max(done, start_step))
     if writer is not None:
         if image_every or mesh_every:  # previews of the field (none for models without one, e.g. OccNet)
             _log_mesh(writer, world_field, steps)
@@ -417,6 +418,42 @@ def _portable(optimizer_state: dict) -> dict:
         if "capturable" in group:
             group["capturable"] = False
     return optimizer_state
+
+
+FIELD_PROBES = 4096
+"""Points of the unit box at which `_check_field` reads the fitted model."""
+
+
+def _check_field(model: nn.Module, steps: int) -> None:
+    """Raise the "fit diverged" error when the unit-frame model (x[n, 3] -> values[n]) is NaN, inf or
+    constant over the box [-0.5, 0.5]^3 after `steps` steps (a far too high learning rate can leave a
+    huge constant field with a finite loss); warn when it has one sign everywhere (no surface). Models
+    that need more than points (an occupancy network's code) are not read."""
+    points = torch.rand(FIELD_PROBES, 3, generator=torch.Generator().manual_seed(0)) - 0.5
+    parameter = next(model.parameters(), None)
+    if parameter is None:
+        return
+    try:
+        with torch.no_grad():
+            values = model(points.to(parameter.device, parameter.dtype))
+    except (TypeError, NeuralsurfError):  # needs a code or other inputs: nothing to read here
+        return
+    if not isinstance(values, torch.Tensor) or values.numel() != FIELD_PROBES:
+        return
+    values = values.detach().double().flatten()
+    hint = "lower the learning rate (optimizer.lr, trainer.encoding_lr)"
+    bad = int((~torch.isfinite(values)).sum())
+    if bad:
+        raise NeuralsurfError(f"the fit diverged: after {steps} steps the field is NaN or inf at {bad} of "
+                              f"{FIELD_PROBES} points of the box; {hint}")
+    low, high = float(values.min()), float(values.max())
+    if high - low <= 1e-6 * max(1.0, abs(low), abs(high)):
+        raise NeuralsurfError(f"the fit diverged: after {steps} steps the field is constant ({low:.4g}) over the "
+                              f"box, so it has no surface; {hint}")
+    if low > 0 or high < 0:
+        warnings.warn(f"after {steps} steps the field has one sign over the whole box (values in [{low:.4g}, "
+                      f"{high:.4g}]), so it has no surface: the fit diverged ({hint}) or needs more steps",
+                      stacklevel=3)
 
 
 def _check_converged(history: dict[str, list[float]]) -> None:

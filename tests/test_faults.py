@@ -262,3 +262,30 @@ def test_a_run_directory_that_cannot_be_created_is_a_clear_exit(tmp_path):
         check_run_dir_argument(["hydra.run.dir=/proc/nsprobe/run"])
     check_run_dir_argument([f"hydra.run.dir={tmp_path}/new/run", "hydra.sweep.dir=${now:%H}"])  # fine: no exit
     assert list(tmp_path.iterdir()) == []  # the check leaves nothing behind
+
+
+def test_a_diverged_fit_whose_loss_stays_finite_says_diverged():
+    import functools
+
+    from neuralsurf.errors import NeuralsurfError
+    from neuralsurf.observations import PointSamples
+    from neuralsurf.scenes import Sphere
+    from neuralsurf.training import default_optimizer, fit
+
+    torch.manual_seed(0)
+    model = SDFMLP(width=16, depth=2, skip_layers=(), weight_norm=False)
+    cloud = Sphere(center=(1.0, 0.0, 0.0), radius=2.0).sample_surface(500, seed=0)
+    with pytest.raises(NeuralsurfError, match=r"the fit diverged: after 3 steps the field is constant .*lower the "
+                                              r"learning rate"):
+        fit(model, PointSamples(cloud, batch_size=64, n_near=500, n_free=100), steps=3, device="cpu",
+            progress=False, image_every=0, optimizer=functools.partial(default_optimizer, lr=1e9))
+
+
+def test_extracting_a_constant_field_names_a_diverged_fit():
+    from neuralsurf.errors import ExtractionError
+    from neuralsurf.extract import extract_mesh
+
+    bounds = torch.tensor([[-1.0] * 3, [1.0] * 3], dtype=torch.float64)
+    with pytest.raises(ExtractionError, match=r"no 0-level set.*constant there, as a diverged fit leaves it"):
+        extract_mesh(lambda x: torch.full(x.shape[:-1], 2.8e8, dtype=x.dtype), resolution=8, bounds=bounds,
+                     progress=False)
