@@ -147,18 +147,17 @@ def test_a_second_run_into_a_busy_run_directory_is_refused_and_a_dead_ones_lock_
     holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
     try:
         (tmp_path / LOCK_NAME).write_text(json.dumps({"pid": holder.pid, "host": socket.gethostname()}))
-        with pytest.raises(ConfigError, match=rf"in use by pid {holder.pid} on .*choose another hydra\.run\.dir"):
-            with run_lock(tmp_path):
-                pass
+        with pytest.raises(ConfigError, match=rf"in use by pid {holder.pid} on .*choose another hydra\.run\.dir"), \
+                run_lock(tmp_path):
+            pass
     finally:
         holder.kill()
         holder.wait()
     with run_lock(tmp_path):  # the holder died (kill -9): its lock is stale and taken over
         record = json.loads((tmp_path / LOCK_NAME).read_text())
         assert record["pid"] == os.getpid()
-        with pytest.raises(ConfigError, match=rf"in use by pid {os.getpid()}"):
-            with run_lock(tmp_path):
-                pass
+        with pytest.raises(ConfigError, match=rf"in use by pid {os.getpid()}"), run_lock(tmp_path):
+            pass
     assert not (tmp_path / LOCK_NAME).exists()  # released at the end
 
 
