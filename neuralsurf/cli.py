@@ -281,6 +281,9 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     from neuralsurf.evaluation.store import cached_scene, rebuild_report, settings_key
 
     if cfg.get("report"):
+        if not any((Path(cfg.report) / "rows").glob("*.json")):
+            raise ConfigError(f"report={cfg.report}: no stored rows in {Path(cfg.report) / 'rows'}; give the results "
+                              f"folder of an evaluate.py run (its hydra.run.dir, hydra.sweep.dir or results_dir)")
         rows, table = rebuild_report(cfg.report, {"environment": environment()})
         log.info("report of %d stored rows rebuilt in %s (report.html, results.csv, results.json)\n%s",
                  len(rows), Path(cfg.report).resolve(), table)

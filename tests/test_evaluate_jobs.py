@@ -116,6 +116,15 @@ def test_the_report_is_rebuilt_from_the_stored_rows_alone(tmp_path, sequential):
     assert html.count("<img ") == 4 + 2  # four plots, the renders of the two reconstructions
 
 
+def test_a_report_of_a_folder_without_rows_names_what_to_give(tmp_path):
+    from neuralsurf.cli import evaluate
+
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        cfg = compose(config_name="evaluate", overrides=[f"report={tmp_path}"])
+    with pytest.raises(ConfigError, match="no stored rows.*hydra.run.dir"):
+        evaluate(cfg)
+
+
 def tiny_in_process(run_dir: Path, overrides: list[str]) -> list[dict]:
     from neuralsurf.cli import evaluate
 
