@@ -9,13 +9,14 @@ an evaluation share one input. A recipe whose data or optional dependency is mis
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
 import torch
 
-from neuralsurf.errors import MissingDependencyError, NeuralsurfError
+from neuralsurf.errors import ConfigError, MissingDependencyError, NeuralsurfError
 from neuralsurf.geometry import cloud_from_mesh
 from neuralsurf.photometric import PhotometricStereoResult
 from neuralsurf.scenes.analytic import analytic_shape
@@ -134,7 +135,12 @@ def depth_scene(name: str, frames: DepthFrames, ground_truth: Mesh | None = None
     from neuralsurf.geometry import depth_to_cloud
 
     held_out = None
-    if hold_out_every:
+    if hold_out_every == 1:
+        raise ConfigError(f"{name}: hold_out_every=1 would hold out every frame; use 0 (none) or 2 and more")
+    if hold_out_every and len(frames) < hold_out_every:
+        warnings.warn(f"{name}: {len(frames)} frames, fewer than hold_out_every={hold_out_every}: none held out, "
+                      f"so no held-out depth metrics", stacklevel=2)
+    elif hold_out_every:
         index = torch.arange(len(frames))
         held_out, frames = frames[index[index % hold_out_every == hold_out_every - 1]], frames[
             index[index % hold_out_every != hold_out_every - 1]]

@@ -1,0 +1,185 @@
+"""Every command in the README runs as written: each line of its ```bash blocks and each ```python
+block, from a scratch folder that holds the files the README names (scan.ply, mesh.ply, gt.ply, an
+RGB-D folder my_capture), with tiny settings appended to train.py and evaluate.py so that the whole
+README runs in a few minutes. ```text blocks are not run."""
+
+import os
+import re
+import shlex
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from neuralsurf.data import locate
+
+REPO = Path(__file__).resolve().parents[1]
+README = REPO / "README.md"
+TEST_COMMAND = "./install.sh dev && .venv/bin/python -m pytest -q"
+"""The README's test command: CI runs it (.ci/run), so this test checks it is there instead of running it."""
+
+TINY_TRAIN = ["trainer.steps=2", "trainer.log_every=1", "trainer.image_every=0", "trainer.progress=false",
+              "extract.resolution=32"]
+TINY_TRAIN_DATA = {"data=rgbd": ["data.max_frames=6"], "experiment=redkitchen_depth": ["data.max_frames=6"]}
+"""Extra settings for commands that name these (fewer frames of a real capture)."""
+NEEDS_DATA = {"redkitchen": "7scenes_redkitchen", "7scenes_redkitchen": "7scenes_redkitchen",
+              "stanford_scans": "stanford_bunny", "stanford_bunny": "stanford_bunny"}
+"""Words of a command -> the data set it needs (skipped with the fetch command when neither
+NEURALSURF_DATA nor the cache has it: the tests never download)."""
+TINY_EVALUATE = ["suite=tiny", "render_size=64"]
+"""Appended to evaluate.py commands: the command's own scenes=/methods= still win over the suite's."""
+
+
+def fenced_blocks(text: str) -> list[tuple[str, str]]:
+    """(language, body) of every fenced code block of a Markdown text."""
+    return [(m.group(1).strip(), m.group(2)) for m in re.finditer(r"^```(\w*)[^\n]*\n(.*?)^```", text, re.M | re.S)]
+
+
+def readme_commands() -> list[str]:
+    """The lines of the README's bash blocks, without trailing comments; comment-only lines skipped."""
+    commands = []
+    for language, body in fenced_blocks(README.read_text()):
+        if language in ("bash", "sh", "shell"):
+            for line in body.splitlines():
+                command = re.sub(r"(^|\s+)#.*$", "", line).strip()
+                if command:
+                    commands.append(command)
+    return commands
+
+
+def readme_python_blocks() -> list[str]:
+    return [body for language, body in fenced_blocks(README.read_text()) if language == "python"]
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory) -> Path:
+    """A scratch folder with the repository's entry points linked in and the user files the README names."""
+    from neuralsurf.io import write_mesh, write_point_cloud
+    from neuralsurf.scenes import Sphere, sample_surface
+
+    folder = tmp_path_factory.mktemp("readme")
+    for name in ("train.py", "evaluate.py", "install.sh", ".venv", "pyproject.toml"):
+        if (REPO / name).exists():
+            (folder / name).symlink_to(REPO / name)
+    sphere = Sphere(radius=0.3).mesh()
+    write_mesh(folder / "gt.ply", sphere)
+    write_mesh(folder / "mesh.ply", Sphere(radius=0.305).mesh())
+    write_point_cloud(folder / "scan.ply", sample_surface(sphere, n=5000, noise=0.0, seed=0))
+    write_capture(folder / "my_capture")
+    return folder
+
+
+def write_capture(folder: Path) -> None:
+    """An RGB-D folder in 7-Scenes layout: the real sample when NEURALSURF_DATA has it, else six depth
+    views of a grey sphere (camera-intrinsics.txt beside frames/frame-XXXXXX.{color.png,depth.png,pose.txt})."""
+    real = Path(os.environ.get("NEURALSURF_DATA", "/nonexistent")) / "7scenes_redkitchen_every10"
+    if real.is_dir():
+        folder.symlink_to(real)
+        return
+    from PIL import Image
+
+    from neuralsurf.scenes import Sphere, scan_depth
+
+    frames = scan_depth(Sphere(radius=0.3).mesh(), n_views=6, width=64, height=48)
+    (folder / "frames").mkdir(parents=True)
+    np.savetxt(folder / "camera-intrinsics.txt", frames.K[0].cpu().numpy())
+    for i in range(len(frames)):
+        millimetres = (frames.depth[i].cpu().numpy() * 1000).round().astype(np.uint16)
+        Image.fromarray(millimetres).save(folder / "frames" / f"frame-{i:06d}.depth.png")
+        grey = np.full((*millimetres.shape, 3), 128, np.uint8)
+        Image.fromarray(grey).save(folder / "frames" / f"frame-{i:06d}.color.png")
+        np.savetxt(folder / "frames" / f"frame-{i:06d}.pose.txt", frames.cam_to_world[i].cpu().numpy())
+
+
+def with_tiny_settings(command: str) -> str:
+    """`command` with tiny settings appended to each train.py / evaluate.py call in it."""
+    def shrink(call: str) -> str:
+        if re.search(r"(train\.py|neuralsurf-train|-m neuralsurf train)(\s|$)", call):
+            extra = TINY_TRAIN + [o for key, more in TINY_TRAIN_DATA.items() if key in call for o in more]
+        elif re.search(r"(evaluate\.py|neuralsurf-evaluate|-m neuralsurf evaluate)(\s|$)", call):
+            extra = TINY_EVALUATE
+        else:
+            return call
+        return f"{call.rstrip()} {' '.join(extra)}"
+
+    return " && ".join(shrink(call) for call in command.split("&&"))
+
+
+def run(command: str, cwd: Path, timeout: float = 900) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
+           "NEURALSURF_PROGRESS": "0"}
+    env.pop("VIRTUAL_ENV", None)
+    return subprocess.run(["bash", "-c", command], cwd=cwd, env=env, capture_output=True, text=True,
+                          timeout=timeout, check=False)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def serves(command: str, cwd: Path, seconds: float = 120) -> None:
+    """Start a server command (tensorboard) on a free local port and check it answers HTTP, then stop it."""
+    port = free_port()
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    process = subprocess.Popen(shlex.split(command) + ["--host", "127.0.0.1", "--port", str(port)], cwd=cwd,
+                               env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            assert process.poll() is None, f"{command} exited: {process.stderr.read()[-2000:]}"
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5) as response:
+                    assert response.status == 200
+                    return
+            except OSError:
+                time.sleep(1)
+        pytest.fail(f"{command} did not answer on port {port} within {seconds} s")
+    finally:
+        process.terminate()
+        process.wait(timeout=30)
+
+
+def test_the_readme_has_the_two_set_up_commands_and_ci_runs_the_test_command():
+    commands = readme_commands()
+    assert commands[0] == "./install.sh && .venv/bin/python train.py experiment=bunny_sdf"
+    assert commands[1] == TEST_COMMAND
+    assert re.search(rf"^{re.escape(TEST_COMMAND)}$", (REPO / ".ci" / "run").read_text(), re.M)
+    assert len(README.read_text().splitlines()) <= 260
+
+
+@pytest.mark.parametrize("command", [c for c in readme_commands() if c != TEST_COMMAND])
+def test_readme_command_runs(command, workspace):
+    if command.startswith("./install.sh") and Path(sys.prefix).resolve() != (REPO / ".venv").resolve():
+        pytest.skip("the set-up command installs into .venv; these tests run in another environment")
+    missing = [name for word, name in NEEDS_DATA.items() if word in command and locate(name) is None]
+    if missing:
+        pytest.skip(f"needs the {missing[0]} data set: python -m neuralsurf data fetch {missing[0]}, or set "
+                    f"NEURALSURF_DATA")
+    if command.split()[0] == "tensorboard":
+        serves(command, workspace)
+        return
+    done = run(with_tiny_settings(command), workspace)
+    assert done.returncode == 0, f"{command}\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
+
+
+@pytest.mark.parametrize("index", range(len(readme_python_blocks())))
+def test_readme_python_block_runs(index, workspace):
+    script = workspace / f"readme_block_{index}.py"
+    script.write_text(readme_python_blocks()[index])
+    done = run(f"{shlex.quote(sys.executable)} {script.name}", workspace)
+    assert done.returncode == 0, f"{script.read_text()}\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
+
+
+def test_tiny_settings_go_after_every_train_and_evaluate_call():
+    command = with_tiny_settings("./install.sh && .venv/bin/python train.py experiment=bunny_sdf")
+    assert command.endswith("experiment=bunny_sdf " + " ".join(TINY_TRAIN))
+    assert with_tiny_settings("python evaluate.py suite=depth").endswith("suite=depth suite=tiny render_size=64")
+    assert with_tiny_settings("neuralsurf-score mesh.ply gt.ply") == "neuralsurf-score mesh.ply gt.ply"
+    assert "data.max_frames=6" in with_tiny_settings("python train.py data=rgbd data.path=my_capture")
