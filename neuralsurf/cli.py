@@ -123,6 +123,8 @@ def observation_configs(cfg: DictConfig, overrides: list[str] | None = None,
     context = [f"{group}={choices[group]}" for group in ("observation", "data") if choices.get(group)]
     described = ", ".join(map(repr, selected)) + (f" ({', '.join(context)})" if context else "")
     keys = {_override_key(override): override for override in overrides}
+    # Hydra cannot drop what a later config merged into a switched group, so leftovers are told apart here:
+    # the command line's are the user's request (an error), the configs' are defaults of another group (logged).
     for name in [name for name in cfg.observation if name not in selected]:
         asked = [override for key, override in keys.items()
                  if key == f"observation.{name}" or key.startswith(f"observation.{name}.")]

@@ -1,6 +1,9 @@
 """RGB-D folders: 7-Scenes (real data), TUM and Redwood (synthetic folders), and bad input."""
 
+import logging
+import os
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,11 +14,19 @@ from scipy.spatial.transform import Rotation
 from neuralsurf.errors import ConfigError, FileFormatError, InputError
 from neuralsurf.geometry import backproject_depth, project_points
 from neuralsurf.io import read_rgbd_folder
-from neuralsurf.io.rgbd import TUM_K, associate, detect_rgbd_format, read_trajectory_log, tum_intrinsics
+from neuralsurf.io.rgbd import (
+    MARKERS,
+    TUM_K,
+    associate,
+    detect_rgbd_format,
+    read_trajectory_log,
+    tum_intrinsics,
+)
 from neuralsurf.structures import DepthFrames
 
 H, W = 48, 64
 K_SMALL = np.array([[60.0, 0.0, 31.5], [0.0, 60.0, 23.5], [0.0, 0.0, 1.0]])
+K_OTHER = np.array([[70.0, 0.0, 30.5], [0.0, 72.0, 22.5], [0.0, 0.0, 1.0]])  # neither K_SMALL nor 7-Scenes' K
 PLANE_NORMAL, PLANE_OFFSET = np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0]), 2.0
 
 
@@ -56,19 +67,35 @@ def assert_on_plane(frames: DepthFrames, atol: float) -> None:
 # synthetic folders
 
 
-def make_7scenes(root, n=3, K=K_SMALL, intrinsics=True, h=H, w=W, inside_frames=True):
-    frames = root / "frames" if inside_frames else root
+def millimetres(pose: np.ndarray, K: np.ndarray, h=H, w=W) -> np.ndarray:
+    """The 16-bit depth (h, w) that make_7scenes writes for `pose`: the plane in millimetres, and the
+    sensor's "no reading" code 65535 in the first 4 pixels of row 0."""
+    depth = np.round(plane_depth(pose, K, h, w) * 1000).astype(np.uint16)
+    depth[0, :4] = 65535
+    return depth
+
+
+def make_7scenes(root, n=3, K=K_SMALL, intrinsics=True, h=H, w=W, subfolder="frames", color=".color.png"):
+    """n frames of the plane in root/subfolder (root itself when None), camera-intrinsics.txt in root;
+    returns the camera-to-world poses [(4, 4)]."""
+    frames = root / subfolder if subfolder else root
     frames.mkdir(parents=True, exist_ok=True)
     poses = [random_pose(i) for i in range(n)]
     for i, pose in enumerate(poses):
-        depth = plane_depth(pose, K, h, w)
-        depth[0, :4] = 65.535  # the sensor's "no reading" code 65535
-        save_depth(frames / f"frame-{i:06d}.depth.png", depth, 1000)
-        save_color(frames / f"frame-{i:06d}.color.png", i, h, w)
+        Image.fromarray(millimetres(pose, K, h, w)).save(frames / f"frame-{i:06d}.depth.png")  # mode "I;16"
+        save_color(frames / f"frame-{i:06d}{color}", i, h, w)
         np.savetxt(frames / f"frame-{i:06d}.pose.txt", pose)
     if intrinsics:
         np.savetxt(root / "camera-intrinsics.txt", K)
     return poses
+
+
+def pixel_to_world(frames: DepthFrames, i: int, u: int, v: int) -> np.ndarray:
+    """Pixel (u, v) of frame i back-projected through its K and pose, in numpy: (3,) world point."""
+    K, pose = frames.K[i].double().numpy(), frames.cam_to_world[i].double().numpy()
+    z = float(frames.depth[i, v, u])
+    camera = z * np.array([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], 1.0])
+    return pose[:3, :3] @ camera + pose[:3, 3]
 
 
 def make_tum(root, n=4):
@@ -163,9 +190,9 @@ def test_7scenes_successive_frames_agree_through_their_poses(shared_data, record
 # synthetic 7-Scenes, TUM, Redwood
 
 
-@pytest.mark.parametrize("inside_frames", [True, False])
-def test_7scenes_layout_geometry(tmp_path, inside_frames):
-    poses = make_7scenes(tmp_path, inside_frames=inside_frames)
+@pytest.mark.parametrize("subfolder", ["frames", None, "seq-01"])
+def test_7scenes_layout_geometry(tmp_path, subfolder):
+    poses = make_7scenes(tmp_path, subfolder=subfolder)
     frames = read_rgbd_folder(tmp_path, format="7scenes", with_color=False)
     assert frames.colors is None and len(frames) == 3
     assert np.allclose(frames.cam_to_world.numpy(), np.stack(poses), atol=1e-6)
@@ -173,6 +200,76 @@ def test_7scenes_layout_geometry(tmp_path, inside_frames):
     assert_on_plane(frames, atol=2e-3)  # millimetre quantisation at ~2 m
     assert len(read_rgbd_folder(tmp_path, stride=2, with_color=False)) == 2
     assert len(read_rgbd_folder(tmp_path, max_frames=1, with_color=False)) == 1
+
+
+@pytest.mark.parametrize("color", [".color.png", ".color.jpg"])
+def test_7scenes_in_one_subfolder_uses_the_intrinsics_beside_it(tmp_path, color):
+    poses = make_7scenes(tmp_path, K=K_OTHER, subfolder="seq-01", color=color)
+    (tmp_path / "notes").mkdir()  # a subfolder without frames does not count
+    (tmp_path / "notes" / "readme.txt").write_text("captured with a Kinect")
+    assert detect_rgbd_format(tmp_path) == "7scenes"
+    with pytest.warns(UserWarning, match="unregistered"):
+        frames = read_rgbd_folder(tmp_path)
+    assert np.allclose(frames.K.numpy(), K_OTHER)  # the file written, not 7-Scenes' published K
+    written = np.stack([millimetres(pose, K_OTHER) for pose in poses]).astype(np.float64)
+    assert np.allclose(frames.depth.numpy(), np.where(written == 65535, 0, written) / 1000)
+    assert np.allclose(frames.cam_to_world.numpy(), np.stack(poses), atol=1e-6)
+    assert frames.colors.shape == (3, H, W, 3)
+    for i, (u, v) in enumerate([(10, 20), (63, 47), (32, 5)]):
+        assert abs(pixel_to_world(frames, i, u, v) @ PLANE_NORMAL - PLANE_OFFSET) < 2e-3  # mm rounding
+
+
+def test_7scenes_subfolder_given_itself_uses_its_parents_intrinsics(tmp_path, caplog):
+    make_7scenes(tmp_path, K=K_OTHER, subfolder="seq-01")
+    with caplog.at_level(logging.INFO, logger="neuralsurf"):
+        frames = read_rgbd_folder(tmp_path / "seq-01", with_color=False)
+    assert np.allclose(frames.K.numpy(), K_OTHER)
+    assert f"using the parent folder's {tmp_path.resolve() / 'camera-intrinsics.txt'}" in caplog.text
+    assert_on_plane(frames, atol=2e-3)
+    np.savetxt(tmp_path / "seq-01" / "camera-intrinsics.txt", K_SMALL)  # one of its own comes first
+    assert np.allclose(read_rgbd_folder(tmp_path / "seq-01", with_color=False).K.numpy(), K_SMALL)
+
+
+def test_several_subfolders_of_frames_are_named(tmp_path):
+    for name in ("seq-01", "seq-02"):
+        make_7scenes(tmp_path, n=1, K=K_OTHER, subfolder=name)
+    for format in ("auto", "7scenes"):
+        with pytest.raises(FileFormatError, match=r"frames in 2 subfolders \(seq-01/, seq-02/\).*point at one"):
+            read_rgbd_folder(tmp_path, format=format)
+    frames = read_rgbd_folder(tmp_path / "seq-02", with_color=False)
+    assert len(frames) == 1 and np.allclose(frames.K.numpy(), K_OTHER)
+
+
+def test_unknown_layout_names_what_was_looked_for_and_where(tmp_path):
+    save_color(tmp_path / "images" / "0001.png", 0)
+    (tmp_path / "depth").mkdir()  # Redwood's depth/ without a trajectory .log
+    with pytest.raises(FileFormatError) as error:
+        read_rgbd_folder(tmp_path)
+    message = str(error.value)
+    assert "no RGB-D frames of a known layout" in message
+    for layout, markers in MARKERS.items():
+        assert f"{layout}: {markers}" in message
+    assert "frame-XXXXXX.depth.png" in message and "groundtruth.txt" in message and "*.log" in message
+    assert f"Checked {str(tmp_path)!r} and its subfolders depth/, images/" in message
+
+
+def test_real_7scenes_frames_in_a_subfolder(tmp_path):
+    """The shared redkitchen frames laid out as intrinsics + one subfolder read as the original folder does."""
+    if not os.environ.get("NEURALSURF_DATA"):
+        pytest.skip("set NEURALSURF_DATA to the folder of real captures to run this test")
+    source = Path(os.environ["NEURALSURF_DATA"]) / "7scenes_redkitchen_every10"
+    if not source.is_dir():
+        pytest.skip(f"{source} not found")
+    (tmp_path / "seq-01").mkdir()
+    (tmp_path / "camera-intrinsics.txt").symlink_to(source / "camera-intrinsics.txt")
+    for depth in sorted((source / "frames").glob("frame-*.depth.png"))[:3]:
+        for file in depth.parent.glob(depth.name.replace(".depth.png", ".*")):
+            (tmp_path / "seq-01" / file.name).symlink_to(file)
+    original = read_rgbd_folder(source, max_frames=3, with_color=False)
+    for path in (tmp_path, tmp_path / "seq-01"):
+        frames = read_rgbd_folder(path, with_color=False)
+        assert len(frames) == 3 and torch.equal(frames.depth, original.depth)
+        assert torch.equal(frames.K, original.K) and torch.equal(frames.cam_to_world, original.cam_to_world)
 
 
 def test_rooms_are_meshed_near_their_input_and_objects_everywhere(tmp_path):
@@ -251,7 +348,7 @@ def test_redwood_log_ids_and_millimetres(tmp_path):
 def test_missing_or_empty_folders(tmp_path):
     with pytest.raises(FileFormatError, match="not found"):
         read_rgbd_folder(tmp_path / "nowhere")
-    with pytest.raises(FileFormatError, match="no RGB-D frames of a known layout"):
+    with pytest.raises(FileFormatError, match=r"no RGB-D frames of a known layout.*\(no subfolders\)"):
         read_rgbd_folder(tmp_path)
     with pytest.raises(FileFormatError, match="has no frames"):
         read_rgbd_folder(tmp_path, format="7scenes")

@@ -5,10 +5,12 @@ to 0), OpenCV intrinsics `K` and camera-to-world poses; colour (RGB in [0, 1]) w
 
 Layouts:
 
-- **7-Scenes**: `frames/frame-XXXXXX.{color.png|color.jpg, depth.png, pose.txt}` (or the files
-  directly in the folder); 16-bit depth in millimetres, 0 and 65535 invalid; `pose.txt` a 4x4
-  camera-to-world; `camera-intrinsics.txt` a 3x3 K (fx = fy = 585, cx = 320, cy = 240 with a
-  warning when absent). The Kinect's colour and depth cameras are *not* registered in 7-Scenes:
+- **7-Scenes**: `frame-XXXXXX.{color.png|color.jpg, depth.png, pose.txt}` directly in the folder or
+  in its one subfolder that holds such frames (`frames/`, `seq-01/`, ...: several are an error asking
+  to point at one); 16-bit depth in millimetres, 0 and 65535 invalid; `pose.txt` a 4x4
+  camera-to-world; `camera-intrinsics.txt` a 3x3 K, looked for in the folder given, then in the
+  frames' folder, then (when the folder given holds the frames itself) in its parent, which is
+  logged (fx = fy = 585, cx = 320, cy = 240 with a warning when none is found). The Kinect's colour and depth cameras are *not* registered in 7-Scenes:
   colour is loaded as-is (resized to the depth's size if needed), so a pixel's colour is only an
   approximation of the colour of its depth sample; a warning says so whenever colour is loaded.
   Checked on redkitchen: successive frames (10 raw frames apart) back-projected through their poses
@@ -27,6 +29,7 @@ Layouts:
 
 from __future__ import annotations
 
+import logging
 import re
 import warnings
 from dataclasses import dataclass
@@ -62,6 +65,17 @@ REDWOOD_K = ((525.0, 0.0, 319.5), (0.0, 525.0, 239.5), (0.0, 0.0, 1.0))
 
 _COLOR_FOLDERS = ("image", "rgb", "color")
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+_INTRINSICS = "camera-intrinsics.txt"  # 7-Scenes
+_SEVEN_SCENES_DEPTH = "frame-*.depth.png"
+
+MARKERS = {
+    "7-Scenes": "frame-XXXXXX.depth.png + .pose.txt (+ camera-intrinsics.txt) in the folder or one subfolder",
+    "TUM": "depth.txt + groundtruth.txt (+ rgb.txt) in the folder",
+    "Redwood": "depth/*.png + a trajectory *.log in the folder",
+}
+"""What `detect_rgbd_format` looks for, per layout (named in its error)."""
+
+log = logging.getLogger("neuralsurf")
 
 
 @dataclass(frozen=True)
@@ -94,7 +108,8 @@ def read_rgbd_folder(
     """Read an RGB-D sequence folder into DepthFrames (layouts in the module docstring).
 
     Args:
-        path: the sequence folder.
+        path: the sequence folder; for 7-Scenes also a folder holding camera-intrinsics.txt and one
+            subfolder of frames, or that subfolder (its parent's camera-intrinsics.txt is used, logged).
         format: "auto" (detected from the files), "7scenes", "tum" or "redwood".
         stride: keep every `stride`-th frame (in time order), starting with the first.
         max_frames: keep at most this many frames (after the stride), or None for all.
@@ -135,18 +150,27 @@ def read_rgbd_folder(
 
 
 def detect_rgbd_format(path: PathLike) -> str:
-    """The layout of an RGB-D folder: "7scenes", "tum" or "redwood" (FileFormatError if none fits)."""
+    """The layout of an RGB-D folder: "7scenes", "tum" or "redwood" (module docstring; MARKERS).
+
+    TUM and Redwood are recognised in `path` itself, 7-Scenes frames in `path` or in its one subfolder
+    holding them. FileFormatError if none fits (naming each layout's markers and the folders checked),
+    or if several subfolders hold 7-Scenes frames (naming them: point at one).
+    """
     path = Path(path)
     if (path / "depth.txt").is_file() and (path / "groundtruth.txt").is_file():
         return "tum"
-    if _seven_scenes_depths(path):
+    if _seven_scenes_folder(path) is not None:
         return "7scenes"
     if (path / "depth").is_dir() and list(path.glob("*.log")):
         return "redwood"
+    subfolders = _subfolders(path)
+    checked = ", ".join(f"{p.name}/" for p in subfolders[:8]) + (f" and {len(subfolders) - 8} more"
+                                                                  if len(subfolders) > 8 else "")
     raise FileFormatError(
-        f"{str(path)!r} holds no RGB-D frames of a known layout: expected 7-Scenes "
-        f"(frames/frame-XXXXXX.depth.png + .pose.txt), TUM (depth.txt, rgb.txt, groundtruth.txt) or "
-        f"Redwood (depth/*.png and a trajectory *.log)"
+        f"{str(path)!r} holds no RGB-D frames of a known layout. Looked for "
+        + "; ".join(f"{name}: {markers}" for name, markers in MARKERS.items())
+        + f". Checked {str(path)!r}" + (f" and its subfolders {checked}" if subfolders else " (no subfolders)")
+        + "; point data.path= (read_rgbd_folder's path) at the folder of one sequence"
     )
 
 
@@ -220,20 +244,51 @@ def associate(queries: np.ndarray, stamps: np.ndarray, tolerance: float) -> np.n
 # listings: folder -> _Listing
 
 
-def _seven_scenes_depths(path: Path) -> list[Path]:
-    for folder in (path / "frames", path):
-        found = sorted(folder.glob("frame-*.depth.png")) if folder.is_dir() else []
-        if found:
-            return found
-    return []
+def _subfolders(path: Path) -> list[Path]:
+    """The visible subfolders of `path`, sorted by name."""
+    return sorted(p for p in path.iterdir() if p.is_dir() and not p.name.startswith(".")) if path.is_dir() else []
+
+
+def _has_seven_scenes_frames(folder: Path) -> bool:
+    return next(folder.glob(_SEVEN_SCENES_DEPTH), None) is not None
+
+
+def _seven_scenes_folder(path: Path) -> Path | None:
+    """The folder of `path`'s 7-Scenes frames: `path` itself, else its one subfolder holding
+    frame-*.depth.png; None if none does. FileFormatError naming them when several subfolders do."""
+    if _has_seven_scenes_frames(path):
+        return path
+    found = [p for p in _subfolders(path) if _has_seven_scenes_frames(p)]
+    if len(found) > 1:
+        names = ", ".join(f"{p.name}/" for p in found)
+        raise FileFormatError(
+            f"{str(path)!r} holds 7-Scenes frames in {len(found)} subfolders ({names}): one sequence is read "
+            f"at a time; point at one of them (data.path={found[0]}); a camera-intrinsics.txt in "
+            f"{str(path)!r} serves the one you pick when it has none of its own"
+        )
+    return found[0] if found else None
+
+
+def _seven_scenes_intrinsics(path: Path, frames: Path) -> Path | None:
+    """camera-intrinsics.txt for frames in `frames`, given `path`: in `path`, else in `frames`, else,
+    when `path` holds the frames itself, in its parent (logged); None if none of them has one."""
+    for candidate in (path / _INTRINSICS, frames / _INTRINSICS):
+        if candidate.is_file():
+            return candidate
+    parent = path.resolve().parent / _INTRINSICS
+    if frames == path and parent.is_file():
+        log.info("%s has no %s; using the parent folder's %s", path, _INTRINSICS, parent)
+        return parent
+    return None
 
 
 def _list_7scenes(path: Path, with_color: bool, K) -> _Listing:
-    depths = _seven_scenes_depths(path)
+    folder = _seven_scenes_folder(path)
+    depths = sorted(folder.glob(_SEVEN_SCENES_DEPTH)) if folder is not None else []
     if not depths:
         raise FileFormatError(
-            f"7-Scenes folder {str(path)!r} has no frames: expected frames/frame-XXXXXX.depth.png "
-            f"(or frame-XXXXXX.depth.png directly in the folder)"
+            f"7-Scenes folder {str(path)!r} has no frames: expected frame-XXXXXX.depth.png directly in the "
+            f"folder or in one subfolder (frames/, seq-01/, ...)"
         )
     stems = [p.with_name(p.name[: -len(".depth.png")]) for p in depths]
     poses = np.stack(
@@ -242,13 +297,13 @@ def _list_7scenes(path: Path, with_color: bool, K) -> _Listing:
     colors = None
     if with_color:
         colors = [_first_existing(s, (".color.png", ".color.jpg"), "7-Scenes colour image") for s in stems]
-    candidates = (path / "camera-intrinsics.txt", depths[0].parent / "camera-intrinsics.txt")
-    intrinsics = next((f for f in candidates if f.is_file()), None)
+    intrinsics = _seven_scenes_intrinsics(path, folder) if K is None else None
     if K is not None:
         K = np.asarray(K, dtype=np.float64)
     elif intrinsics is None:
+        where = "neither it nor its frames' folder" if folder != path else "neither it nor its parent"
         warnings.warn(
-            f"{str(path)!r} has no camera-intrinsics.txt; using 7-Scenes' published K "
+            f"{str(path)!r}: {where} has a camera-intrinsics.txt; using 7-Scenes' published K "
             f"(fx = fy = 585, cx = 320, cy = 240); pass K= if the frames come from another camera",
             stacklevel=3,
         )
