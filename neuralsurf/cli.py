@@ -380,9 +380,13 @@ def evaluation_job(cfg: DictConfig) -> tuple[dict, Path]:
 def check_run_dir_argument(argv: list[str]) -> None:
     """Exit with a clear message when `hydra.run.dir=` (or `hydra.sweep.dir=`) names a path under a
     file or one that cannot be created (a read-only or virtual file system such as /proc, no
-    permission): Hydra's own mkdir would fail with a raw OSError before any neuralsurf code runs."""
+    permission): Hydra's own mkdir would fail with a raw OSError before any neuralsurf code runs.
+    A run directory another live run holds (`neuralsurf.runlock`) is refused too, before Hydra
+    writes its config and log there."""
     import sys
     import tempfile
+
+    from neuralsurf.runlock import busy_message
 
     for argument in argv:
         if argument.startswith(("hydra.run.dir=", "hydra.sweep.dir=")):
@@ -393,6 +397,9 @@ def check_run_dir_argument(argv: list[str]) -> None:
                 sys.exit(f"error: {key}={value}: {blocking} is a file, not a folder; choose another run directory")
             if "${" in value:  # resolved by Hydra later
                 continue
+            busy = busy_message(path) if key == "hydra.run.dir" else None
+            if busy is not None:  # before Hydra writes its config and log into the other run's folder
+                sys.exit(f"error: {key}={value}: {busy}")
             existing = next(p for p in (path.absolute(), *path.absolute().parents) if p.exists())
             try:  # a folder made and removed where the run directory's first missing folder would go
                 os.rmdir(tempfile.mkdtemp(dir=existing, prefix=".neuralsurf-check-"))

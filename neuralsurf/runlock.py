@@ -72,6 +72,25 @@ def _take_over(path: Path, text: str) -> None:
     aside.unlink()
 
 
+def _refusal(path: Path, holder: dict | None) -> str:
+    """Why the run directory of the live lock at `path`, held by `holder`, cannot be used."""
+    who = (f"pid {holder['pid']} on {holder['host']} (since {holder.get('started', '?')})"
+           if holder else "a run that is starting")
+    return (f"run directory {path.parent} is in use by {who}: two runs into one directory would overwrite "
+            f"each other's checkpoints and outputs. Wait for it, choose another hydra.run.dir, or delete {path} "
+            f"if that run is gone")
+
+
+def busy_message(run_dir: str | Path) -> str | None:
+    """The refusal `acquire` would give when a live run holds `run_dir`'s lock, else None (a check
+    before Hydra writes its own files there)."""
+    path = Path(run_dir) / LOCK_NAME
+    if not path.exists():
+        return None
+    _, holder = _read(path)
+    return None if _stale(path, holder) else _refusal(path, holder)
+
+
 def acquire(run_dir: str | Path) -> dict:
     """Create `run_dir`/LOCK_NAME for this process (the folder too, if missing) and return its record
     {"pid", "host", "token", "started"}. Raises ConfigError naming the holder when another live run
@@ -86,11 +105,7 @@ def acquire(run_dir: str | Path) -> dict:
         except FileExistsError:
             text, holder = _read(path)
             if not _stale(path, holder):
-                who = (f"pid {holder['pid']} on {holder['host']} (since {holder.get('started', '?')})"
-                       if holder else "a run that is starting")
-                raise ConfigError(f"run directory {path.parent} is in use by {who}: two runs into one directory "
-                                  f"would overwrite each other's checkpoints and outputs. Wait for it, choose "
-                                  f"another hydra.run.dir, or delete {path} if that run is gone") from None
+                raise ConfigError(_refusal(path, holder)) from None
             _take_over(path, text)
             continue
         with os.fdopen(descriptor, "w") as file:

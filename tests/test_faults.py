@@ -165,7 +165,7 @@ def test_train_refuses_a_run_directory_another_train_holds(tmp_path):
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from neuralsurf.cli import train
+    from neuralsurf.cli import check_run_dir_argument, train
     from neuralsurf.errors import ConfigError
     from neuralsurf.runlock import run_lock
 
@@ -177,6 +177,9 @@ def test_train_refuses_a_run_directory_another_train_holds(tmp_path):
     with run_lock(tmp_path), pytest.raises(ConfigError, match="is in use by pid"):
         train(cfg)
     assert not (tmp_path / "checkpoints").exists()
+    with run_lock(tmp_path), pytest.raises(SystemExit, match=r"hydra\.run\.dir=.*is in use by pid"):
+        check_run_dir_argument([f"hydra.run.dir={tmp_path}"])  # train.py's check, before Hydra writes there
+    check_run_dir_argument([f"hydra.run.dir={tmp_path}"])  # free again
 
 
 def test_completing_a_cloud_outside_the_priors_unit_frame_warns_with_its_bounds_and_the_fix():
