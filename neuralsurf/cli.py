@@ -397,7 +397,8 @@ def check_run_dir_argument(argv: list[str]) -> None:
                 sys.exit(f"error: {key}={value}: {blocking} is a file, not a folder; choose another run directory")
             if "${" in value:  # resolved by Hydra later
                 continue
-            busy = busy_message(path) if key == "hydra.run.dir" else None
+            rank = int(os.environ.get("RANK", "0"))  # torchrun: rank 0's lock is the job's own
+            busy = busy_message(path) if key == "hydra.run.dir" and rank == 0 else None
             if busy is not None:  # before Hydra writes its config and log into the other run's folder
                 sys.exit(f"error: {key}={value}: {busy}")
             existing = next(p for p in (path.absolute(), *path.absolute().parents) if p.exists())
