@@ -231,6 +231,32 @@ def test_a_file_lock_lets_one_process_in_at_a_time(tmp_path):
     assert counter.read_text() == "30"
 
 
+def _build_collection(root: str, out: str, start) -> None:
+    from neuralsurf.priors import ShapeCollection
+    from neuralsurf.shapes.cache import build_collection
+
+    collection = ShapeCollection(classes=("lamp",), n_train=1, n_test=1, n_sdf=500, n_occ=100, n_surface=500,
+                                 mesh_resolution=24, workers=0, root=root)
+    start.wait(120)  # both processes ask at the same moment
+    counts = build_collection(collection.folder, collection.records(), collection.recipe, progress=False)
+    Path(out).write_text(json.dumps(counts))
+
+
+def test_jobs_building_one_shape_collection_together_build_each_shape_once(tmp_path):
+    context = multiprocessing.get_context("spawn")
+    outs, start = [tmp_path / f"counts_{i}.json" for i in range(2)], context.Barrier(2)
+    workers = [context.Process(target=_build_collection, args=(str(tmp_path / "shapes"), str(out), start))
+               for out in outs]
+    for worker in workers:
+        worker.start()
+    for worker in workers:
+        worker.join(300)
+    assert [w.exitcode for w in workers] == [0, 0]
+    counts = [json.loads(out.read_text()) for out in outs]
+    assert sorted(c["built"] for c in counts) == [0, 2]  # one process built both shapes ...
+    assert sorted(c["cached"] for c in counts) == [0, 2]  # ... the other found them cached
+
+
 def test_a_scene_is_built_once_and_read_back_by_later_jobs(tmp_path):
     import torch
 
