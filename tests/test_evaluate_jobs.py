@@ -257,6 +257,46 @@ def test_jobs_building_one_shape_collection_together_build_each_shape_once(tmp_p
     assert sorted(c["cached"] for c in counts) == [0, 2]  # ... the other found them cached
 
 
+def _train_prior(folder: str, start) -> None:
+    """train_prior into `folder`, with fit wrapped to append a line to `<folder>.fits` each time it runs."""
+    import functools
+
+    from neuralsurf import training
+    from neuralsurf.observations.collection import CollectionSDF
+    from neuralsurf.priors import ShapeCollection, deepsdf, train_prior
+
+    real_fit = training.fit
+
+    def counted_fit(*args, **kwargs):
+        with open(f"{folder}.fits", "a") as handle:
+            handle.write("fit\n")
+        return real_fit(*args, **kwargs)
+
+    training.fit = counted_fit
+    collection = ShapeCollection(classes=("lamp",), n_train=2, n_test=0, n_sdf=500, n_occ=100, n_surface=500,
+                                 mesh_resolution=24, workers=0, root=f"{folder}_shapes")
+    start.wait(120)
+    train_prior(folder, collection, functools.partial(deepsdf, latent_dim=8, width=32, depth=2, skip_layers=()),
+                [functools.partial(CollectionSDF.from_collection, shapes_per_batch=2, samples_per_shape=64)],
+                trainer={"steps": 3, "checkpoint_every": 3, "log_every": 3})
+
+
+def test_jobs_asking_for_one_prior_together_train_it_once(tmp_path):
+    from neuralsurf.models import AutoDecoder
+    from neuralsurf.priors import load_prior
+
+    context = multiprocessing.get_context("spawn")
+    folder, start = tmp_path / "prior_abc", context.Barrier(2)
+    workers = [context.Process(target=_train_prior, args=(str(folder), start)) for _ in range(2)]
+    for worker in workers:
+        worker.start()
+    for worker in workers:
+        worker.join(300)
+    assert [w.exitcode for w in workers] == [0, 0]
+    assert Path(f"{folder}.fits").read_text() == "fit\n"  # the second process reused the first one's prior
+    assert isinstance(load_prior(folder / "checkpoints" / "last.pt"), AutoDecoder)
+
+
 def test_a_scene_is_built_once_and_read_back_by_later_jobs(tmp_path):
     import torch
 
