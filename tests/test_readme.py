@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from neuralsurf.data import locate
 
@@ -25,14 +26,24 @@ TEST_COMMAND = "./install.sh dev && .venv/bin/python -m pytest -q"
 
 TINY_TRAIN = ["trainer.steps=2", "trainer.log_every=1", "trainer.image_every=0", "trainer.progress=false",
               "extract.resolution=32"]
-TINY_TRAIN_DATA = {"data=rgbd": ["data.max_frames=6"], "experiment=redkitchen_depth": ["data.max_frames=6"]}
-"""Extra settings for commands that name these (fewer frames of a real capture)."""
 NEEDS_DATA = {"redkitchen": "7scenes_redkitchen", "7scenes_redkitchen": "7scenes_redkitchen",
               "stanford_scans": "stanford_bunny", "stanford_bunny": "stanford_bunny"}
 """Words of a command -> the data set it needs (skipped with the fetch command when neither
 NEURALSURF_DATA nor the cache has it: the tests never download)."""
 TINY_EVALUATE = ["suite=tiny", "render_size=64"]
 """Appended to evaluate.py commands: the command's own scenes=/methods= still win over the suite's."""
+SMALL_OBSERVATIONS = {
+    "PointSamples": {"n_near": 20_000, "n_free": 5_000, "winding_points": 1_000},
+    "DepthRays": {"max_rays": 200_000, "winding_points": 1_000, "denoise_k": 0},
+    "CollectionSDF": {"shapes_per_batch": 6, "samples_per_shape": 256},
+    "CollectionOccupancy": {"shapes_per_batch": 6, "query_points": 256, "cloud_points": 300},
+}
+"""Options of a tiny fit, by observation class (the presets build sample pools for thousands of steps;
+the rays' denoising of every hit is left out)."""
+SMALL_DATA = {"max_frames": 6, "n_train": 2, "n_test": 1, "n_sdf": 4_000, "n_occ": 4_000, "n_surface": 3_000,
+              "mesh_resolution": 32}
+"""Data options of a tiny fit, where the data config has them: a few frames of a capture, a few shapes
+of a collection."""
 
 
 def fenced_blocks(text: str) -> list[tuple[str, str]]:
@@ -96,11 +107,25 @@ def write_capture(folder: Path) -> None:
         np.savetxt(folder / "frames" / f"frame-{i:06d}.pose.txt", frames.cam_to_world[i].cpu().numpy())
 
 
-def with_tiny_settings(command: str) -> str:
-    """`command` with tiny settings appended to each train.py / evaluate.py call in it."""
+def tiny_overrides(call: str, cwd: Path) -> list[str]:
+    """Overrides that shrink what a train.py call prepares (its observations' pools, its data, the
+    prior's scoring), read from its composed config (`--cfg job`, which runs nothing)."""
+    done = run(f"{call} --cfg job", cwd)
+    assert done.returncode == 0, f"{call} does not compose:\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}"
+    cfg = yaml.safe_load(done.stdout)
+    overrides = [f"observation.{name}.{key}={value}" for name, options in (cfg.get("observation") or {}).items()
+                 for kind, small in SMALL_OBSERVATIONS.items() if f".{kind}." in options.get("_target_", "")
+                 for key, value in small.items() if key in options]
+    overrides += [f"data.{key}={value}" for key, value in SMALL_DATA.items() if key in cfg["data"]]
+    return overrides + (["score.latent_steps=5"] if "latent_steps" in (cfg.get("score") or {}) else [])
+
+
+def with_tiny_settings(command: str, cwd: Path | None = None) -> str:
+    """`command` with tiny settings appended to each train.py / evaluate.py call in it (with `cwd`, the
+    train.py calls' sample pools shrunk too)."""
     def shrink(call: str) -> str:
         if re.search(r"(train\.py|neuralsurf-train|-m neuralsurf train)(\s|$)", call):
-            extra = TINY_TRAIN + [o for key, more in TINY_TRAIN_DATA.items() if key in call for o in more]
+            extra = TINY_TRAIN + (tiny_overrides(call, cwd) if cwd is not None else [])
         elif re.search(r"(evaluate\.py|neuralsurf-evaluate|-m neuralsurf evaluate)(\s|$)", call):
             extra = TINY_EVALUATE
         else:
@@ -112,7 +137,7 @@ def with_tiny_settings(command: str) -> str:
 
 def run(command: str, cwd: Path, timeout: float = 900) -> subprocess.CompletedProcess:
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
-           "NEURALSURF_PROGRESS": "0"}
+           "NEURALSURF_PROGRESS": "0", "NEURALSURF_CACHE": str(cwd / "cache")}
     env.pop("VIRTUAL_ENV", None)
     return subprocess.run(["bash", "-c", command], cwd=cwd, env=env, capture_output=True, text=True,
                           timeout=timeout, check=False)
@@ -165,7 +190,7 @@ def test_readme_command_runs(command, workspace):
     if command.split()[0] == "tensorboard":
         serves(command, workspace)
         return
-    done = run(with_tiny_settings(command), workspace)
+    done = run(with_tiny_settings(command, workspace), workspace)
     assert done.returncode == 0, f"{command}\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
 
 
@@ -182,4 +207,11 @@ def test_tiny_settings_go_after_every_train_and_evaluate_call():
     assert command.endswith("experiment=bunny_sdf " + " ".join(TINY_TRAIN))
     assert with_tiny_settings("python evaluate.py suite=depth").endswith("suite=depth suite=tiny render_size=64")
     assert with_tiny_settings("neuralsurf-score mesh.ply gt.ply") == "neuralsurf-score mesh.ply gt.ply"
-    assert "data.max_frames=6" in with_tiny_settings("python train.py data=rgbd data.path=my_capture")
+
+
+def test_tiny_overrides_follow_the_composed_config(workspace):
+    rgbd = tiny_overrides("python train.py data=rgbd data.path=my_capture", workspace)
+    assert "data.max_frames=6" in rgbd and "observation.rays.denoise_k=0" in rgbd
+    assert not any(o.startswith("observation.points.") for o in rgbd)  # the experiment's leftover: not selected
+    assert "observation.points.n_near=20000" in tiny_overrides("python train.py experiment=bunny_sdf", workspace)
+    assert "data.n_train=2" in tiny_overrides("python train.py experiment=shapes_deepsdf", workspace)
