@@ -30,6 +30,10 @@ QUICK_FSCORE_BAR = {"sphere": 0.99, "bunny_noisy": 0.85, "bunny_depth": 0.9}
 METRICS = ["chamfer_l1", "chamfer_l2", "chamfer_l1_exact", "normal_consistency", "fscore_1%", "hausdorff"]
 
 
+ALWAYS_FAILS = "+method.broken._target_=failing_method.always_fails"
+"""A method named broken that raises (tests/failing_method.py): how a failed row looks."""
+
+
 def compose_evaluate(overrides: list[str]):
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         return compose(config_name="evaluate", overrides=overrides)
@@ -54,7 +58,7 @@ def test_every_suite_composes_and_names_known_scenes_and_methods(suite):
 
 def test_every_scene_and_method_config_is_loaded():
     cfg = compose_evaluate([])
-    assert set(SCENES) == set(cfg.scene) and set(METHODS) - {"broken"} == set(cfg.method)
+    assert set(SCENES) == set(cfg.scene) and set(METHODS) == set(cfg.method)
     for name in SCENES:
         assert cfg.scene[name]._target_.startswith("neuralsurf.scenes.")
     # the neural method reuses train.py's groups
@@ -68,8 +72,6 @@ def test_every_scene_and_method_config_is_loaded():
 @pytest.mark.parametrize("method", METHODS)
 def test_every_method_config_instantiates(method):
     cfg = compose_evaluate([f"methods=[{method}]"])
-    if method not in cfg.method:  # extra methods (broken) are loaded on demand
-        cfg = compose_evaluate([f"+method@method.{method}={method}", f"methods=[{method}]"])
     assert callable(instantiate(cfg.method[method], _partial_=True, _convert_="all"))
 
 
@@ -115,7 +117,7 @@ def test_tiny_run_writes_tables_plots_renders_and_report(tmp_path):
 
 
 def test_a_failing_method_is_a_row_and_the_run_goes_on(tmp_path):
-    rows = tiny_run(tmp_path, ["+method@method.broken=broken", "methods=[broken,poisson]"])
+    rows = tiny_run(tmp_path, [ALWAYS_FAILS, "methods=[broken,poisson]"])
     by_method = {r["method"]: r for r in rows}
     assert by_method["broken"]["status"] == "failed" and "always fails" in by_method["broken"]["reason"]
     assert by_method["poisson"]["status"] == "ok"
@@ -215,7 +217,7 @@ def test_report_opens_in_headless_chromium_with_table_plots_and_every_render(tmp
     from PIL import Image
     from selenium.webdriver.common.by import By
 
-    rows = tiny_run(tmp_path, ["+method@method.broken=broken", "methods=[broken,poisson,neural_sdf]"])
+    rows = tiny_run(tmp_path, [ALWAYS_FAILS, "methods=[broken,poisson,neural_sdf]"])
     browser = chromium_driver()
     try:
         browser.get((tmp_path / "report.html").as_uri())

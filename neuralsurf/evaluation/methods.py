@@ -92,11 +92,6 @@ def tsdf(scene: Scene, *, voxel_fraction: float = 1 / 256, truncation_voxels: fl
     return volume.integrate(scene.frames).extract_mesh()
 
 
-def broken(scene: Scene, *, message: str = "this method always fails", **_: Any) -> Mesh:
-    """A method that raises: checks that a failing method becomes a "failed" row (tests, demos)."""
-    raise RuntimeError(message)
-
-
 def learned_prior(scene: Scene, *, checkpoint: str | None = None, collection=None, model: Callable | None = None,
                   observation: dict[str, Callable] | None = None, optimizer: Callable | None = None,
                   trainer: dict[str, Any] | None = None, latent_steps: int = 200, resolution: int = 128,
