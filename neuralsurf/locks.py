@@ -2,7 +2,7 @@
 of one evaluation sweep on one machine or on a cluster's shared file system).
 
 - `file_lock(path)`: hold an exclusive lock on `path` (created if missing) for a `with` block; a second
-  process blocks until the first leaves it. The lock dies with its process (a killed job never leaves a
+  process blocks until the first leaves it. `lock_or_none(path)`: the same without waiting. The lock dies with its process (a killed job never leaves a
   stale lock behind). POSIX `flock`; `msvcrt.locking` on Windows.
 - `write_atomic(path, data)` and `replaced(path)`: a file appears whole or not at all (a temporary
   file in the same folder, then `os.replace`), so a reader never sees half of one.
@@ -16,6 +16,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import IO
 
 from neuralsurf.errors import NeuralsurfError
 
@@ -44,19 +45,50 @@ def file_lock(path: str | Path) -> Iterator[Path]:
         handle.close()
 
 
-def _lock(handle) -> None:
+@contextmanager
+def lock_or_none(path: str | Path) -> Iterator[IO[str] | None]:
+    """Take the exclusive lock on `path` (str | Path: a lock file, created with its folders) without
+    waiting: yields the open file (text, read and write) while this process holds it, or None when
+    another process holds it. Raises LockError naming the path when it cannot be created."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle = open(path, "a+")  # noqa: SIM115 - held for the with block, closed below
+    except OSError as error:
+        raise LockError(f"cannot create the lock file {path}: {error.strerror or error}; make its folder "
+                        f"writable or choose another folder") from error
+    try:
+        held = _lock(handle, wait=False)
+        try:
+            yield handle if held else None
+        finally:
+            if held:
+                _unlock(handle)
+    finally:
+        handle.close()
+
+
+def _lock(handle, wait: bool = True) -> bool:
+    """Lock the open file `handle`; with `wait` False, return False at once when another process holds it."""
     try:
         import fcntl
     except ImportError:  # Windows
         import msvcrt
 
+        handle.seek(0)
         while True:
             try:
-                msvcrt.locking(handle.fileno(), msvcrt.LK_LOCK, 1)
-                return
+                msvcrt.locking(handle.fileno(), msvcrt.LK_LOCK if wait else msvcrt.LK_NBLCK, 1)
+                return True
             except OSError:  # LK_LOCK gives up after 10 s: try again
+                if not wait:
+                    return False
                 time.sleep(0.1)
-    fcntl.flock(handle.fileno(), fcntl.LOCK_EX)
+    try:
+        fcntl.flock(handle.fileno(), fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    return True
 
 
 def _unlock(handle) -> None:

@@ -134,31 +134,32 @@ def test_a_nan_in_a_camera_pose_is_an_input_error_naming_the_frame(entry, part):
         DepthFrames(torch.ones(3, 6, 8), K, poses)
 
 
-def test_a_second_run_into_a_busy_run_directory_is_refused_and_a_dead_ones_lock_taken_over(tmp_path):
-    import json
+def test_a_second_run_into_a_busy_run_directory_is_refused_and_a_killed_ones_lock_is_free(tmp_path):
     import os
-    import socket
+    import signal
     import subprocess
     import sys
 
     from neuralsurf.errors import ConfigError
-    from neuralsurf.runlock import LOCK_NAME, run_lock
+    from neuralsurf.runlock import busy_message, run_lock
 
-    holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom neuralsurf.runlock import run_lock\n"
+                               f"with run_lock({str(tmp_path)!r}):\n    print('held', flush=True)\n    time.sleep(60)"],
+                              stdout=subprocess.PIPE, text=True)
     try:
-        (tmp_path / LOCK_NAME).write_text(json.dumps({"pid": holder.pid, "host": socket.gethostname()}))
+        assert holder.stdout.readline().strip() == "held"
         with pytest.raises(ConfigError, match=rf"in use by pid {holder.pid} on .*choose another hydra\.run\.dir"), \
                 run_lock(tmp_path):
             pass
+        assert f"pid {holder.pid}" in busy_message(tmp_path)
     finally:
-        holder.kill()
+        holder.send_signal(signal.SIGKILL)  # a killed run leaves no stale lock behind
         holder.wait()
-    with run_lock(tmp_path):  # the holder died (kill -9): its lock is stale and taken over
-        record = json.loads((tmp_path / LOCK_NAME).read_text())
-        assert record["pid"] == os.getpid()
+    assert busy_message(tmp_path) is None
+    with run_lock(tmp_path):
         with pytest.raises(ConfigError, match=rf"in use by pid {os.getpid()}"), run_lock(tmp_path):
             pass
-    assert not (tmp_path / LOCK_NAME).exists()  # released at the end
+    assert busy_message(tmp_path) is None  # released at the end
 
 
 def test_train_refuses_a_run_directory_another_train_holds(tmp_path):
