@@ -143,9 +143,9 @@ def test_a_second_run_into_a_busy_run_directory_is_refused_and_a_killed_ones_loc
     from neuralsurf.errors import ConfigError
     from neuralsurf.runlock import busy_message, run_lock
 
-    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom neuralsurf.runlock import run_lock\n"
-                               f"with run_lock({str(tmp_path)!r}):\n    print('held', flush=True)\n    time.sleep(60)"],
-                              stdout=subprocess.PIPE, text=True)
+    script = ("import time\nfrom neuralsurf.runlock import run_lock\n"
+              f"with run_lock({str(tmp_path)!r}):\n    print('held', flush=True)\n    time.sleep(60)")
+    holder = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "held"
         with pytest.raises(ConfigError, match=rf"in use by pid {holder.pid} on .*choose another hydra\.run\.dir"), \
@@ -156,9 +156,8 @@ def test_a_second_run_into_a_busy_run_directory_is_refused_and_a_killed_ones_loc
         holder.send_signal(signal.SIGKILL)  # a killed run leaves no stale lock behind
         holder.wait()
     assert busy_message(tmp_path) is None
-    with run_lock(tmp_path):
-        with pytest.raises(ConfigError, match=rf"in use by pid {os.getpid()}"), run_lock(tmp_path):
-            pass
+    with run_lock(tmp_path), pytest.raises(ConfigError, match=rf"in use by pid {os.getpid()}"), run_lock(tmp_path):
+        pass
     assert busy_message(tmp_path) is None  # released at the end
 
 
