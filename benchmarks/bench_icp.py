@@ -13,7 +13,7 @@ alike; the load average is printed.
 Bunny: two different area-uniform samples of neuralsurf.scenes.bunny, the source moved by 10 degrees
 and 3 % of the size, from the identity; errors against the known motion.
 
-Real scans ($NEURALSURF_DATA or ../shared/data, Stanford bunny range scans): each scan but the first,
+Real scans ($NEURALSURF_DATA or the fetch cache, Stanford bunny range scans): each scan but the first,
 its .conf pose perturbed by 5 degrees and 1 cm, point-to-plane against the other nine at their .conf
 poses, through a voxel pyramid of 4, 2, 1 mm (Open3D directly: voxel_down_sample of both clouds per
 level, its averaged normals, registration_icp); errors against .conf, summed times.
@@ -30,7 +30,6 @@ import argparse
 import os
 import platform
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -38,9 +37,10 @@ import torch
 from neuralsurf.baselines.icp import _fpfh, register_global, register_icp
 from neuralsurf.geometry import cloud_from_mesh
 from neuralsurf.scenes import bunny
+from neuralsurf.scenes.recipes import data_root
 from neuralsurf.structures import PointCloud
 
-DATA = Path(os.environ.get("NEURALSURF_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+DATA = data_root()
 
 
 def motion(degrees: float, shift: float, seed: int = 0) -> np.ndarray:

@@ -1,8 +1,8 @@
 """Photometric stereo speed, ours against a plain numpy least-squares reference in one run, and the
-accuracy numbers of issue 12 (rig, bunny_specular_ps, normal integration, depth step).
+accuracy numbers (rig, bunny_specular_ps, normal integration, depth step).
 
     python benchmarks/bench_photometric.py [--lights 96] [--width 612] [--height 512] [--repeats 3]
-                                           [--threads 2] [--accuracy] [--data ../shared/data]
+                                           [--threads 2] [--accuracy] [--data <folder>]
 
 Speed input: a DiLiGenT-sized capture (96 lights, 612x512, RGB float32) of analytic sphere normals
 with a random albedo under `cap_lights`. Both methods solve every pixel (no mask), from the same
@@ -17,7 +17,6 @@ The robust method's time is printed too, and on a CUDA GPU both methods' times t
 from __future__ import annotations
 
 import argparse
-import os
 import platform
 import time
 from pathlib import Path
@@ -37,6 +36,7 @@ from neuralsurf.photometric import (
     trimmed_stereo,
 )
 from neuralsurf.scenes.photometric_rig import SpecularLobe, cap_lights, render_photometric, ring_lights
+from neuralsurf.scenes.recipes import data_root
 
 
 def best_of(repeats: int, run):
@@ -352,9 +352,8 @@ def main() -> None:
     parser.add_argument("--rig-size", type=int, default=256)
     parser.add_argument(
         "--data",
-        default=os.environ.get(
-            "NEURALSURF_DATA", str(Path(__file__).resolve().parents[2] / "shared" / "data")
-        ),
+        default=str(data_root()),
+        help="the folder of real captures (default: $NEURALSURF_DATA, else the fetch cache)",
     )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

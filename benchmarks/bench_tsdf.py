@@ -21,7 +21,7 @@ Bunny: 24 exact 320 x 240 views from `scan_depth`, voxel = longest side of the b
 Chamfer-L1 (exact, unit frame) of each mesh against the bunny.
 
 7-Scenes (redkitchen, every 10th frame: 100 frames of 640 x 480, Kinect v1; $NEURALSURF_DATA or
-../shared/data) at 1 cm and 2 cm: each row runs in its own subprocess, so that its peak RSS is its
+the fetch cache) at 1 cm and 2 cm: each row runs in its own subprocess, so that its peak RSS is its
 own ("fusion MB": peak RSS during integration and extraction minus the RSS before). UniformTSDFVolume
 is a cube over the room's box: at 1 cm it would take about 290 M voxels (> 10 GB), so it runs at
 2 cm only. Our 1 cm mesh is written to /tmp/redkitchen_tsdf_1cm.ply for a look.
@@ -43,8 +43,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from neuralsurf.scenes.recipes import data_root
+
 ROOT = Path(__file__).resolve().parents[1]
-DATA = Path(os.environ.get("NEURALSURF_DATA", ROOT.parent / "shared" / "data"))
+DATA = data_root()
 KITCHEN = DATA / "7scenes_redkitchen_every10"
 MESH_OUT = Path("/tmp/redkitchen_tsdf_1cm.ply")
 WARM_UP: dict[str, float] = {}

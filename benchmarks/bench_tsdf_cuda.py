@@ -11,7 +11,7 @@ GPU (after one warm-up, with torch.cuda.synchronize) and once on the CPU over `-
 printed: frames/s on each and their ratio, and how far the GPU and CPU meshes are apart (mean
 distance of the GPU mesh's vertices to the CPU mesh, in voxels).
 
-7-Scenes (redkitchen, 100 frames 640 x 480, `--data` or $NEURALSURF_DATA or ../shared/data): sparse
+7-Scenes (redkitchen, 100 frames 640 x 480, `--data` or $NEURALSURF_DATA or the fetch cache): sparse
 1 cm and 2 cm volumes, truncation 3 voxels, on the GPU and the CPU: ms/frame, blocks, peak GPU
 memory; beside them Open3D's VoxelBlockGrid on CUDA (its fastest path: compute_unique_block_coordinates
 then integrate per frame, after one warm-up run) on the same frames and grid, with the ratio of our
@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from neuralsurf.baselines import TSDFVolume, depth_bounds
+from neuralsurf.scenes.recipes import data_root
 from neuralsurf.structures import DepthFrames
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -184,7 +185,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="GPU: best of this many integrations")
     parser.add_argument("--frames", help="load the bunny views from this .npz (from --save-frames)")
     parser.add_argument("--save-frames", help="render the bunny views, save them here, and go on")
-    parser.add_argument("--data", default=os.environ.get("NEURALSURF_DATA", ROOT.parent / "shared" / "data"))
+    parser.add_argument("--data", default=data_root())
     parser.add_argument("--threads", type=int, default=1, help="CPU threads of our CPU runs (TSDFVolume(threads=...))")
     parser.add_argument("--frames-per-pass", type=int, nargs="+", default=[1, 8, 16, 32],
                         help="GPU: frames fused per pass (TSDFVolume.frames_per_pass), one row each")

@@ -1,7 +1,7 @@
 """Photometric stereo on the UW CSE 576 set: calibrate the 12 lights from the chrome ball, then
 recover normals, albedo and depth of the six objects.
 
-    python benchmarks/uw_photometric.py [--data ../shared/data] [--out docs/images/photometric]
+    python benchmarks/uw_photometric.py [--data <folder>] [--out docs/images/photometric]
                                         [--method robust] [--scale 0.5]
 
 Lights: `calibrate_chrome_ball` on chrome/ (highlight centroid, mirror reflection of the view
@@ -17,7 +17,6 @@ cropped to the mask and scaled by `--scale`, under `--out`.
 from __future__ import annotations
 
 import argparse
-import os
 import time
 from pathlib import Path
 
@@ -34,6 +33,7 @@ from neuralsurf.photometric import (
     render_lambertian,
     robust_stereo,
 )
+from neuralsurf.scenes.recipes import data_root
 
 OBJECTS = ("buddha", "cat", "gray", "horse", "owl", "rock")
 
@@ -66,9 +66,8 @@ def main() -> None:
     )
     parser.add_argument(
         "--data",
-        default=os.environ.get(
-            "NEURALSURF_DATA", str(Path(__file__).resolve().parents[2] / "shared" / "data")
-        ),
+        default=str(data_root()),
+        help="the folder of real captures (default: $NEURALSURF_DATA, else the fetch cache)",
     )
     parser.add_argument(
         "--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "images" / "photometric")

@@ -1,5 +1,4 @@
-"""Defects found by probing main at 7ae1b8d as a new user and as an attacker would (issue 16): each is now a
-clear error or a warning. Every test here failed (or crashed) on 7ae1b8d."""
+"""Bad input as a new user or an attacker would give it: each is a clear error or a warning."""
 
 from pathlib import Path
 

@@ -1,4 +1,4 @@
-"""Photometric methods of the benchmark (issue 12).
+"""Photometric methods of the benchmark.
 
 - `photometric_normals` (configs ps_least_squares, ps_robust): photometric stereo on every capture of
   a scene; it returns a `NormalMapResult`, not a mesh, which the runner scores by angular error

@@ -210,7 +210,7 @@ def stanford_scans(name: str = "stanford_scans", root: str | None = None, conf: 
 
 
 # ----------------------------------------------------------------------------------------------
-# photometric scenes (issue 12): captures under known lights, and depth + normals from one rig
+# photometric scenes: captures under known lights, and depth + normals from one rig
 
 
 def _rig_view(mesh: Mesh, distance: float = 2.5) -> torch.Tensor:
