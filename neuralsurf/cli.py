@@ -149,15 +149,18 @@ def _override_key(override: str) -> str:
 
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit the configured model to the configured scene, extract, measure and write the outputs:
-    <run dir>/mesh.ply, metrics.json, checkpoints/last.pt and TensorBoard events."""
+    <run dir>/mesh.<extract.format> (mesh.ply by default), metrics.json, checkpoints/last.pt and
+    TensorBoard events."""
     from neuralsurf.devices import resolve_device
     from neuralsurf.distributed import init_from_environment, is_main_process
     from neuralsurf.evaluation.methods import extract_scene_mesh
     from neuralsurf.io import write_mesh
+    from neuralsurf.io.meshes import mesh_format
     from neuralsurf.metrics import depth_metrics, evaluate_mesh
     from neuralsurf.priors import ShapeCollection
     from neuralsurf.runlock import run_lock
 
+    extension = mesh_format(cfg.extract.get("format", "ply"))  # a bad format fails before the fit
     device = resolve_device(init_from_environment(cfg.device))  # torchrun: the process group, a GPU per rank
     run_dir = shared_run_directory(cfg)
     with run_lock(run_dir, hold=is_main_process()):  # one run per run directory
@@ -167,7 +170,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
         scene = instantiate(cfg.data)
         log.info("scene %s: %s", scene.name, scene.description)
         if isinstance(scene, ShapeCollection):
-            return train_prior(cfg, scene, run_dir, config, device)
+            return train_prior(cfg, scene, run_dir, config, device, extension)
         model = instantiate(cfg.model, _convert_="all")
         result = fit(model, build_observations(cfg, scene), optimizer=instantiate(cfg.optimizer), device=device,
                      seed=cfg.seed, run_dir=run_dir, config=config, **config["trainer"])
@@ -175,7 +178,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
         started = time.perf_counter()
         mesh = extract_scene_mesh(result.field, scene, config["extract"])
         extract_seconds = time.perf_counter() - started
-        mesh_path = run_dir / "mesh.ply"
+        mesh_path = run_dir / f"mesh{extension}"
         write_mesh(mesh_path, mesh)
 
         metrics = evaluate_mesh(mesh, scene.ground_truth, seed=cfg.seed) if scene.ground_truth is not None else {}
@@ -201,10 +204,11 @@ def shared_run_directory(cfg: DictConfig) -> Path:
     return shared
 
 
-def train_prior(cfg: DictConfig, collection, run_dir: Path, config: dict, device: str) -> dict[str, float]:
+def train_prior(cfg: DictConfig, collection, run_dir: Path, config: dict, device: str,
+                extension: str = ".ply") -> dict[str, float]:
     """Train a learned prior (cfg.model: a builder called with the collection's number of training
     shapes) over `collection` (built here, or found cached), then complete its test shapes from noisy
-    clouds (cfg.score) and write mesh.ply (the first test shape), metrics.json (means and per-shape
+    clouds (cfg.score) and write mesh<extension> (the first test shape), metrics.json (means and per-shape
     values) and checkpoints/last.pt (read back with neuralsurf.priors.load_prior). Under torchrun
     every rank trains; rank 0 alone builds, scores and writes. An auto-decoder also writes
     interpolation.png: the shapes between the codes of its first and last training shapes."""
@@ -235,7 +239,7 @@ def train_prior(cfg: DictConfig, collection, run_dir: Path, config: dict, device
     means, per_shape, mesh = score_completions(result.model, collection.test_shapes(limit), seed=cfg.seed,
                                                device=device, resolution=cfg.extract.resolution, **score)
     if mesh is not None:
-        write_mesh(run_dir / "mesh.ply", mesh)
+        write_mesh(run_dir / f"mesh{extension}", mesh)
     if isinstance(result.model, AutoDecoder) and len(result.model.codes) >= 2:  # the first and last training shapes
         interpolation_picture(result.model, 0, len(result.model.codes) - 1, run_dir / "interpolation.png",
                               resolution=cfg.extract.resolution)
@@ -334,7 +338,7 @@ def evaluate(cfg: DictConfig) -> list[dict]:
         return build
 
     configs = {name: OmegaConf.to_container(cfg.method[name], resolve=True) for name in methods}
-    common = {key: cfg[key] for key in ("seed", "n_samples", "render", "render_size", "save_meshes")}
+    common = {key: cfg[key] for key in ("seed", "n_samples", "render", "render_size", "save_meshes", "mesh_format")}
     settings = {(s, m): row_settings(scene_configs[s], configs[m], common) for s, m in pairs}
     started, computed = time.perf_counter(), []
 
@@ -349,8 +353,8 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     rows = run_benchmark({name: scene_factory(name) for name in scenes},
                          {name: method_factory(name) for name in methods}, results_dir, seed=cfg.seed,
                          n_samples=cfg.n_samples, render=cfg.render, render_size=cfg.render_size,
-                         save_meshes=cfg.save_meshes, configs=configs, log=log.info, pairs=pairs,
-                         settings=settings, on_row=lambda row: (computed.append(row), report()))
+                         save_meshes=cfg.save_meshes, mesh_format=cfg.mesh_format, configs=configs, log=log.info,
+                         pairs=pairs, settings=settings, on_row=lambda row: (computed.append(row), report()))
     seconds = time.perf_counter() - started
     stored, table = report()
     reused = len(rows) - len(computed)

@@ -31,6 +31,7 @@ def extract_scene_mesh(field: nn.Module, scene: Scene, extract: dict[str, Any] |
     from neuralsurf.extract import NearPointsField, extract_mesh
 
     options = dict(extract or {})
+    options.pop("format", None)  # the file format of train.py's mesh, not an extract_mesh argument
     near = options.pop("near_distance", None) or scene.near_distance
     return extract_mesh(field if near is None else NearPointsField(field, scene.cloud.points, near), **options)
 

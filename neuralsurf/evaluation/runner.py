@@ -25,6 +25,7 @@ from neuralsurf.errors import ConfigError
 from neuralsurf.evaluation.methods import NotApplicable
 from neuralsurf.evaluation.photometric import NormalMapResult, normal_map_picture, score_normal_maps
 from neuralsurf.evaluation.store import row_stem
+from neuralsurf.io.meshes import mesh_format as mesh_format_extension
 from neuralsurf.locks import replaced
 from neuralsurf.scenes import Scene, SceneUnavailable
 from neuralsurf.scenes.recipes import SceneSet
@@ -104,6 +105,7 @@ def run_benchmark(
     render: bool = True,
     render_size: int = 320,
     save_meshes: bool = True,
+    mesh_format: str = "ply",
     configs: dict[str, Any] | None = None,
     log: Callable[[str], None] = print,
     pairs: list[tuple[str, str]] | None = None,
@@ -119,6 +121,7 @@ def run_benchmark(
 
     Every row is stored the moment it is done, as `run_dir/rows/<scene>__<method>.json` (after its mesh
     and render; see `neuralsurf.evaluation.store`), so a killed run keeps its finished rows.
+    Meshes are saved (`save_meshes`) as meshes/<scene>__<method>.<mesh_format> (ply, glb, obj, off, stl).
     `pairs` (list of (scene, method)) restricts the run to those rows. With `settings` ((scene, method)
     -> a JSON-able dict of everything that decides the row), a row already stored with the same
     settings is reused, not computed (logged as "reused"); without, every row is computed. `on_row` is
@@ -135,6 +138,7 @@ def run_benchmark(
     if unknown:
         raise ConfigError(f"rows {unknown} name scenes or methods not given to run_benchmark; choose from "
                           f"scenes {sorted(scenes)} and methods {sorted(methods)}")
+    extension = mesh_format_extension(mesh_format)
     run_dir = Path(run_dir)
     configs = configs or {}
     env = environment()
@@ -159,7 +163,7 @@ def run_benchmark(
             row = {"method": method_name, **base, "status": "ok", "reason": "",
                    "config": json.dumps(configs.get(method_name, {}), sort_keys=True, default=str)}
             final = run_row(row, built, make_method, run_dir, seed=seed, n_samples=n_samples, render=render,
-                            render_size=render_size, save_meshes=save_meshes, log=log)
+                            render_size=render_size, save_meshes=save_meshes, log=log, mesh_extension=extension)
             store_row(run_dir, row, key, row_settings, final)
             rows.append(row)
             if on_row is not None:
@@ -185,7 +189,7 @@ def build_scene(name: str, make_scene: SceneFactory, run_dir: Path,
 
 def run_row(row: dict[str, Any], built: dict[str, Any], make_method: MethodFactory, run_dir: Path, *, seed: int,
             n_samples: int, render: bool, render_size: int, save_meshes: bool,
-            log: Callable[[str], None]) -> bool:
+            log: Callable[[str], None], mesh_extension: str = ".ply") -> bool:
     """Run one method on one built scene (`build_scene`'s dict; its ground-truth render is kept there)
     and fill `row` in place: metrics, files, or the reason it was skipped or failed. Returns whether
     the row is final (reusable by a later run with the same settings): ok, or skipped because the method
@@ -243,7 +247,7 @@ def run_row(row: dict[str, Any], built: dict[str, Any], make_method: MethodFacto
     if save_meshes:
         from neuralsurf.io import write_mesh
 
-        path = Path("meshes") / f"{row_stem(scene_name, method_name)}.ply"
+        path = Path("meshes") / f"{row_stem(scene_name, method_name)}{mesh_extension}"
         with replaced(run_dir / path) as temporary:
             write_mesh(temporary, mesh)
         row["mesh"] = str(path)

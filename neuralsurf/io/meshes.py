@@ -7,6 +7,9 @@ back watertight. A .glb scene is concatenated into one mesh with its node transf
 
 Writing keeps the mesh's own precision in .ply (binary float32/float64), .obj and .off (text with
 round-trip digits); .stl and .glb store float32. Vertex colours survive .ply, .obj and .glb (8-bit).
+.ply, .obj and .glb also get per-vertex normals (`vertex_normals`: area-weighted, outward for faces
+that are counter-clockwise seen from outside, as every neuralsurf mesh is). `write_mesh` is the one
+writer; `Mesh.save` calls it.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neuralsurf.errors import FileFormatError, InputError
+from neuralsurf.errors import ConfigError, FileFormatError, InputError
 from neuralsurf.io.pointclouds import (
     PathLike,
     colors_to_uint8,
@@ -30,6 +33,9 @@ from neuralsurf.structures import Mesh
 
 SUPPORTED = (".ply", ".obj", ".off", ".stl", ".glb")
 """Mesh file extensions, matched case-insensitively."""
+
+FORMATS = tuple(ext[1:] for ext in SUPPORTED)
+"""Mesh format names (a config's `extract.format`, evaluate.py's `mesh_format`)."""
 
 _MERGED = (".obj", ".stl", ".glb")
 """Formats whose loaders may duplicate vertices (soups, seams, scene parts)."""
@@ -124,8 +130,27 @@ def read_mesh(path: PathLike) -> Mesh:
 # writers
 
 
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals: vertices (v, 3), faces (f, 3) -> (v, 3) in the vertices' dtype.
+
+    Each face adds its cross product (b - a) x (c - a) (twice its area times its unit normal) to its
+    three vertices, so the normals point to the side from which the faces are counter-clockwise:
+    outward on a neuralsurf mesh. A vertex of no face of non-zero area gets (0, 0, 0).
+    """
+    corners = vertices.astype(np.float64)[faces]
+    weighted = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    sums = np.zeros((len(vertices), 3))
+    for k in range(3):
+        np.add.at(sums, faces[:, k], weighted)
+    length = np.linalg.norm(sums, axis=1, keepdims=True)
+    normals = np.divide(sums, length, out=np.zeros_like(sums), where=length > 0)
+    return normals.astype(vertices.dtype if vertices.dtype in (np.float32, np.float64) else np.float64)
+
+
 def _write_ply(path: Path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None) -> None:
-    vertex = {"x": vertices[:, 0], "y": vertices[:, 1], "z": vertices[:, 2]}
+    normals = vertex_normals(vertices, faces)
+    vertex = {"x": vertices[:, 0], "y": vertices[:, 1], "z": vertices[:, 2],
+              "nx": normals[:, 0], "ny": normals[:, 1], "nz": normals[:, 2]}
     if colors is not None:
         rgb = colors_to_uint8(colors, path)
         vertex |= {"red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2]}
@@ -145,7 +170,8 @@ def _write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray, colors: np.n
     with open(path, "w") as file:
         file.write("# written by neuralsurf\n")
         np.savetxt(file, table, fmt=" ".join(fmt))
-        np.savetxt(file, faces + 1, fmt="f %d %d %d")
+        np.savetxt(file, vertex_normals(vertices, faces), fmt="vn %.7g %.7g %.7g")
+        np.savetxt(file, np.repeat(faces + 1, 2, axis=1), fmt="f %d//%d %d//%d %d//%d")  # vertex k has normal k
 
 
 def _write_off(path: Path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None) -> None:
@@ -166,8 +192,9 @@ def _write_with_trimesh(ext: str):
             colors = None
         if colors is not None:
             colors = colors_to_uint8(colors, path)
-        mesh = trimesh.Trimesh(vertices, faces, vertex_colors=colors, process=False)
-        mesh.export(str(path), file_type=ext[1:])
+        normals = vertex_normals(vertices, faces) if ext == ".glb" else None
+        mesh = trimesh.Trimesh(vertices, faces, vertex_normals=normals, vertex_colors=colors, process=False)
+        mesh.export(str(path), file_type=ext[1:], **({"include_normals": True} if ext == ".glb" else {}))
 
     return write
 
@@ -181,12 +208,26 @@ _WRITERS = {
 }
 
 
+def mesh_format(name: str) -> str:
+    """A mesh format name ("ply", ".GLB", ...) checked and as the extension to write: ".ply", ".glb", ...
+
+    Raises ConfigError naming the choices (`FORMATS`) for any other value."""
+    ext = "." + str(name).lower().lstrip(".")
+    if ext not in SUPPORTED:
+        raise ConfigError(
+            f"unknown mesh format {name!r}; choose one of {', '.join(FORMATS)} (ply, glb and obj keep vertex "
+            f"normals and colours)"
+        )
+    return ext
+
+
 def write_mesh(path: PathLike, mesh: Mesh) -> None:
     """Write `mesh` (vertices (v, 3), faces (f, 3), optional vertex colours) by the extension of `path`.
 
     .ply (binary) keeps float32/float64 vertices; .obj and .off are text with round-trip digits;
-    .stl and .glb store float32. Vertex colours go to .ply, .obj, .glb; .off and .stl cannot store
-    them (a warning says so). Parent folders are created.
+    .stl and .glb store float32. .ply, .obj and .glb also store outward unit vertex normals
+    (`vertex_normals`). Vertex colours go to .ply, .obj, .glb; .off and .stl cannot store them (a
+    warning says so). Parent folders are created.
     """
     if not isinstance(mesh, Mesh):
         raise InputError(
