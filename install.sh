@@ -49,11 +49,12 @@ else
   python=".venv/bin/python"
 fi
 
-# PyTorch: pinned, so that pip does not pull a multi-GB CUDA build onto a CPU machine where a local
-# CPU wheel exists; elsewhere set PIP_EXTRA_INDEX_URL=https://download.pytorch.org/whl/cpu for the
-# CPU build. Machines with an NVIDIA GPU get the same release in its default (CUDA) build.
+# PyTorch, pinned: on a machine without an NVIDIA GPU (no nvidia-smi), PyTorch's CPU index is added so
+# that pip takes the CPU build instead of PyPI's multi-GB CUDA build; with a GPU, PyPI's (CUDA) build.
 if ! "$python" -c "import torch" 2>/dev/null; then
-  "$python" -m pip install "torch==2.13.0" || fail "pip could not install torch==2.13.0 (see above)"
+  cpu_index=()
+  command -v nvidia-smi >/dev/null || cpu_index=(--extra-index-url https://download.pytorch.org/whl/cpu)
+  "$python" -m pip install "torch==2.13.0" "${cpu_index[@]}" || fail "pip could not install torch==2.13.0 (see above)"
 fi
 "$python" -m pip install -e ".[$extras]" || fail "pip could not install neuralsurf[$extras] (see above)"
 
