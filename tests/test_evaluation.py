@@ -107,7 +107,7 @@ def test_tiny_run_writes_tables_plots_renders_and_report(tmp_path):
     assert "<table>" in report and "neural_sdf" in report and "skipped" in report
     plots = list((tmp_path / "plots").glob("*.png"))
     assert len(plots) == 4
-    assert report.count("<img ") == len(plots) + len(ok)  # every plot and every render, embedded
+    assert report.count("<img ") == len(plots) + 2 * len(ok)  # every plot, every render and its error view
     assert "data:image/png;base64," in report and 'src="renders/' not in report
     for row in ok:
         from PIL import Image
@@ -230,7 +230,7 @@ def test_report_opens_in_headless_chromium_with_table_plots_and_every_render(tmp
             " i.getBoundingClientRect().width, i.getBoundingClientRect().height])")
         renders = [r for r in rows if r.get("render")]
         assert len(renders) == sum(r["status"] == "ok" for r in rows) == 2
-        assert len(images) == 4 + len(renders)  # four plots and one render per reconstruction
+        assert len(images) == 4 + 2 * len(renders)  # four plots, a render and an error view per reconstruction
         for alt, complete, width, height, shown_width, shown_height in images:
             assert complete and width > 0 and height > 0 and shown_width > 0 and shown_height > 0, alt
         assert {f"{r['method']} on {r['scene']}" for r in renders} <= {alt for alt, *_ in images}

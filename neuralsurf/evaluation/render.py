@@ -1,6 +1,7 @@
 """Headless renders and charts, in numpy + PIL: meshes ray-cast with Open3D's RaycastingScene
-(no OpenGL, no display), Lambert shading or a colour ramp of the distance to the ground truth;
-bar charts and scatter plots drawn with PIL (matplotlib is not a dependency)."""
+(no OpenGL, no display), Lambert shading of one colour or of the mesh's vertex colours, or a colour
+ramp of the distance to the ground truth; viridis without matplotlib; bar charts and scatter plots
+drawn with PIL (matplotlib is not a dependency)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import math
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
+from neuralsurf.errors import InputError
 from neuralsurf.structures import Mesh
 
 BACKGROUND = (255, 255, 255)
@@ -29,7 +31,14 @@ def default_view(bounds: np.ndarray, azimuth_deg: float = 35.0, elevation_deg: f
 
 
 def raycast(mesh: Mesh, view: dict, width: int = 320, height: int = 320, fov_deg: float = 40.0):
-    """Cast one ray per pixel: (hit mask (h, w), world hit points (h, w, 3), unit normals (h, w, 3))."""
+    """Cast one ray per pixel: (hit mask (h, w), world hit points (h, w, 3), unit normals (h, w, 3)
+    facing the camera, unit ray directions (h, w, 3))."""
+    return _cast(mesh, view, width, height, fov_deg)[:4]
+
+
+def _cast(mesh: Mesh, view: dict, width: int, height: int, fov_deg: float = 40.0):
+    """`raycast`'s four arrays, then the hit face of each pixel (h, w) int64 (0 where nothing is hit)
+    and its barycentric coordinates (h, w, 3) (weights of the face's three corners)."""
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
@@ -47,26 +56,63 @@ def raycast(mesh: Mesh, view: dict, width: int = 320, height: int = 320, fov_deg
     direction = rays_np[..., 3:] / np.linalg.norm(rays_np[..., 3:], axis=-1, keepdims=True)
     # two-sided: face the normal towards the camera (open meshes show their inside)
     normals = np.where((normals * direction).sum(-1, keepdims=True) > 0, -normals, normals)
-    return hit, points, normals, direction
+    faces = np.where(hit, answer["primitive_ids"].numpy().astype(np.int64), 0)
+    u, v = np.moveaxis(answer["primitive_uvs"].numpy().astype(np.float64), -1, 0)
+    return hit, points, normals, direction, faces, np.stack([1 - u - v, u, v], axis=-1)
 
 
-def shade(mesh: Mesh, view: dict, width: int = 320, height: int = 320, color=(0.75, 0.78, 0.85)) -> np.ndarray:
-    """Lambert-shaded image (h, w, 3) uint8 with a head light; white background."""
-    hit, _, normals, direction = raycast(mesh, view, width, height)
+def shade(mesh: Mesh, view: dict, width: int = 320, height: int = 320, color=(0.75, 0.78, 0.85), *,
+          vertex_colors: bool = False, ambient: float = 0.2) -> np.ndarray:
+    """Lambert-shaded image (h, w, 3) uint8 with a head light; white background.
+
+    The surface has `color` (RGB in [0, 1]), or with `vertex_colors` the mesh's own vertex colours
+    interpolated across each face. Brightness is ambient + (1 - ambient) * cos(angle to the camera).
+    """
+    hit, _, normals, direction, faces, weights = _cast(mesh, view, width, height)
     lambert = np.clip(-(normals * direction).sum(-1), 0.0, 1.0)
-    intensity = 0.2 + 0.8 * lambert
-    image = np.where(hit[..., None], intensity[..., None] * np.asarray(color), 1.0)
+    intensity = (ambient + (1 - ambient) * lambert)[..., None]
+    if vertex_colors:
+        if mesh.vertex_colors is None:
+            raise InputError("shade(vertex_colors=True) needs a mesh with vertex colours; pass color=... instead")
+        corners = mesh.vertex_colors.detach().cpu().double().numpy()[mesh.faces.cpu().numpy()[faces]]
+        surface = (weights[..., None] * corners).sum(-2)  # (h, w, 3)
+    else:
+        surface = np.asarray(color, dtype=np.float64)
+    image = np.where(hit[..., None], intensity * surface, 1.0)
     return (np.clip(image, 0, 1) * 255).astype(np.uint8)
+
+
+def _ramp(stops: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Piecewise-linear colour ramp through `stops` (k, 3) at 0, 1/(k-1), ..., 1: values in [0, 1]
+    (any shape, clipped; NaN as 0) -> RGB (..., 3) floats in [0, 1]."""
+    x = np.clip(np.nan_to_num(np.asarray(values, dtype=np.float64)), 0, 1) * (len(stops) - 1)
+    low = np.floor(x).astype(int).clip(0, len(stops) - 2)
+    frac = (x - low)[..., None]
+    return stops[low] * (1 - frac) + stops[low + 1] * frac
 
 
 def colormap(values: np.ndarray) -> np.ndarray:
     """A blue -> green -> yellow -> red ramp of values in [0, 1] (n, 3) floats."""
     stops = np.array([[0.19, 0.21, 0.58], [0.13, 0.57, 0.55], [0.48, 0.82, 0.32], [0.99, 0.91, 0.14],
                       [0.85, 0.15, 0.10]])
-    x = np.clip(values, 0, 1) * (len(stops) - 1)
-    low = np.floor(x).astype(int).clip(0, len(stops) - 2)
-    frac = (x - low)[..., None]
-    return stops[low] * (1 - frac) + stops[low + 1] * frac
+    return _ramp(stops, values)
+
+
+VIRIDIS = np.array([[68, 1, 84], [72, 40, 120], [62, 73, 137], [49, 104, 142], [38, 130, 142],
+                    [31, 158, 137], [53, 183, 121], [110, 206, 88], [253, 231, 37]]) / 255.0
+"""viridis (perceptually uniform, readable in grey and by colour-blind readers) at 0, 1/8, ..., 1."""
+
+
+def viridis(values: np.ndarray) -> np.ndarray:
+    """viridis of values in [0, 1] (any shape, clipped): RGB (..., 3) floats in [0, 1], dark purple at 0,
+    yellow at 1."""
+    return _ramp(VIRIDIS, values)
+
+
+def css_gradient(stops: np.ndarray = VIRIDIS) -> str:
+    """A CSS linear-gradient, left to right, through the RGB `stops` (k, 3) in [0, 1]."""
+    colors = ", ".join("#{:02x}{:02x}{:02x}".format(*np.round(stop * 255).astype(int)) for stop in stops)
+    return f"linear-gradient(to right, {colors})"
 
 
 def distance_image(mesh: Mesh, gt: Mesh, view: dict, max_distance: float, width: int = 320,

@@ -96,9 +96,30 @@ def _img(run_dir: Path, path: str, alt: str) -> str:
     return f'<img src="data:image/png;base64,{data}" alt="{html.escape(alt)}">'
 
 
+def _error_view(run_dir: Path, row: dict[str, Any], view: dict[str, Any]) -> str:
+    """The error-coloured render of a row (`distances.write_error_views`), its colour bar in the scene's
+    units and links to its coloured GLBs."""
+    from neuralsurf.evaluation.distances import PERCENTILE
+    from neuralsurf.evaluation.render import css_gradient
+
+    top, name = view["top"], f"{row['method']} on {row['scene']}"
+    ticks = "".join(f"<span>{value:.3g}</span>" for value in (0.0, top / 2, top))
+    links = " ".join(f"<a href='{html.escape(path)}'>{html.escape(what)} (GLB)</a>"
+                     for what, path in view["meshes"].items())
+    share = f", {100 * top / view['extent']:.3g}% of the ground truth's longest side" if view["extent"] > 0 else ""
+    return (f"<figure class='error-view'>{_img(run_dir, view['render'], f'{name}: distance to ground truth')}"
+            f"<figcaption><div class='colour-bar' data-top='{top!r}' style='background:{css_gradient()}'></div>"
+            f"<div class='ticks'>{ticks}</div>distance in scene units, 0 to {top:.3g}{share} (the {PERCENTILE:g}th "
+            f"percentile of every method's distances on {html.escape(row['scene'])}; beyond it: yellow)"
+            f"{'<br>' + links if links else ''}</figcaption></figure>")
+
+
 def write_html(rows: list[dict[str, Any]], run_dir: Path, plots: list[str], title: str = "neuralsurf evaluation",
-               extra: dict[str, Any] | None = None) -> Path:
-    """One self-contained report.html: the table, the plots and every render (base64 PNGs)."""
+               extra: dict[str, Any] | None = None,
+               error_views: dict[tuple[str, str], dict[str, Any]] | None = None) -> Path:
+    """One self-contained report.html: the table, the plots and every render (base64 PNGs), each beside
+    its error-coloured render with a colour bar (`error_views`, from `distances.write_error_views`)."""
+    error_views = error_views or {}
     head = "".join(f"<th>{html.escape(h)}</th>" for _, h in TABLE_COLUMNS)
     body = []
     for row in rows:
@@ -116,18 +137,27 @@ def write_html(rows: list[dict[str, Any]], run_dir: Path, plots: list[str], titl
         "body{font-family:sans-serif;margin:2em} table{border-collapse:collapse;font-size:13px}",
         "td,th{border:1px solid #ccc;padding:3px 6px;text-align:right} td:nth-child(-n+3){text-align:left}",
         ".failed{color:#b00;text-align:left} .skipped{color:#777;text-align:left} img{max-width:100%;margin:4px}",
+        (".views{display:flex;align-items:flex-start} .views>*{min-width:0} figure{margin:0} figcaption{font-size:12px;"
+         "max-width:40em} .colour-bar{height:14px;width:100%;min-width:200px;border:1px solid #888}"
+         " .ticks{display:flex;justify-content:space-between}"),
         "</style></head><body>",
         f"<h1>{html.escape(title)}</h1>",
         "<p>Distances are fractions of the ground truth's longest side (its normalised frame).</p>",
         "<ul>" + "".join(f"<li><b>{html.escape(s)}</b>: {html.escape(d)}</li>" for s, d in scenes.items()) + "</ul>",
         f"<h2>Results</h2><table><tr>{head}</tr>{''.join(body)}</table>",
         "<h2>Plots</h2>", *[_img(run_dir, p, p) for p in plots],
-        "<h2>Renders</h2><p>ground truth | reconstruction | distance to ground truth (blue 0, red &ge; 1%)</p>",
+        ("<h2>Renders</h2><p>ground truth | reconstruction | distance to ground truth (blue 0, red &ge; 1%); "
+         "beside them, in viridis on one scale per scene: the reconstruction coloured by each vertex's distance to "
+         "the ground truth, and the ground truth by each vertex's distance to the reconstruction (what was "
+         "missed)</p>"),
     ]
     for row in rows:
+        view = error_views.get((row["scene"], row["method"]))
+        error = _error_view(run_dir, row, view) if view and view["render"] else ""
         if row.get("render"):
             parts.append(f"<h3>{html.escape(row['method'])} on {html.escape(row['scene'])}</h3>")
-            parts.append(_img(run_dir, row["render"], f"{row['method']} on {row['scene']}"))
+            grey = _img(run_dir, row["render"], f"{row['method']} on {row['scene']}")
+            parts.append(f"<div class='views'>{grey}{error}</div>")
     if extra:
         parts.append("<h2>Environment and config</h2><pre>" + html.escape(json.dumps(extra, indent=2, default=str))
                      + "</pre>")
@@ -137,10 +167,12 @@ def write_html(rows: list[dict[str, Any]], run_dir: Path, plots: list[str], titl
 
 def write_report(rows: list[dict[str, Any]], run_dir: str | Path, extra: dict[str, Any] | None = None) -> str:
     """Everything above; returns the Markdown table."""
+    from neuralsurf.evaluation.distances import write_error_views
+
     run_dir = Path(run_dir)
     write_tables(rows, run_dir, extra)
     plots = write_plots(rows, run_dir)
-    write_html(rows, run_dir, plots, extra=extra)
+    write_html(rows, run_dir, plots, extra=extra, error_views=write_error_views(rows, run_dir))
     table = markdown_table(rows)
     write_atomic(run_dir / "results.md", table + "\n")
     return table

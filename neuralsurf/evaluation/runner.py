@@ -252,6 +252,13 @@ def run_row(row: dict[str, Any], built: dict[str, Any], make_method: MethodFacto
             write_mesh(temporary, mesh)
         row["mesh"] = str(path)
     shown = shown_scene(scene)  # of a scene set: its first scene
+    if (render or save_meshes) and shown.ground_truth is not None:  # coloured with the report, one scale per scene
+        from neuralsurf.evaluation.distances import save_distances
+
+        try:
+            row["distances"] = save_distances(run_dir, scene_name, method_name, mesh, shown.ground_truth, render_size)
+        except Exception as error:  # noqa: BLE001 - an error view problem must not lose the numbers
+            row["distances_error"] = f"{type(error).__name__}: {error}"
     if render and shown.ground_truth is not None:
         try:
             if built["gt_image"] is None:

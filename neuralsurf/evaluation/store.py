@@ -79,8 +79,8 @@ def _read(path: Path) -> dict[str, Any] | None:
 
 
 def reusable_row(results_dir: str | Path, scene: str, method: str, key: str) -> dict[str, Any] | None:
-    """The stored row of (scene, method) when it was stored final with this `key` and the mesh and
-    render it names still exist; else None (the row is to be computed)."""
+    """The stored row of (scene, method) when it was stored final with this `key` and the mesh, render
+    and distances it names still exist; else None (the row is to be computed)."""
     path = row_path(results_dir, scene, method)
     if not path.is_file():
         return None
@@ -88,7 +88,7 @@ def reusable_row(results_dir: str | Path, scene: str, method: str, key: str) -> 
     if record is None or record.get("key") != key or not record.get("final"):
         return None
     row = record["row"]
-    if any(row.get(name) and not (Path(results_dir) / row[name]).is_file() for name in ("mesh", "render")):
+    if any(row.get(name) and not (Path(results_dir) / row[name]).is_file() for name in ("mesh", "render", "distances")):
         return None
     return row
 

@@ -1,0 +1,154 @@
+"""Error-coloured meshes: each reconstruction coloured by its vertices' distance to the ground truth, and
+the ground truth by its vertices' distance to the reconstruction (what was missed), on one colour scale
+per scene.
+
+A row with a ground truth stores its distances when it is computed (`save_distances`:
+`distances/<scene>/<method>.npz`, the two meshes and the two per-vertex distances in the scene's
+units). The scale needs every method of the scene, so the colours are made with the report
+(`write_error_views`): 0 .. the 95th percentile of all the scene's distances (every method, both
+directions), viridis, clipped above. Written then: `renders/<scene>__<method>__error.png` (with
+render=true) and `meshes/<scene>__<method>__error.glb`, `meshes/<scene>__<method>__gt_error.glb`
+(with save_meshes=true); they are made again only when the scene's scale or the row's distances
+change (`distances/<scene>/colours.json` records what they were made with).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from neuralsurf.evaluation.filenames import safe_name
+from neuralsurf.evaluation.store import row_stem
+from neuralsurf.locks import replaced, write_atomic
+from neuralsurf.structures import Mesh
+
+log = logging.getLogger("neuralsurf")
+
+FOLDER = "distances"
+"""The folder of the per-row distance files inside a results folder."""
+PERCENTILE = 95.0
+"""A scene's colour scale ends at this percentile of its distances (every method, both directions)."""
+
+
+def vertex_distances(mesh: Mesh, gt: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """Exact point-to-mesh distances (`neuralsurf.geometry.closest_on_mesh`), in the meshes' units:
+    (each vertex of `mesh` to `gt` (v,), each vertex of `gt` to `mesh` (g,)), float64."""
+    from neuralsurf.geometry import closest_on_mesh
+
+    to_gt, _ = closest_on_mesh(mesh.vertices.detach().double().cpu(), gt)
+    to_mesh, _ = closest_on_mesh(gt.vertices.detach().double().cpu(), mesh)
+    return to_gt.numpy(), to_mesh.numpy()
+
+
+def shared_scale(distances: list[np.ndarray], percentile: float = PERCENTILE) -> float:
+    """The top of a scene's colour scale: the `percentile` of all `distances` (arrays of any shape)
+    pooled; when that is 0 (perfect reconstructions) their maximum, else 1."""
+    pooled = np.concatenate([np.ravel(d) for d in distances]) if distances else np.zeros(0)
+    if not len(pooled):
+        return 1.0
+    top = float(np.percentile(pooled, percentile))
+    return top if top > 0 else (float(pooled.max()) or 1.0)
+
+
+def distance_colors(distances: np.ndarray, top: float) -> np.ndarray:
+    """Distances (n,) -> viridis RGB (n, 3) in [0, 1]: 0 dark purple, `top` and beyond yellow."""
+    from neuralsurf.evaluation.render import viridis
+
+    return viridis(np.asarray(distances, dtype=np.float64) / top)
+
+
+def distances_path(scene: str, method: str) -> Path:
+    """distances/<scene>/<method>.npz, relative to the results folder."""
+    return Path(FOLDER) / safe_name(scene) / f"{safe_name(method)}.npz"
+
+
+def save_distances(run_dir: Path, scene: str, method: str, mesh: Mesh, gt: Mesh, render_size: int) -> str:
+    """Measure `vertex_distances(mesh, gt)` and store them with both meshes and the render size
+    (`distances_path`); returns that path relative to `run_dir`."""
+    to_gt, to_mesh = vertex_distances(mesh, gt)
+    path = distances_path(scene, method)
+    arrays = {"vertices": mesh.vertices.detach().cpu().numpy(), "faces": mesh.faces.cpu().numpy().astype(np.int32),
+              "gt_vertices": gt.vertices.detach().cpu().numpy(), "gt_faces": gt.faces.cpu().numpy().astype(np.int32),
+              "to_gt": to_gt, "to_mesh": to_mesh, "render_size": np.int64(render_size)}
+    with replaced(Path(run_dir) / path) as temporary:
+        np.savez(temporary, **arrays)
+    return str(path)
+
+
+def _stamp(path: Path) -> list[int]:
+    """What identifies a distances file's content for the colour cache: [size, mtime in ns]."""
+    stat = path.stat()
+    return [stat.st_size, stat.st_mtime_ns]
+
+
+def write_error_views(rows: list[dict[str, Any]], run_dir: str | Path) -> dict[tuple[str, str], dict[str, Any]]:
+    """The error-coloured files of every ok row with stored distances (`save_distances`), on one scale
+    per scene (`shared_scale` of every method's distances, both directions).
+
+    Returns {(scene, method): {"top": the scene's scale, "extent": the ground truth's longest side,
+    "render": "renders/<stem>__error.png" or None, "meshes": {"prediction": ..., "ground truth": ...}
+    (GLB paths, empty without a saved mesh)}}, paths relative to `run_dir`."""
+    run_dir = Path(run_dir)
+    by_scene: dict[str, dict[str, Path]] = {}
+    for row in rows:
+        path = run_dir / row["distances"] if row.get("status") == "ok" and row.get("distances") else None
+        if path is not None and path.is_file():
+            by_scene.setdefault(row["scene"], {})[row["method"]] = path
+    rows_by_key = {(row["scene"], row["method"]): row for row in rows}
+    views = {}
+    for scene, paths in by_scene.items():
+        data = {method: np.load(path) for method, path in paths.items()}
+        top = shared_scale([d[key] for d in data.values() for key in ("to_gt", "to_mesh")])
+        manifest_path = run_dir / FOLDER / safe_name(scene) / "colours.json"
+        try:
+            manifest = json.loads(manifest_path.read_text())
+        except (OSError, ValueError):
+            manifest = {}
+        for method, arrays in data.items():
+            row, stem = rows_by_key[(scene, method)], row_stem(scene, method)
+            gt_vertices = arrays["gt_vertices"]
+            view = {"top": top, "extent": float(np.ptp(gt_vertices, axis=0).max()),
+                    "render": f"renders/{stem}__error.png" if row.get("render") else None,
+                    "meshes": {"prediction": f"meshes/{stem}__error.glb",
+                               "ground truth": f"meshes/{stem}__gt_error.glb"} if row.get("mesh") else {}}
+            files = [name for name in [view["render"], *view["meshes"].values()] if name]
+            made = {"top": top, "stamp": _stamp(paths[method]), "files": files}
+            if manifest.get(method) != made or not all((run_dir / name).is_file() for name in files):
+                try:
+                    _write_view(run_dir, arrays, view, method)
+                except Exception as error:  # noqa: BLE001 - the report goes on without this view
+                    log.warning("no error-coloured view of %s on %s: %s: %s", method, scene, type(error).__name__,
+                                error)
+                    manifest.pop(method, None)
+                    continue
+                manifest[method] = made
+            views[(scene, method)] = view
+        for arrays in data.values():
+            arrays.close()
+        write_atomic(manifest_path, json.dumps(manifest, indent=1))
+    return views
+
+
+def _write_view(run_dir: Path, arrays, view: dict[str, Any], method: str) -> None:
+    """The coloured prediction and ground truth of one row: the render and the GLBs `view` names."""
+    from neuralsurf.evaluation.render import default_view, labelled_row, shade
+    from neuralsurf.io import write_mesh
+
+    top = view["top"]
+    prediction = Mesh(arrays["vertices"], arrays["faces"], distance_colors(arrays["to_gt"], top))
+    gt = Mesh(arrays["gt_vertices"], arrays["gt_faces"], distance_colors(arrays["to_mesh"], top))
+    for mesh, name in ((prediction, "prediction"), (gt, "ground truth")):
+        if name in view["meshes"]:
+            with replaced(run_dir / view["meshes"][name]) as temporary:
+                write_mesh(temporary, mesh)
+    if view["render"]:
+        size = int(arrays["render_size"])
+        camera = default_view(np.stack([arrays["gt_vertices"].min(0), arrays["gt_vertices"].max(0)]))
+        images = [shade(mesh, camera, size, size, vertex_colors=True, ambient=0.5) for mesh in (prediction, gt)]
+        labels = [f"{method}: distance to ground truth", f"ground truth: distance to {method}"]
+        with replaced(run_dir / view["render"]) as temporary:
+            labelled_row(images, labels).save(temporary)
