@@ -52,7 +52,7 @@ def method_of(radius: float):
     return lambda: (lambda scene, **_: sphere(radius, 4))
 
 
-def oracle_run(tmp_path: Path) -> list[dict]:
+def oracle_run(tmp_path: Path, render: bool = True) -> list[dict]:
     """Two methods on a unit sphere: spheres of radius 1.02 ("near") and 1.05 ("far")."""
     from neuralsurf.evaluation import run_benchmark
     from neuralsurf.evaluation.store import rebuild_report
@@ -61,7 +61,7 @@ def oracle_run(tmp_path: Path) -> list[dict]:
     gt = sphere(GT_RADIUS, 5)
     scene = Scene(name="ball", cloud=PointCloud(gt.vertices), description="unit sphere", ground_truth=gt)
     methods = {name: method_of(radius) for name, radius in RADII.items()}
-    rows = run_benchmark({"ball": lambda: scene}, methods, tmp_path, n_samples=2000, render_size=48,
+    rows = run_benchmark({"ball": lambda: scene}, methods, tmp_path, n_samples=2000, render=render, render_size=48,
                          log=lambda line: None)
     rebuild_report(tmp_path)
     return rows
@@ -110,6 +110,16 @@ def test_error_views_follow_the_scene_scale_and_are_kept_when_it_holds(tmp_path)
     views = write_error_views([row for row in rows if row["method"] == "near"], tmp_path)
     assert views[("ball", "near")]["top"] == pytest.approx(0.02, abs=2e-3)  # alone, the near sphere sets it
     assert render.stat().st_mtime_ns != made
+
+
+def test_without_renders_the_coloured_meshes_are_still_saved_and_linked(tmp_path):
+    oracle_run(tmp_path, render=False)
+    report = (tmp_path / "report.html").read_text()
+    assert not list(tmp_path.glob("renders/*.png"))
+    for name in RADII:
+        for glb in (f"meshes/ball__{name}__error.glb", f"meshes/ball__{name}__gt_error.glb"):
+            assert (tmp_path / glb).is_file() and f"href='{glb}'" in report
+    assert report.count("class='colour-bar'") == 2 and "distance to ground truth\"" not in report
 
 
 def test_tiny_report_shows_an_error_render_with_a_colour_bar_for_every_mesh_with_a_ground_truth(tmp_path):

@@ -97,8 +97,8 @@ def _img(run_dir: Path, path: str, alt: str) -> str:
 
 
 def _error_view(run_dir: Path, row: dict[str, Any], view: dict[str, Any]) -> str:
-    """The error-coloured render of a row (`distances.write_error_views`), its colour bar in the scene's
-    units and links to its coloured GLBs."""
+    """The error-coloured render of a row (`distances.write_error_views`; none with render=false), its
+    colour bar in the scene's units and links to its coloured GLBs."""
     from neuralsurf.evaluation.distances import PERCENTILE
     from neuralsurf.evaluation.render import css_gradient
 
@@ -107,7 +107,8 @@ def _error_view(run_dir: Path, row: dict[str, Any], view: dict[str, Any]) -> str
     links = " ".join(f"<a href='{html.escape(path)}'>{html.escape(what)} (GLB)</a>"
                      for what, path in view["meshes"].items())
     share = f", {100 * top / view['extent']:.3g}% of the ground truth's longest side" if view["extent"] > 0 else ""
-    return (f"<figure class='error-view'>{_img(run_dir, view['render'], f'{name}: distance to ground truth')}"
+    image = _img(run_dir, view["render"], f"{name}: distance to ground truth") if view["render"] else ""
+    return (f"<figure class='error-view'>{image}"
             f"<figcaption><div class='colour-bar' data-top='{top!r}' style='background:{css_gradient()}'></div>"
             f"<div class='ticks'>{ticks}</div>distance in scene units, 0 to {top:.3g}{share} (the {PERCENTILE:g}th "
             f"percentile of every method's distances on {html.escape(row['scene'])}; beyond it: yellow)"
@@ -153,10 +154,10 @@ def write_html(rows: list[dict[str, Any]], run_dir: Path, plots: list[str], titl
     ]
     for row in rows:
         view = error_views.get((row["scene"], row["method"]))
-        error = _error_view(run_dir, row, view) if view and view["render"] else ""
-        if row.get("render"):
+        error = _error_view(run_dir, row, view) if view and (view["render"] or view["meshes"]) else ""
+        if row.get("render") or error:
             parts.append(f"<h3>{html.escape(row['method'])} on {html.escape(row['scene'])}</h3>")
-            grey = _img(run_dir, row["render"], f"{row['method']} on {row['scene']}")
+            grey = _img(run_dir, row["render"], f"{row['method']} on {row['scene']}") if row.get("render") else ""
             parts.append(f"<div class='views'>{grey}{error}</div>")
     if extra:
         parts.append("<h2>Environment and config</h2><pre>" + html.escape(json.dumps(extra, indent=2, default=str))
