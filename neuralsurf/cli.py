@@ -108,8 +108,6 @@ def observation_configs(cfg: DictConfig, overrides: list[str] | None = None,
     """
     from hydra.core.hydra_config import HydraConfig
 
-    from neuralsurf.errors import ConfigError
-
     runtime = HydraConfig.get() if HydraConfig.initialized() else None
     if overrides is None:
         overrides = list(runtime.overrides.task) if runtime else []
@@ -279,8 +277,6 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     every stored row after each one: results.csv, results.json, results.md, plots/ and report.html.
     The results dir: cfg.results_dir, else Hydra's run directory (a multirun: its sweep directory, shared
     by the jobs). With cfg.report set, only rebuilds the report of that folder. Returns this job's rows."""
-    import functools
-
     from neuralsurf.evaluation import run_benchmark
     from neuralsurf.evaluation.jobs import job_threads, row_settings, set_threads, shard_pairs
     from neuralsurf.evaluation.runner import environment
@@ -387,7 +383,6 @@ def check_run_dir_argument(argv: list[str]) -> None:
     permission): Hydra's own mkdir would fail with a raw OSError before any neuralsurf code runs.
     A run directory another live run holds (`neuralsurf.runlock`) is refused too, before Hydra
     writes its config and log there."""
-    import sys
     import tempfile
 
     from neuralsurf.runlock import busy_message
