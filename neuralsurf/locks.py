@@ -14,7 +14,7 @@ import os
 import threading
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 from typing import IO
 
@@ -30,26 +30,20 @@ def file_lock(path: str | Path) -> Iterator[Path]:
     """Hold an exclusive advisory lock on `path` (str | Path: a lock file, created with its folders)
     for the `with` block; yields the path. Blocks while another process holds it. Raises LockError
     naming the path when it cannot be created."""
-    path = Path(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        handle = open(path, "a+b")  # noqa: SIM115 - held for the with block, closed below
-    except OSError as error:
-        raise LockError(f"cannot create the lock file {path}: {error.strerror or error}; make its folder "
-                        f"writable or choose another results_dir") from error
-    try:
-        _lock(handle)
-        yield path
-    finally:
-        _unlock(handle)
-        handle.close()
+    with _held(path, wait=True):
+        yield Path(path)
+
+
+def lock_or_none(path: str | Path) -> AbstractContextManager[IO[str] | None]:
+    """Take the exclusive lock on `path` (str | Path: a lock file, created with its folders) without
+    waiting: the `with` block gets the open file (text, read and write) while this process holds it,
+    or None when another process holds it. Raises LockError naming the path when it cannot be created."""
+    return _held(path, wait=False)
 
 
 @contextmanager
-def lock_or_none(path: str | Path) -> Iterator[IO[str] | None]:
-    """Take the exclusive lock on `path` (str | Path: a lock file, created with its folders) without
-    waiting: yields the open file (text, read and write) while this process holds it, or None when
-    another process holds it. Raises LockError naming the path when it cannot be created."""
+def _held(path: str | Path, wait: bool) -> Iterator[IO[str] | None]:
+    """The lock file `path` opened and locked (waiting for it, or None at once when `wait` is False)."""
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -58,7 +52,7 @@ def lock_or_none(path: str | Path) -> Iterator[IO[str] | None]:
         raise LockError(f"cannot create the lock file {path}: {error.strerror or error}; make its folder "
                         f"writable or choose another folder") from error
     try:
-        held = _lock(handle, wait=False)
+        held = _lock(handle, wait)
         try:
             yield handle if held else None
         finally:
