@@ -302,22 +302,11 @@ def evaluate(cfg: DictConfig) -> list[dict]:
                               f"(configs/{kind}/*.yaml)")
     pairs = shard_pairs(scenes, methods, cfg.get("shard", 0), cfg.get("shards", 1))
 
-    def unwrapped(build, *args, **kwargs):
-        """instantiate, re-raising the target's own error (SceneUnavailable stays a skip)."""
-        from hydra.errors import InstantiationException
-
-        try:
-            return build(*args, **kwargs)
-        except InstantiationException as error:
-            if error.__cause__ is not None:
-                raise error.__cause__ from None
-            raise
-
     scene_configs = {name: OmegaConf.to_container(cfg.scene[name], resolve=True) for name in scenes}
 
     def scene_factory(name: str):
         def build():
-            return unwrapped(instantiate, cfg.scene[name])
+            return instantiate_unwrapped(cfg.scene[name])
 
         if not cfg.get("scene_cache", True):
             return build
@@ -328,7 +317,7 @@ def evaluate(cfg: DictConfig) -> list[dict]:
         config = OmegaConf.to_container(cfg.method[name], resolve=True)
 
         def build():
-            method = unwrapped(instantiate, cfg.method[name], _partial_=True, _convert_="all")
+            method = instantiate_unwrapped(cfg.method[name], _partial_=True, _convert_="all")
             return functools.partial(method, config=config)
 
         return build
@@ -408,14 +397,32 @@ def check_run_dir_argument(argv: list[str]) -> None:
                          f"({error.strerror or error}); choose a folder you can write to")
 
 
-def user_error(error: BaseException) -> NeuralsurfError | None:
-    """The neuralsurf error behind Hydra's "Error in call to target" wrapper, a ConfigError for a
-    mandatory key left out (`data=file` without `data.path`), or None for anything else (a bug)."""
+def target_error(error: BaseException) -> BaseException:
+    """The error a config's target raised, behind Hydra's "Error in call to target" wrappers."""
     from hydra.errors import InstantiationException
-    from omegaconf.errors import MissingMandatoryValue
 
     while isinstance(error, InstantiationException) and error.__cause__ is not None:
         error = error.__cause__
+    return error
+
+
+def instantiate_unwrapped(config: DictConfig, **kwargs: Any) -> Any:
+    """Hydra's instantiate, raising the target's own error (a SceneUnavailable stays a skip)."""
+    try:
+        return instantiate(config, **kwargs)
+    except Exception as error:
+        cause = target_error(error)
+        if cause is error:
+            raise
+        raise cause from None
+
+
+def user_error(error: BaseException) -> NeuralsurfError | None:
+    """The neuralsurf error behind Hydra's "Error in call to target" wrapper, a ConfigError for a
+    mandatory key left out (`data=file` without `data.path`), or None for anything else (a bug)."""
+    from omegaconf.errors import MissingMandatoryValue
+
+    error = target_error(error)
     if isinstance(error, MissingMandatoryValue):
         key = getattr(error, "full_key", None) or "a mandatory key"
         return ConfigError(f"{key} is required: add {key}=<value> to the command (docs/configs.md lists the keys)")
