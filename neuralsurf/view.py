@@ -1,0 +1,403 @@
+"""neuralsurf-view: look at the meshes of an evaluation run, or at mesh files, in the browser.
+
+    neuralsurf-view outputs/evaluate/quick/<date>      # a run of evaluate.py (or its results_dir)
+    neuralsurf-view mesh.ply gt.ply                    # mesh files (.ply .obj .off .stl .glb)
+
+A run shows, per scene (a drop-down picks it): each method's mesh, coloured by each vertex's distance to
+the ground truth where the run wrote error-coloured meshes (`neuralsurf.evaluation.distances`; viridis, one
+scale per scene), the ground truth, what each method missed (the ground truth coloured by its distance to
+the method's mesh, off at first), and the input points and depth cameras when the run kept its scenes
+(`scene_cache`). The meshes stand side by side or overlaid; a check box per mesh shows or hides it.
+
+It serves the page with viser (the `view` extra: ``pip install 'neuralsurf[view]'``), whose wheel carries
+its web client: nothing is fetched from the internet. Stop it with Ctrl+C.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from neuralsurf.errors import InputError, MissingDependencyError
+
+MESH_SUFFIXES = (".ply", ".obj", ".off", ".stl", ".glb")
+"""Files read as meshes (`neuralsurf.io.read_mesh`)."""
+MAX_POINTS = 200_000
+"""Input points shown at most per scene (every k-th point beyond)."""
+GREY = (200, 200, 200)
+INPUT_COLOUR = (230, 90, 40)
+CAMERA_COLOUR = (40, 90, 230)
+GROUND_TRUTH = "ground truth"
+INPUT = "input points"
+CAMERAS = "cameras"
+
+
+@dataclass
+class Item:
+    """One thing shown in a scene: a mesh (grey, and coloured when known), points, or cameras."""
+
+    label: str
+    """Its check box's label: a method's name, "ground truth", "missed by <method>", ..."""
+    vertices: np.ndarray
+    """Float32[ndarray, "v 3"]: mesh vertices or points (for cameras: their centres)."""
+    faces: np.ndarray | None = None
+    """Int[ndarray, "f 3"] for a mesh, None for points and cameras."""
+    coloured: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    """(vertices, faces, Uint8[ndarray, "v 3"] colours): the mesh coloured by its error (or its own
+    vertex colours), None when there is none."""
+    poses: np.ndarray | None = None
+    """Float[ndarray, "n 4 4"] camera-to-world (OpenCV) of cameras, with `fov` (vertical, rad) and `aspect`."""
+    fov: float = 0.8
+    aspect: float = 4 / 3
+    visible: bool = True
+    """Shown when the viewer opens."""
+
+
+@dataclass
+class Group:
+    """One scene of a run (or the mesh files given): what to show and the colour scale's top."""
+
+    name: str
+    items: list[Item] = field(default_factory=list)
+    scale: float | None = None
+    """The top of the error colours (scene units), when the run recorded it."""
+
+
+# ----------------------------------------------------------------------------------------------
+# what to show: a run folder or mesh files -> groups
+
+
+def _mesh_arrays(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(vertices float32 (v, 3), faces int64 (f, 3), colours uint8 (v, 3) or None) of a mesh file."""
+    from neuralsurf.io import read_mesh
+
+    mesh = read_mesh(path)
+    colours = None
+    if mesh.vertex_colors is not None:
+        colours = (np.clip(mesh.vertex_colors.detach().cpu().numpy()[:, :3], 0, 1) * 255).round().astype(np.uint8)
+    return mesh.vertices.detach().cpu().numpy().astype(np.float32), mesh.faces.cpu().numpy().astype(np.int64), colours
+
+
+def _mesh_item(label: str, path: Path, coloured: Path | None = None, visible: bool = True) -> Item:
+    """A mesh file as an Item; `coloured` (a file with vertex colours) or the file's own colours colour it."""
+    vertices, faces, colours = _mesh_arrays(path)
+    shaded = None
+    if coloured is not None and coloured.is_file():
+        other = _mesh_arrays(coloured)
+        shaded = other if other[2] is not None else None
+    elif colours is not None:
+        shaded = (vertices, faces, colours)
+    return Item(label, vertices, faces, shaded, visible=visible)
+
+
+def is_run(folder: Path) -> bool:
+    """Whether `folder` is a results folder of evaluate.py (it holds rows/ or results.json)."""
+    return (folder / "rows").is_dir() or (folder / "results.json").is_file()
+
+
+def run_rows(folder: Path) -> list[dict[str, Any]]:
+    """The rows of a results folder: rows/*.json (`neuralsurf.evaluation.store`), else results.json's."""
+    from neuralsurf.evaluation.store import read_rows
+
+    rows = read_rows(folder) if (folder / "rows").is_dir() else []
+    if not rows and (folder / "results.json").is_file():
+        try:
+            rows = json.loads((folder / "results.json").read_text()).get("rows", [])
+        except ValueError as error:
+            raise InputError(f"{folder / 'results.json'} is not JSON ({error}); rebuild it: python evaluate.py "
+                             f"report={folder}") from None
+    return rows
+
+
+def _scene_input(folder: Path, scene: str) -> list[Item]:
+    """The input points and cameras of `scene` from the run's scene cache (`scenes/<scene>-<key>.pt`,
+    the newest), or [] when the run kept none or it cannot be read."""
+    import torch
+
+    from neuralsurf.evaluation.filenames import safe_name
+    from neuralsurf.evaluation.store import _scene_classes
+
+    files = sorted((folder / "scenes").glob(f"{safe_name(scene)}-*.pt"), key=lambda p: p.stat().st_mtime)
+    if not files:
+        return []
+    try:
+        with torch.serialization.safe_globals(_scene_classes()):
+            built = torch.load(files[-1], weights_only=True)
+    except Exception:  # noqa: BLE001 - the view goes on without the input
+        return []
+    built = built.scenes[0] if hasattr(built, "scenes") else built  # a set of shapes: its first
+    items = []
+    points = built.cloud.points.detach().cpu().numpy().astype(np.float32)
+    if len(points):
+        items.append(Item(INPUT, points[:: max(1, len(points) // MAX_POINTS)], visible=False))
+    frames = built.frames if built.frames is not None and getattr(built, "depth_input", False) else None
+    if frames is not None and len(frames):
+        K = frames.K.detach().cpu().double().numpy()
+        height, width = frames.height, frames.width
+        poses = frames.cam_to_world.detach().cpu().double().numpy()
+        items.append(Item(CAMERAS, poses[:, :3, 3].astype(np.float32), poses=poses,
+                          fov=float(2 * np.arctan(height / (2 * K[0, 1, 1]))), aspect=width / height, visible=False))
+    return items
+
+
+def run_groups(folder: Path) -> list[Group]:
+    """One Group per scene of the run in `folder` with at least one mesh: each method's mesh (error-coloured
+    when the run wrote meshes/<scene>__<method>__error.glb), the ground truth (from the stored distances),
+    what each method missed (__gt_error.glb, hidden at first), the input points and cameras (hidden at first)."""
+    from neuralsurf.evaluation.store import row_stem
+
+    groups: dict[str, Group] = {}
+    for row in run_rows(folder):
+        if row.get("status") != "ok" or not row.get("mesh") or not (folder / row["mesh"]).is_file():
+            continue
+        group = groups.setdefault(row["scene"], Group(row["scene"]))
+        stem = row_stem(row["scene"], row["method"])
+        group.items.append(_mesh_item(row["method"], folder / row["mesh"], folder / "meshes" / f"{stem}__error.glb"))
+        missed = folder / "meshes" / f"{stem}__gt_error.glb"
+        if missed.is_file():
+            vertices, faces, colours = _mesh_arrays(missed)
+            group.items.append(Item(f"missed by {row['method']}", vertices, faces,
+                                    (vertices, faces, colours) if colours is not None else None, visible=False))
+        if row.get("distances") and not any(item.label == GROUND_TRUTH for item in group.items):
+            try:
+                with np.load(folder / row["distances"]) as arrays:
+                    group.items.insert(0, Item(GROUND_TRUTH, arrays["gt_vertices"].astype(np.float32),
+                                               arrays["gt_faces"].astype(np.int64)))
+            except (OSError, KeyError, ValueError):
+                pass  # the distances file is gone or damaged: no ground truth shown
+    for name, group in groups.items():
+        group.items += _scene_input(folder, name)
+        group.scale = _scene_scale(folder, name)
+    return list(groups.values())
+
+
+def _scene_scale(folder: Path, scene: str) -> float | None:
+    """The top of a scene's error colours, as recorded with its error-coloured meshes (colours.json)."""
+    from neuralsurf.evaluation.distances import FOLDER
+    from neuralsurf.evaluation.filenames import safe_name
+
+    try:
+        made = json.loads((folder / FOLDER / safe_name(scene) / "colours.json").read_text())
+        return float(next(iter(made.values()))["top"])
+    except (OSError, ValueError, StopIteration, KeyError, TypeError):
+        return None
+
+
+def collect(paths: Sequence[str | Path]) -> list[Group]:
+    """What `neuralsurf-view PATH ...` shows: a run folder's scenes (`run_groups`), a folder's mesh files,
+    mesh files; all loose files in one group named "files".
+
+    Raises InputError for a missing path, a file that is not a mesh, or when nothing holds a mesh."""
+    if not paths:
+        raise InputError("give a run folder of evaluate.py or mesh files: neuralsurf-view <run dir | mesh files>")
+    groups: list[Group] = []
+    loose = Group("files")
+    for given in map(Path, paths):
+        if not given.exists():
+            raise InputError(f"{given} not found; give a run folder of evaluate.py (outputs/evaluate/<suite>/<date>) "
+                             f"or mesh files ({', '.join(MESH_SUFFIXES)})")
+        if given.is_dir() and is_run(given):
+            found = run_groups(given)
+            if not found:
+                raise InputError(f"{given} is a run of evaluate.py with no saved meshes (rows ok with a mesh); "
+                                 f"run it with save_meshes=true")
+            groups += found if len(paths) == 1 else [Group(f"{given.name}/{g.name}", g.items, g.scale) for g in found]
+        elif given.is_dir():
+            files = sorted(p for p in given.iterdir() if p.suffix.lower() in MESH_SUFFIXES and p.is_file())
+            if not files and (given / "meshes").is_dir():
+                files = sorted(p for p in (given / "meshes").iterdir() if p.suffix.lower() in MESH_SUFFIXES)
+            if not files:
+                raise InputError(f"{given} holds no meshes ({', '.join(MESH_SUFFIXES)}) and is not a run of evaluate.py "
+                                 f"(no rows/ or results.json)")
+            loose.items += [_mesh_item(_label(p, loose), p) for p in files]
+        elif given.suffix.lower() in MESH_SUFFIXES:
+            loose.items.append(_mesh_item(_label(given, loose), given))
+        else:
+            raise InputError(f"{given} is not a mesh file ({', '.join(MESH_SUFFIXES)}) nor a folder")
+    return groups + ([loose] if loose.items else [])
+
+
+def _label(path: Path, group: Group) -> str:
+    """A file's label: its name, with its folder when the name is taken already."""
+    taken = {item.label for item in group.items}
+    return path.name if path.name not in taken else f"{path.parent.name}/{path.name}"
+
+
+# ----------------------------------------------------------------------------------------------
+# the page
+
+
+def _import_viser():
+    try:
+        import viser
+    except ImportError:
+        raise MissingDependencyError("neuralsurf-view needs viser: pip install 'neuralsurf[view]'") from None
+    return viser
+
+
+def _extent(items: list[Item]) -> tuple[np.ndarray, float]:
+    """(centre (3,), longest side) of the box around the items' vertices."""
+    points = np.concatenate([item.vertices for item in items if len(item.vertices)] or [np.zeros((1, 3))])
+    lo, hi = points.min(0), points.max(0)
+    return (lo + hi) / 2, float((hi - lo).max()) or 1.0
+
+
+def _node(group: int, index: int, variant: str) -> str:
+    """Scene-tree name of an item's node: /scene_<g>/item_<i>/<variant>."""
+    return f"/scene_{group}/item_{index}/{variant}"
+
+
+class Viewer:
+    """The viser server showing `groups`, with a scene picker, layout and colour choices and a check box
+    per item. `nodes` maps each scene-tree name added to its item's label (for tests and scripts)."""
+
+    def __init__(self, groups: list[Group], host: str = "127.0.0.1", port: int = 8080, up: str = "+y"):
+        viser = _import_viser()
+        if not groups:
+            raise InputError("nothing to show: no meshes")
+        self.groups = groups
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.server.scene.set_up_direction(up)
+        # plain lights: image-based lighting takes seconds per frame in software WebGL (no GPU)
+        self.server.scene.configure_environment_map(hdri=None)
+        self.server.scene.configure_default_lights(cast_shadow=False)
+        self.server.scene.add_light_hemisphere("/lights/hemisphere", sky_color=(255, 255, 255), ground_color=(150, 150, 150), intensity=1.5)
+        self.nodes: dict[str, str] = {}
+        self._handles: list[list[dict[str, Any]]] = []
+        for g, group in enumerate(groups):
+            self._handles.append([self._add(g, i, item) for i, item in enumerate(group.items)])
+        gui = self.server.gui
+        self.scene = gui.add_dropdown("scene", [g.name for g in groups], initial_value=groups[0].name)
+        self.layout = gui.add_dropdown("layout", ["side by side", "overlaid"], initial_value="side by side")
+        coloured = any(item.coloured is not None for group in groups for item in group.items)
+        self.colours = gui.add_dropdown("colours", ["distance to ground truth", "grey"] if coloured else ["grey"])
+        self.legend = gui.add_markdown("")
+        self.boxes: list[list[Any]] = []
+        self._folders: list[Any] = []
+        for g, group in enumerate(groups):
+            folder = gui.add_folder(group.name)
+            with folder:
+                boxes = [gui.add_checkbox(item.label, item.visible) for item in group.items]
+            for box in boxes:
+                box.on_update(lambda _: self.refresh())
+            self.boxes.append(boxes)
+            self._folders.append(folder)
+        for control in (self.scene, self.layout, self.colours):
+            control.on_update(lambda _: self.refresh())
+        self.refresh()
+
+    def _add(self, g: int, i: int, item: Item) -> dict[str, list[tuple[Any, np.ndarray]]]:
+        """The viser nodes of one item (all hidden; `refresh` shows the chosen ones): {"grey" | "coloured":
+        [(handle, the position it was added at)]}."""
+        scene, label = self.server.scene, item.label
+        handles = {}
+        if item.poses is not None:
+            from scipy.spatial.transform import Rotation
+
+            size = 0.05 * _extent(self.groups[g].items)[1]
+            for c, pose in enumerate(item.poses):
+                x, y, z, w = Rotation.from_matrix(pose[:3, :3]).as_quat()
+                name = _node(g, i, f"camera_{c}")
+                handles.setdefault("grey", []).append((scene.add_camera_frustum(
+                    name, fov=item.fov, aspect=item.aspect, scale=size, color=CAMERA_COLOUR, wxyz=(w, x, y, z),
+                    position=tuple(pose[:3, 3]), visible=False, thickness=0.1 * size), pose[:3, 3].copy()))
+                self.nodes[name] = label
+            return handles
+        if item.faces is None:
+            size = 0.004 * _extent(self.groups[g].items)[1]
+            name = _node(g, i, "points")
+            handles["grey"] = [(scene.add_point_cloud(name, item.vertices, INPUT_COLOUR, point_size=size,
+                                                      visible=False), np.zeros(3))]
+            self.nodes[name] = label
+            return handles
+        name = _node(g, i, "grey")
+        handles["grey"] = [(scene.add_mesh_simple(name, item.vertices, item.faces, color=GREY, side="double",
+                                                  visible=False), np.zeros(3))]
+        self.nodes[name] = label
+        if item.coloured is not None:
+            import trimesh
+
+            vertices, faces, colours = item.coloured
+            rgba = np.concatenate([colours, np.full((len(colours), 1), 255, np.uint8)], 1)
+            name = _node(g, i, "coloured")
+            mesh = trimesh.Trimesh(vertices, faces, vertex_colors=rgba, process=False)
+            handles["coloured"] = [(scene.add_mesh_trimesh(name, mesh, visible=False), np.zeros(3))]
+            self.nodes[name] = label
+        return handles
+
+    def refresh(self) -> None:
+        """Show the chosen scene's checked items, side by side (one slot each along x) or overlaid, grey or
+        coloured; hide everything else; point the initial camera at what is shown."""
+        chosen = [g.name for g in self.groups].index(self.scene.value)
+        side_by_side = self.layout.value == "side by side"
+        coloured = self.colours.value != "grey"
+        group = self.groups[chosen]
+        centre, size = _extent(group.items)
+        slot = 0
+        for g, handles in enumerate(self._handles):
+            self._folders[g].visible = g == chosen
+            for i, (item, nodes) in enumerate(zip(self.groups[g].items, handles)):
+                shown = g == chosen and self.boxes[g][i].value
+                offset = np.array([1.25 * size * slot if side_by_side and item.label not in (INPUT, CAMERAS) else 0.0,
+                                   0.0, 0.0])
+                variant = "coloured" if coloured and "coloured" in nodes else "grey"
+                for key, handles_and_bases in nodes.items():
+                    for handle, base in handles_and_bases:
+                        handle.position = tuple(base + offset)
+                        handle.visible = shown and key == variant
+                if shown and side_by_side and item.faces is not None:
+                    slot += 1
+        count = max(slot, 1) if side_by_side else 1
+        middle = centre + np.array([1.25 * size * (count - 1) / 2, 0.0, 0.0])
+        self.server.initial_camera.look_at = tuple(middle)
+        self.server.initial_camera.position = tuple(middle + np.array([0.0, 0.3, 1.0]) * size * (1.5 + 0.9 * count))
+        scale = group.scale
+        self.legend.content = (f"Colours: distance to the ground truth, viridis from 0 (purple) to {scale:.3g} "
+                               f"(yellow) scene units." if coloured and scale else "")
+
+    @property
+    def port(self) -> int:
+        return self.server.get_port()
+
+    def stop(self) -> None:
+        self.server.stop()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``neuralsurf-view PATH [PATH ...] [--host H] [--port P] [--up +y]``: serve until Ctrl+C."""
+    from neuralsurf.errors import NeuralsurfError
+
+    parser = argparse.ArgumentParser(prog="neuralsurf-view", description=__doc__.split("\n\n")[0])
+    parser.add_argument("paths", nargs="+", help="a run folder of evaluate.py, folders of meshes or mesh files")
+    parser.add_argument("--host", default="127.0.0.1", help="address to serve on (0.0.0.0: every interface)")
+    parser.add_argument("--port", type=int, default=8080)
+    parser.add_argument("--up", default="+y", help="the scene's up direction: +x, +y, +z, -x, -y, -z")
+    args = parser.parse_args(argv)
+    try:
+        _import_viser()
+        viewer = Viewer(collect(args.paths), host=args.host, port=args.port, up=args.up)
+    except (NeuralsurfError, OSError) as error:
+        print(f"neuralsurf-view: {error}", file=sys.stderr)
+        return 2
+    shown = ", ".join(f"{g.name} ({len(g.items)})" for g in viewer.groups)
+    print(f"neuralsurf-view: http://{args.host}:{viewer.port} shows {shown}; Ctrl+C stops it", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.stop()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
