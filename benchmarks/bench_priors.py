@@ -28,11 +28,11 @@ import torch
 
 from neuralsurf.baselines import reconstruct_poisson
 from neuralsurf.errors import NeuralsurfError
+from neuralsurf.geometry import noisy_cloud
 from neuralsurf.metrics import evaluate_mesh
 from neuralsurf.models import SDFMLP, AutoDecoder, CBNDecoder, LatentCodes, OccupancyNetwork, PointNetEncoder
-from neuralsurf.observations.collection import CollectionOccupancy, CollectionSDF
-from neuralsurf.priors import ShapeCollection, complete_cloud, complete_view, extract_unit, noisy_cloud
-from neuralsurf.scenes.recipes import shapes_one_view
+from neuralsurf.priors import ShapeCollection, complete_cloud, complete_view, extract_unit, shapes_one_view
+from neuralsurf.priors.observations import CollectionOccupancy, CollectionSDF
 from neuralsurf.structures import Mesh, Normalization
 from neuralsurf.training import default_optimizer, fit
 

@@ -25,8 +25,28 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from neuralsurf.devices import resolve_device
+from neuralsurf.distributed import (
+    barrier,
+    broadcast_object,
+    init_from_environment,
+    is_main_process,
+    leave_process_group,
+)
 from neuralsurf.errors import ConfigError, NeuralsurfError
-from neuralsurf.training import fit
+from neuralsurf.evaluation import run_benchmark
+from neuralsurf.evaluation.jobs import job_threads, row_settings, set_threads, shard_pairs
+from neuralsurf.evaluation.methods import extract_scene_mesh
+from neuralsurf.evaluation.render import interpolation_picture
+from neuralsurf.evaluation.runner import environment
+from neuralsurf.evaluation.store import cached_scene, rebuild_report, settings_key
+from neuralsurf.io import read_mesh, write_mesh
+from neuralsurf.io.meshes import mesh_format
+from neuralsurf.metrics import depth_metrics, evaluate_mesh
+from neuralsurf.models import AutoDecoder
+from neuralsurf.priors import ShapeCollection, score_completions, train_prior
+from neuralsurf.runlock import busy_message, run_lock
+from neuralsurf.training import CHECKPOINT_NAME, fit, load_checkpoint
 
 log = logging.getLogger("neuralsurf")
 
@@ -76,8 +96,6 @@ def config_differences(stored: dict, current: dict) -> list[str]:
 
 def check_resume(run_dir: Path, cfg: dict) -> None:
     """Resume only into a run made with the same settings: else a ConfigError naming the keys."""
-    from neuralsurf.training import CHECKPOINT_NAME, load_checkpoint
-
     path = run_dir / "checkpoints" / CHECKPOINT_NAME
     if not (cfg["trainer"].get("resume") and path.is_file()):
         return
@@ -149,15 +167,6 @@ def train(cfg: DictConfig) -> dict[str, float]:
     """Fit the configured model to the configured scene, extract, measure and write the outputs:
     <run dir>/mesh.<extract.format> (mesh.ply by default), metrics.json, checkpoints/last.pt and
     TensorBoard events."""
-    from neuralsurf.devices import resolve_device
-    from neuralsurf.distributed import init_from_environment, is_main_process
-    from neuralsurf.evaluation.methods import extract_scene_mesh
-    from neuralsurf.io import write_mesh
-    from neuralsurf.io.meshes import mesh_format
-    from neuralsurf.metrics import depth_metrics, evaluate_mesh
-    from neuralsurf.priors import ShapeCollection
-    from neuralsurf.runlock import run_lock
-
     extension = mesh_format(cfg.extract.get("format", "ply"))  # a bad format fails before the fit
     device = resolve_device(init_from_environment(cfg.device))  # torchrun: the process group, a GPU per rank
     run_dir = shared_run_directory(cfg)
@@ -168,7 +177,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
         scene = instantiate(cfg.data)
         log.info("scene %s: %s", scene.name, scene.description)
         if isinstance(scene, ShapeCollection):
-            return train_prior(cfg, scene, run_dir, config, device, extension)
+            return train_collection(cfg, scene, run_dir, config, device, extension)
         model = instantiate(cfg.model, _convert_="all")
         result = fit(model, build_observations(cfg, scene), optimizer=instantiate(cfg.optimizer), device=device,
                      seed=cfg.seed, run_dir=run_dir, config=config, **config["trainer"])
@@ -193,8 +202,6 @@ def train(cfg: DictConfig) -> dict[str, float]:
 def shared_run_directory(cfg: DictConfig) -> Path:
     """The run directory; under torchrun, rank 0's on every rank (the others' own, made by Hydra
     before this code runs, is removed when empty: see `train_main`)."""
-    from neuralsurf.distributed import broadcast_object
-
     own = run_directory(cfg)
     shared = Path(broadcast_object(str(own)))
     if shared != own and own.is_dir() and not any(own.iterdir()):
@@ -202,32 +209,22 @@ def shared_run_directory(cfg: DictConfig) -> Path:
     return shared
 
 
-def train_prior(cfg: DictConfig, collection, run_dir: Path, config: dict, device: str,
-                extension: str = ".ply") -> dict[str, float]:
+def train_collection(cfg: DictConfig, collection: ShapeCollection, run_dir: Path, config: dict, device: str,
+                     extension: str = ".ply") -> dict[str, float]:
     """Train a learned prior (cfg.model: a builder called with the collection's number of training
-    shapes) over `collection` (built here, or found cached), then complete its test shapes from noisy
-    clouds (cfg.score) and write mesh<extension> (the first test shape), metrics.json (means and per-shape
-    values) and checkpoints/last.pt (read back with neuralsurf.priors.load_prior). Under torchrun
-    every rank trains; rank 0 alone builds, scores and writes. An auto-decoder also writes
-    interpolation.png: the shapes between the codes of its first and last training shapes."""
-    from neuralsurf.distributed import barrier, is_main_process, leave_process_group
-    from neuralsurf.io import write_mesh
-    from neuralsurf.models import AutoDecoder, OccupancyNetwork
-    from neuralsurf.priors import interpolation_picture, score_completions
-    from neuralsurf.structures import Normalization
-
+    shapes) over `collection` (built here, or found cached) with `neuralsurf.priors.train_prior`, then
+    complete its test shapes from noisy clouds (cfg.score) and write mesh<extension> (the first test
+    shape), metrics.json (means and per-shape values) and checkpoints/last.pt (read back with
+    neuralsurf.priors.load_prior). Under torchrun every rank trains; rank 0 alone builds, scores and
+    writes. An auto-decoder also writes interpolation.png: the shapes between the codes of its first
+    and last training shapes."""
     if is_main_process():
         collection.build(progress=bool(cfg.trainer.progress))
     barrier()
-    model = instantiate(cfg.model, _convert_="all")(n_shapes=collection.count("train"))
-    log.info("%s over %d training shapes in %s", type(model).__name__, collection.count("train"), collection.folder)
-    trainer = dict(config["trainer"])
-    if isinstance(model, OccupancyNetwork) and (trainer["image_every"] or trainer["mesh_every"]):
-        log.info("no SDF previews of an occupancy network (no field without a cloud's code): image_every=0, "
-                 "mesh_every=0")
-        trainer.update(image_every=0, mesh_every=0)
-    result = fit(model, build_observations(cfg, collection), optimizer=instantiate(cfg.optimizer), device=device,
-                 seed=cfg.seed, run_dir=run_dir, config=config, normalization=Normalization(), **trainer)
+    builders = [instantiate(entry, _convert_="all") for entry in observation_configs(cfg).values()]
+    result = train_prior(collection, instantiate(cfg.model, _convert_="all"), builders,
+                         optimizer=instantiate(cfg.optimizer), trainer=config["trainer"], seed=cfg.seed, device=device,
+                         run_dir=run_dir, config=config)
     main = is_main_process()
     leave_process_group()  # training is over: rank 0 scores alone (its latent fits are single-process)
     if not main:
@@ -277,11 +274,6 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     every stored row after each one: results.csv, results.json, results.md, plots/ and report.html.
     The results dir: cfg.results_dir, else Hydra's run directory (a multirun: its sweep directory, shared
     by the jobs). With cfg.report set, only rebuilds the report of that folder. Returns this job's rows."""
-    from neuralsurf.evaluation import run_benchmark
-    from neuralsurf.evaluation.jobs import job_threads, row_settings, set_threads, shard_pairs
-    from neuralsurf.evaluation.runner import environment
-    from neuralsurf.evaluation.store import cached_scene, rebuild_report, settings_key
-
     if cfg.get("report"):
         if not any((Path(cfg.report) / "rows").glob("*.json")):
             raise ConfigError(f"report={cfg.report}: no stored rows in {Path(cfg.report) / 'rows'}; give the results "
@@ -373,8 +365,6 @@ def check_run_dir_argument(argv: list[str]) -> None:
     A run directory another live run holds (`neuralsurf.runlock`) is refused too, before Hydra
     writes its config and log there."""
     import tempfile
-
-    from neuralsurf.runlock import busy_message
 
     for argument in argv:
         if argument.startswith(("hydra.run.dir=", "hydra.sweep.dir=")):
@@ -471,9 +461,6 @@ def score_main(argv: list[str] | None = None) -> int:
     """`neuralsurf-score PRED GT [--samples N] [--seed S] [--json]`: prints the metrics of a mesh file
     against a ground-truth mesh file; exit status 0, or 1 with the reason for an unreadable file."""
     import argparse
-
-    from neuralsurf.io import read_mesh
-    from neuralsurf.metrics import evaluate_mesh
 
     parser = argparse.ArgumentParser(
         prog="neuralsurf-score",

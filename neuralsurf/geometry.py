@@ -425,6 +425,13 @@ def cloud_from_mesh(mesh: Mesh, n: int, noise: float = 0.0, seed: int = 0) -> Po
     return PointCloud(points, normals)
 
 
+def noisy_cloud(surface: Tensor, n_points: int, noise: float, seed: int) -> Tensor:
+    """`n_points` of `surface` (Float[Tensor, "m 3"]) at random plus N(0, noise^2) on each coordinate."""
+    generator = torch.Generator().manual_seed(seed)
+    pick = torch.randperm(len(surface), generator=generator)[:n_points]
+    return surface[pick] + noise * torch.randn(len(pick), 3, generator=generator, dtype=surface.dtype)
+
+
 # ---------------------------------------------------------------------------------------------
 # depth images: back-projection, projection, depth -> point cloud
 #

@@ -11,10 +11,9 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
-from neuralsurf.observations.collection import CollectionSDF, CollectionSDFSampler
-from neuralsurf.priors import deepsdf
-from neuralsurf.shapes import ShapeRecord
-from neuralsurf.shapes.cache import CacheRecipe, build_collection
+from neuralsurf.priors import ShapeRecord, deepsdf
+from neuralsurf.priors.cache import CacheRecipe, build_collection
+from neuralsurf.priors.observations import CollectionSDF, CollectionSDFSampler
 from neuralsurf.structures import Normalization
 from neuralsurf.training import default_optimizer, fit, load_checkpoint
 

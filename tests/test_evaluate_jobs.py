@@ -233,7 +233,7 @@ def test_a_file_lock_lets_one_process_in_at_a_time(tmp_path):
 
 def _build_collection(root: str, out: str, start) -> None:
     from neuralsurf.priors import ShapeCollection
-    from neuralsurf.shapes.cache import build_collection
+    from neuralsurf.priors.cache import build_collection
 
     collection = ShapeCollection(classes=("lamp",), n_train=1, n_test=1, n_sdf=500, n_occ=100, n_surface=500,
                                  mesh_resolution=24, workers=0, root=root)
@@ -258,12 +258,10 @@ def test_jobs_building_one_shape_collection_together_build_each_shape_once(tmp_p
 
 
 def _train_prior(folder: str, start) -> None:
-    """train_prior into `folder`, with fit wrapped to append a line to `<folder>.fits` each time it runs."""
+    """trained_prior into `folder`, with fit wrapped to append a line to `<folder>.fits` each time it runs."""
     import functools
 
-    from neuralsurf import training
-    from neuralsurf.observations.collection import CollectionSDF
-    from neuralsurf.priors import ShapeCollection, deepsdf, train_prior
+    from neuralsurf.priors import CollectionSDF, ShapeCollection, deepsdf, trained_prior, training
 
     real_fit = training.fit
 
@@ -276,9 +274,9 @@ def _train_prior(folder: str, start) -> None:
     collection = ShapeCollection(classes=("lamp",), n_train=2, n_test=0, n_sdf=500, n_occ=100, n_surface=500,
                                  mesh_resolution=24, workers=0, root=f"{folder}_shapes")
     start.wait(120)
-    train_prior(folder, collection, functools.partial(deepsdf, latent_dim=8, width=32, depth=2, skip_layers=()),
-                [functools.partial(CollectionSDF.from_collection, shapes_per_batch=2, samples_per_shape=64)],
-                trainer={"steps": 3, "checkpoint_every": 3, "log_every": 3})
+    trained_prior(folder, collection, functools.partial(deepsdf, latent_dim=8, width=32, depth=2, skip_layers=()),
+                  [functools.partial(CollectionSDF.from_collection, shapes_per_batch=2, samples_per_shape=64)],
+                  trainer={"steps": 3, "checkpoint_every": 3, "log_every": 3})
 
 
 def test_jobs_asking_for_one_prior_together_train_it_once(tmp_path):

@@ -8,7 +8,7 @@ import torch
 
 from neuralsurf.extract import extract_mesh
 from neuralsurf.geometry import knn
-from neuralsurf.shapes import Shape, ShapeRecord
+from neuralsurf.priors import Shape, ShapeRecord
 
 THRESHOLD = 0.2
 TEMPERATURE = 0.01

@@ -9,6 +9,7 @@ import torch
 from torch import Tensor, nn
 
 from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.geometry import noisy_cloud
 from neuralsurf.losses import clamped_l1, eikonal_loss
 from neuralsurf.models import (
     SDFMLP,
@@ -22,7 +23,10 @@ from neuralsurf.models import (
 )
 from neuralsurf.models.occupancy import local_pool, plane_cells, plane_means, sample_planes
 from neuralsurf.models.spec import build_model, model_spec
-from neuralsurf.observations.collection import (
+from neuralsurf.priors import ShapeRecord, complete_cloud
+from neuralsurf.priors.cache import CacheRecipe, build_collection, cache_path, load_cache
+from neuralsurf.priors.completion import reconstruct_latent
+from neuralsurf.priors.observations import (
     CollectionOccupancy,
     CollectionSDF,
     LatentPrior,
@@ -30,10 +34,6 @@ from neuralsurf.observations.collection import (
     draw_shape_sdf,
     view_clouds,
 )
-from neuralsurf.priors import complete_cloud, noisy_cloud
-from neuralsurf.shapes import ShapeRecord
-from neuralsurf.shapes.cache import CacheRecipe, build_collection, cache_path, load_cache
-from neuralsurf.shapes.completion import reconstruct_latent
 from neuralsurf.structures import Normalization
 from neuralsurf.training import default_optimizer, fit
 

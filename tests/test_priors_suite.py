@@ -85,7 +85,7 @@ def test_a_field_clipped_to_the_cube_keeps_its_sign_inside_and_is_the_box_distan
 
 
 def test_the_build_command_makes_the_collection_that_train_py_finds(tmp_path):
-    from neuralsurf.shapes.__main__ import main
+    from neuralsurf.priors.__main__ import main
 
     main(["build", "--out", str(tmp_path), "--classes", "lamp", "--n-train", "1", "--n-test", "1", "--workers", "0",
           "--n-sdf", "500", "--n-occ", "100", "--n-surface", "500", "--mesh-resolution", "24"])

@@ -10,9 +10,9 @@ import torch
 
 from neuralsurf.errors import ConfigError, FileFormatError
 from neuralsurf.geometry import mesh_contains, point_to_mesh_distance
-from neuralsurf.shapes import Chair, Shape, ShapeRecord, check_shape, collection_records, csg
-from neuralsurf.shapes import cache as cache_module
-from neuralsurf.shapes.cache import CacheRecipe, build_collection, cache_path, load_cache, shape_samples
+from neuralsurf.priors import Chair, Shape, ShapeRecord, check_shape, collection_records, csg
+from neuralsurf.priors import cache as cache_module
+from neuralsurf.priors.cache import CacheRecipe, build_collection, cache_path, load_cache, shape_samples
 
 TINY = CacheRecipe(n_sdf=3000, n_occ=2000, n_surface=2000, mesh_resolution=48)
 
@@ -232,7 +232,7 @@ def test_parallel_build_writes_the_same_files_as_a_serial_one(tmp_path):
 
 
 def test_command_line_builds_a_collection(tmp_path, capsys):
-    from neuralsurf.shapes.__main__ import main
+    from neuralsurf.priors.__main__ import main
 
     argv = ["build", "--out", str(tmp_path), "--classes", "lamp", "--n-train", "1", "--n-val", "0", "--n-test", "1",
             "--workers", "0", "--n-sdf", "500", "--n-occ", "500", "--n-surface", "500", "--mesh-resolution", "48"]

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -16,9 +17,15 @@ from typing import Any
 import torch
 from torch import nn
 
+from neuralsurf.baselines import TSDFVolume, reconstruct_poisson
+from neuralsurf.devices import resolve_device
 from neuralsurf.errors import NeuralsurfError
+from neuralsurf.extract import NearPointsField, extract_mesh
+from neuralsurf.observations import NotObserved
+from neuralsurf.priors import complete_cloud, complete_view, extract_unit, load_prior, trained_prior
 from neuralsurf.scenes import Scene
 from neuralsurf.structures import Mesh
+from neuralsurf.training import default_optimizer, fit, load_field
 
 
 class NotApplicable(NeuralsurfError):
@@ -28,8 +35,6 @@ class NotApplicable(NeuralsurfError):
 def extract_scene_mesh(field: nn.Module, scene: Scene, extract: dict[str, Any] | None = None) -> Mesh:
     """`extract_mesh(field, **extract)` for a world-frame field fitted to `scene`; a room (the scene's
     `near_distance`, or a `near_distance` option) is meshed only that close to its input points."""
-    from neuralsurf.extract import NearPointsField, extract_mesh
-
     options = dict(extract or {})
     options.pop("format", None)  # the file format of train.py's mesh, not an extract_mesh argument
     near = options.pop("near_distance", None) or scene.near_distance
@@ -44,9 +49,6 @@ def neural_sdf(scene: Scene, *, model: nn.Module | None = None, points: Callable
     """Fit a neural SDF with `neuralsurf.fit` (as train.py does) and extract it: from the depth frames as
     rays (`rays(scene)`) when the scene is a depth capture and `rays` is given, else from its point cloud
     (`points(scene)`); or, with `checkpoint`, score an existing fit (`load_field`)."""
-    from neuralsurf.observations import NotObserved
-    from neuralsurf.training import default_optimizer, fit, load_field
-
     if checkpoint is not None:
         return extract_scene_mesh(load_field(checkpoint, device=device), scene, extract)
     if model is None or points is None:
@@ -65,10 +67,6 @@ def neural_sdf(scene: Scene, *, model: nn.Module | None = None, points: Callable
 def poisson(scene: Scene, *, depth: int = 9, density_trim: float | None = None, scale: float = 1.1,
             normal_k: int = 30, n_threads: int = 1, seed: int = 0, run_dir=None, config=None) -> Mesh:
     """Screened Poisson (Open3D) on the scene's cloud; normals estimated where the scene has none."""
-    import warnings
-
-    from neuralsurf.baselines import reconstruct_poisson
-
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*estimat.*")
         return reconstruct_poisson(scene.cloud, depth=depth, density_trim=density_trim, scale=scale,
@@ -80,8 +78,6 @@ def tsdf(scene: Scene, *, voxel_fraction: float = 1 / 256, truncation_voxels: fl
          seed: int = 0, run_dir=None, config=None) -> Mesh:
     """TSDF fusion of the scene's depth frames; the voxel is `voxel_fraction` of the longest side of
     the box of the back-projected input (enlarged by `margin_fraction`; the ground truth is not used)."""
-    from neuralsurf.baselines import TSDFVolume
-
     if scene.frames is None:
         raise NotApplicable("TSDF fusion needs depth frames; this scene is a point cloud")
     points = scene.cloud.points.double().cpu()
@@ -105,9 +101,6 @@ def learned_prior(scene: Scene, *, checkpoint: str | None = None, collection=Non
     The prior is `checkpoint` (a train.py experiment=shapes_* run's last.pt), or else trained once per
     evaluation (`model(n_shapes)` over `collection` with the `observation` builders, `optimizer`,
     `trainer`) into `<run_dir>/../prior_<hash of those settings>` and reused by every later call."""
-    from neuralsurf.devices import resolve_device
-    from neuralsurf.priors import complete_cloud, complete_view, extract_unit, load_prior, train_prior
-
     device = str(resolve_device(device))
     if checkpoint is None:
         if None in (collection, model, observation, trainer, run_dir):
@@ -115,9 +108,9 @@ def learned_prior(scene: Scene, *, checkpoint: str | None = None, collection=Non
                                   "trainer settings (configs/method/deepsdf.yaml) to train one")
         settings = {k: (config or {}).get(k) for k in ("collection", "model", "observation", "optimizer", "trainer")}
         digest = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()[:10]
-        checkpoint = train_prior(Path(run_dir).parent / f"prior_{digest}", collection, model,
-                                 list(observation.values()), optimizer=optimizer, trainer=trainer, seed=seed,
-                                 device=device, config=settings)
+        checkpoint = trained_prior(Path(run_dir).parent / f"prior_{digest}", collection, model,
+                                   list(observation.values()), optimizer=optimizer, trainer=trainer, seed=seed,
+                                   device=device, config=settings)
     prior = load_prior(checkpoint, device=device)
     options = {"latent_steps": latent_steps, "seed": seed, "device": device}
     if scene.frames is not None and scene.depth_input:

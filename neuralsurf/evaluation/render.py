@@ -7,11 +7,15 @@ from __future__ import annotations
 
 import io
 import math
+from pathlib import Path
 
 import numpy as np
+import torch
 from PIL import Image, ImageDraw, ImageFont
 
 from neuralsurf.errors import InputError
+from neuralsurf.models import AutoDecoder, LatentConditioned
+from neuralsurf.priors import EXTRACTION_BOUNDS, extract_unit
 from neuralsurf.structures import Mesh
 
 BACKGROUND = (255, 255, 255)
@@ -257,3 +261,21 @@ def scatter_plot(title: str, x_label: str, y_label: str, points: list[tuple[floa
         draw.rectangle([width - right + 12, y, width - right + 24, y + 12], fill=PALETTE[s % len(PALETTE)])
         draw.text((width - right + 30, y - 1), name, fill=(0, 0, 0), font=font)
     return image
+
+
+def interpolation_picture(prior: AutoDecoder, first: int, second: int, path: str | Path, steps: int = 5,
+                          resolution: int = 64, size: int = 160) -> Path:
+    """A PNG of the shapes of codes (1 - t) z_first + t z_second for `steps` values of t in [0, 1]
+    (training shapes `first` and `second` of an auto-decoder): DeepSDF's latent interpolation."""
+    codes = prior.codes.weight.detach()
+    view = default_view(EXTRACTION_BOUNDS)
+    images, labels = [], []
+    for t in np.linspace(0.0, 1.0, steps):
+        code = (1 - t) * codes[first] + t * codes[second]
+        field = LatentConditioned.from_code(prior.decoder, code.cpu()).to(codes.device).eval()
+        with torch.no_grad():
+            images.append(shade(extract_unit(field, resolution), view, size, size))
+        labels.append(f"t = {t:.2f}")
+    path = Path(path)
+    labelled_row(images, labels).save(path)
+    return path

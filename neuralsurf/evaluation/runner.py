@@ -21,12 +21,18 @@ from typing import Any
 import numpy as np
 import torch
 
+import neuralsurf
 from neuralsurf.errors import ConfigError
+from neuralsurf.evaluation.distances import save_distances
 from neuralsurf.evaluation.methods import NotApplicable
 from neuralsurf.evaluation.photometric import NormalMapResult, normal_map_picture, score_normal_maps
-from neuralsurf.evaluation.store import row_stem
+from neuralsurf.evaluation.render import default_view, distance_image, labelled_row, shade
+from neuralsurf.evaluation.store import reusable_row, row_stem, settings_key, store_row
+from neuralsurf.io import write_mesh
 from neuralsurf.io.meshes import mesh_format as mesh_format_extension
 from neuralsurf.locks import replaced
+from neuralsurf.metrics import depth_metrics, evaluate_mesh
+from neuralsurf.priors import mean_metrics
 from neuralsurf.scenes import Scene, SceneUnavailable
 from neuralsurf.scenes.recipes import SceneSet
 from neuralsurf.structures import Mesh
@@ -42,8 +48,6 @@ def environment(include_host: bool = False) -> dict[str, str]:
     results are shared, and a hostname says who ran them where. `include_host=True` adds a "host"
     entry (the network name) for one's own records."""
     import open3d
-
-    import neuralsurf
 
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none"
     env = {"neuralsurf": neuralsurf.__version__, "torch": torch.__version__, "open3d": open3d.__version__,
@@ -127,8 +131,6 @@ def run_benchmark(
     settings is reused, not computed (logged as "reused"); without, every row is computed. `on_row` is
     called with each computed row once it is stored (evaluate.py rebuilds the report there).
     """
-    from neuralsurf.evaluation.store import reusable_row, settings_key, store_row
-
     unsafe = [name for name in [*scenes, *methods] if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.-]*", name)]
     if unsafe:
         raise ConfigError(f"scene and method names become file names in the run directory: {unsafe} may hold only "
@@ -194,8 +196,6 @@ def run_row(row: dict[str, Any], built: dict[str, Any], make_method: MethodFacto
     and fill `row` in place: metrics, files, or the reason it was skipped or failed. Returns whether
     the row is final (reusable by a later run with the same settings): ok, or skipped because the method
     does not apply; failed rows and rows of unavailable scenes are computed again."""
-    from neuralsurf.metrics import depth_metrics, evaluate_mesh
-
     scene_name, method_name, scene = row["scene"], row["method"], built["scene"]
     if built["error"] is not None:
         row["status"], row["reason"] = built["error"]
@@ -245,16 +245,12 @@ def run_row(row: dict[str, Any], built: dict[str, Any], make_method: MethodFacto
     row.update(metrics)
     row.update(n_vertices=len(mesh.vertices), n_faces=len(mesh.faces), watertight=bool(mesh.is_watertight))
     if save_meshes:
-        from neuralsurf.io import write_mesh
-
         path = Path("meshes") / f"{row_stem(scene_name, method_name)}{mesh_extension}"
         with replaced(run_dir / path) as temporary:
             write_mesh(temporary, mesh)
         row["mesh"] = str(path)
     shown = shown_scene(scene)  # of a scene set: its first scene
     if (render or save_meshes) and shown.ground_truth is not None:  # coloured with the report, one scale per scene
-        from neuralsurf.evaluation.distances import save_distances
-
         try:
             row["distances"] = save_distances(run_dir, scene_name, method_name, mesh, shown.ground_truth, render_size)
         except Exception as error:  # noqa: BLE001 - an error view problem must not lose the numbers
@@ -278,9 +274,6 @@ def run_scene_set(scenes: SceneSet, method: Callable[..., Mesh], seed: int, run_
     """`method` on every scene of a set, each mesh scored against its ground truth (`evaluate_mesh`).
     Returns (the first scene's mesh, the means of the metrics with "shapes" and "seconds_per_shape"
     (median), the per-scene metrics with their names and seconds). The first failure fails the row."""
-    from neuralsurf.metrics import evaluate_mesh
-    from neuralsurf.priors import mean_metrics
-
     first, per_scene = None, []
     for member in scenes.scenes:
         started = time.perf_counter()
@@ -312,21 +305,15 @@ def _write_traceback(run_dir: Path, name: str) -> None:
 
 
 def _view(scene: Scene) -> dict:
-    from neuralsurf.evaluation.render import default_view
-
     return default_view(scene.ground_truth.bounds.double().cpu().numpy())
 
 
 def _gt_render(scene: Scene, run_dir: Path, size: int):
-    from neuralsurf.evaluation.render import shade
-
     return shade(scene.ground_truth, _view(scene), size, size, color=(0.80, 0.80, 0.80))
 
 
 def _render_row(scene: Scene, mesh: Mesh, method: str, gt_image, run_dir: Path, size: int) -> str:
     """ground truth | reconstruction shaded | reconstruction coloured by distance to gt -> one PNG."""
-    from neuralsurf.evaluation.render import distance_image, labelled_row, shade
-
     view = _view(scene)
     lo, hi = scene.ground_truth.bounds.double().cpu().numpy()
     max_distance = 0.01 * float((hi - lo).max())  # the F-score's 1 % threshold: red = beyond it

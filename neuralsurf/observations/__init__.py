@@ -1,7 +1,6 @@
 """Supervision for fits: each kind of observation samples its own batches and returns its loss terms."""
 
 from neuralsurf.observations.base import NotObserved, Observation, Sampler, union_bounds
-from neuralsurf.observations.collection import CollectionOccupancy, CollectionSDF, LatentPrior, SDFSampleSet
 from neuralsurf.observations.normals import NormalBatch, NormalMaps
 from neuralsurf.observations.points import PointSamples
 from neuralsurf.observations.rays import DepthRays, RayBatch, Rays, depth_rays

@@ -1,8 +1,36 @@
-"""Shape collections for learned priors: procedural classes with analytic SDFs, and caches of samples."""
+"""Learned shape priors end to end, without Hydra: DeepSDF auto-decoders and Occupancy Networks over
+procedural shape collections.
 
-from neuralsurf.shapes.procedural import (
+- `procedural`, `csg`: shape classes with analytic SDFs (chairs, mugs, lamps) and their records.
+- `cache`: per-shape npz caches of training samples (`python -m neuralsurf.priors build`).
+- `collection`: `ShapeCollection`, a collection as plain settings (train.py's `data` for the priors).
+- `observations`: the supervision of priors (`CollectionSDF`, `CollectionOccupancy`, `SDFSampleSet`,
+  `LatentPrior`).
+- `models`: `deepsdf`, `occupancy_network` sized for a collection; `load_prior` from a checkpoint.
+- `training`: `train_prior` (one fit), `trained_prior` (trained once into a folder and reused).
+- `completion`: `reconstruct_latent`, `complete_cloud`, `complete_view`, `extract_unit`.
+- `scoring`: `score_completions`, `mean_metrics`.
+- `scenes`: `shapes_cloud`, `shapes_one_view`, the test shapes as evaluation scenes.
+
+Everything lives in the collection's unit frame (each shape in [-0.5, 0.5]^3, `UNIT_BOUNDS`).
+"""
+
+from neuralsurf.priors.cache import CacheRecipe, build_collection
+from neuralsurf.priors.collection import ShapeCollection, TestShape
+from neuralsurf.priors.completion import (
+    EXTRACTION_BOUNDS,
+    clipped_to_cube,
+    complete_cloud,
+    complete_view,
+    extract_unit,
+    reconstruct_latent,
+)
+from neuralsurf.priors.models import deepsdf, load_prior, occupancy_network
+from neuralsurf.priors.observations import CollectionOccupancy, CollectionSDF, LatentPrior, SDFSampleSet
+from neuralsurf.priors.procedural import (
     SHAPE_CLASSES,
     SPLITS,
+    UNIT_BOUNDS,
     Chair,
     Lamp,
     Mug,
@@ -11,6 +39,13 @@ from neuralsurf.shapes.procedural import (
     check_shape,
     collection_records,
 )
+from neuralsurf.priors.scenes import shapes_cloud, shapes_one_view
+from neuralsurf.priors.scoring import mean_metrics, score_completions
+from neuralsurf.priors.training import train_prior, trained_prior
 
-__all__ = ["SHAPE_CLASSES", "SPLITS", "Chair", "Lamp", "Mug", "Shape", "ShapeRecord", "check_shape",
-           "collection_records"]
+__all__ = ["EXTRACTION_BOUNDS", "SHAPE_CLASSES", "SPLITS", "UNIT_BOUNDS", "CacheRecipe", "Chair", "CollectionOccupancy",
+           "CollectionSDF", "Lamp", "LatentPrior", "Mug", "SDFSampleSet", "Shape", "ShapeCollection", "ShapeRecord",
+           "TestShape", "build_collection", "check_shape", "clipped_to_cube", "collection_records", "complete_cloud",
+           "complete_view", "deepsdf", "extract_unit", "load_prior", "mean_metrics", "occupancy_network",
+           "reconstruct_latent", "score_completions", "shapes_cloud", "shapes_one_view", "train_prior",
+           "trained_prior"]

@@ -1,4 +1,4 @@
-"""Build a procedural shape collection's caches: `python -m neuralsurf.shapes build --out <dir> ...`
+"""Build a procedural shape collection's caches: `python -m neuralsurf.priors build --out <dir> ...`
 (the defaults are those of train.py's data=shapes: `python train.py experiment=shapes_deepsdf
 data.root=<dir>` then trains on it).
 
@@ -11,12 +11,12 @@ import argparse
 import sys
 import time
 
-from neuralsurf.shapes.cache import CacheRecipe, build_collection
-from neuralsurf.shapes.procedural import SHAPE_CLASSES, collection_records
+from neuralsurf.priors.cache import CacheRecipe, build_collection
+from neuralsurf.priors.procedural import SHAPE_CLASSES, collection_records
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m neuralsurf.shapes", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m neuralsurf.priors", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
     build = commands.add_parser("build", help="write per-shape npz caches and collection.json")
     build.add_argument("--out", required=True, help="output folder (created; reused to resume)")

@@ -34,8 +34,10 @@ import numpy as np
 import torch
 
 from neuralsurf.errors import ConfigError, FileFormatError
+from neuralsurf.geometry import sample_mesh_surface
 from neuralsurf.io.npz import write_npz
-from neuralsurf.shapes.procedural import Shape, ShapeRecord, check_shape
+from neuralsurf.locks import file_lock
+from neuralsurf.priors.procedural import Shape, ShapeRecord, check_shape
 from neuralsurf.structures import Mesh
 
 CACHE_KEYS = ("sdf_points", "sdf_values", "occ_uniform_points", "occ_uniform_inside", "occ_near_points",
@@ -76,8 +78,6 @@ class CacheRecipe:
 
 def shape_samples(shape: Shape, recipe: CacheRecipe) -> dict[str, np.ndarray]:
     """Every array of a shape's cache (see the module docstring), from the shape's own seed."""
-    from neuralsurf.geometry import sample_mesh_surface
-
     mesh = shape.mesh(recipe.mesh_resolution, recipe.padding)
     check_shape(shape, mesh)
     generator = torch.Generator().manual_seed(shape.record.seed % (2**63))
@@ -127,10 +127,10 @@ def load_cache(path: str | Path) -> dict[str, np.ndarray]:
             arrays = {key: data[key] for key in data.files}
     except (OSError, ValueError, EOFError) as error:
         raise FileFormatError(f"cannot read shape cache {path}: {error}; delete it and build the collection "
-                              f"again (python -m neuralsurf.shapes build ...)") from None
+                              f"again (python -m neuralsurf.priors build ...)") from None
     missing = [key for key in CACHE_KEYS if key not in arrays]
     if missing:
-        raise FileFormatError(f"shape cache {path} lacks {missing}; it was not written by neuralsurf.shapes: "
+        raise FileFormatError(f"shape cache {path} lacks {missing}; it was not written by neuralsurf.priors: "
                               f"delete it and build again")
     return arrays
 
@@ -188,7 +188,7 @@ def read_manifest(out: str | Path) -> tuple[list[ShapeRecord], CacheRecipe]:
     path = Path(out) / "collection.json"
     if not path.is_file():
         raise FileFormatError(f"{path} not found: build the collection first "
-                              f"(python -m neuralsurf.shapes build --out {out})")
+                              f"(python -m neuralsurf.priors build --out {out})")
     manifest = json.loads(path.read_text())
     return [ShapeRecord(**r) for r in manifest["shapes"]], CacheRecipe(**manifest["recipe"])
 
@@ -201,8 +201,6 @@ def build_collection(out: str | Path, records: Sequence[ShapeRecord], recipe: Ca
     in that many processes, 0 in this one. Returns counts {"built": ..., "cached": ...}. Processes that
     build the same folder together (the jobs of an evaluation sweep) take turns under the lock
     `<out>/.build.lock`: the first builds, the others then find every shape cached."""
-    from neuralsurf.locks import file_lock
-
     with file_lock(Path(out) / ".build.lock"):
         return _build_collection(Path(out), records, recipe, workers, progress, on_done)
 

@@ -1,4 +1,4 @@
-"""Supervision from shape collections (`neuralsurf.shapes` caches) for learned priors.
+"""Supervision from shape collections (`neuralsurf.priors.cache`) for learned priors.
 
 - `CollectionSDF`: the SDF samples of every shape of a split, for a DeepSDF auto-decoder
   (`models.AutoDecoder`): clamped L1 (`sdf`, DeepSDF's delta 0.1) and the code prior (`code`,
@@ -25,19 +25,19 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from neuralsurf.distributed import rank_and_world
+from neuralsurf.distributed import rank_and_world, shard_rows
 from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.geometry import backproject_depth
 from neuralsurf.losses import clamped_l1
 from neuralsurf.observations.base import Observation, Sampler, check_weights
-from neuralsurf.structures import Normalization
-
-UNIT_BOUNDS = torch.tensor([[-0.5] * 3, [0.5] * 3], dtype=torch.float64)
+from neuralsurf.priors.cache import cache_path, load_cache, read_manifest
+from neuralsurf.priors.procedural import UNIT_BOUNDS
+from neuralsurf.scenes.scanner import ONE_VIEW_IMAGE, one_view_camera, scan_depth
+from neuralsurf.structures import Mesh, Normalization
 
 
 def split_paths(root: str | Path, split: str) -> list[Path]:
     """Cache files of one split of a built collection, in the manifest's (latent-code) order."""
-    from neuralsurf.shapes.cache import cache_path, read_manifest
-
     records, _ = read_manifest(root)
     paths = [cache_path(Path(root), r) for r in records if r.split == split]
     if not paths:
@@ -45,7 +45,7 @@ def split_paths(root: str | Path, split: str) -> list[Path]:
     missing = [str(p) for p in paths if not p.is_file()]
     if missing:
         raise InputError(f"{len(missing)} caches of {root} are missing (e.g. {missing[0]}): the build was "
-                         f"interrupted; run the same `python -m neuralsurf.shapes build` command again to finish it")
+                         f"interrupted; run the same `python -m neuralsurf.priors build` command again to finish it")
     return paths
 
 
@@ -116,8 +116,6 @@ def rank_rows(batch, rank: int, world: int):
 def global_shapes(shapes_per_batch: int, count: int, world: int, owner: str) -> int:
     """Shapes per step over all processes: `shapes_per_batch`, or all `count` when fewer, which
     must split evenly over `world` processes."""
-    from neuralsurf.distributed import shard_rows
-
     shapes = min(shapes_per_batch, count)
     shard_rows(shapes, world, f"{owner} (shapes_per_batch={shapes_per_batch}, {count} shapes)")
     return shapes
@@ -152,7 +150,7 @@ class CollectionSDF(Observation):
     """The SDF samples of a collection split, one latent code per shape (DeepSDF's training data)."""
 
     root: str | Path
-    """Folder built by `python -m neuralsurf.shapes build`."""
+    """Folder built by `python -m neuralsurf.priors build`."""
     split: str = "train"
     weights: Mapping[str, float] = field(default_factory=lambda: {"sdf": 1.0, "code": 1e-4})
     """Term weights: sdf (clamped L1), code (DeepSDF's code regularisation, 1e-4 there)."""
@@ -172,7 +170,7 @@ class CollectionSDF(Observation):
 
     @classmethod
     def from_collection(cls, collection, **options) -> CollectionSDF:
-        """The training split of a built `neuralsurf.priors.ShapeCollection`, with these options."""
+        """The training split of a built `ShapeCollection`, with these options."""
         return cls(collection.folder, **options)
 
     @property
@@ -220,12 +218,8 @@ def facing_mask(normals: Tensor, generator: torch.Generator) -> Tensor:
 def view_clouds(meshes: list, views: int, points_per_view: int, seed: int) -> Tensor:
     """Float[Tensor, "S views points_per_view 3"]: back-projected points of `views` synthetic depth
     views of each mesh (unit frame), cameras and images as the `shapes_one_view` scene's
-    (`scenes.recipes.one_view_camera`, `ONE_VIEW_IMAGE`): one-sided clouds with self-occlusion, as one
+    (`scenes.scanner.one_view_camera`, `ONE_VIEW_IMAGE`): one-sided clouds with self-occlusion, as one
     depth view sees a shape. Each view's points are drawn at random (with repeats when fewer)."""
-    from neuralsurf.geometry import backproject_depth
-    from neuralsurf.scenes.recipes import ONE_VIEW_IMAGE, one_view_camera
-    from neuralsurf.scenes.scanner import scan_depth
-
     generator = torch.Generator().manual_seed(seed)
     clouds = torch.empty(len(meshes), views, points_per_view, 3)
     for i, mesh in enumerate(meshes):
@@ -305,7 +299,7 @@ class CollectionOccupancy(Observation):
     (the training data of an Occupancy Network)."""
 
     root: str | Path
-    """Folder built by `python -m neuralsurf.shapes build`."""
+    """Folder built by `python -m neuralsurf.priors build`."""
     split: str = "train"
     weights: Mapping[str, float] = field(default_factory=lambda: {"occupancy": 1.0})
     shapes_per_batch: int = 32
@@ -337,7 +331,7 @@ class CollectionOccupancy(Observation):
 
     @classmethod
     def from_collection(cls, collection, **options) -> CollectionOccupancy:
-        """The training split of a built `neuralsurf.priors.ShapeCollection`, with these options."""
+        """The training split of a built `ShapeCollection`, with these options."""
         return cls(collection.folder, **options)
 
     def bounds(self) -> Tensor:
@@ -369,8 +363,6 @@ class CollectionOccupancy(Observation):
         """The `view_clouds` of every shape (4 x cloud_points points a view), or None."""
         if not (self.partial_views and self.partial):
             return None
-        from neuralsurf.structures import Mesh
-
         meshes = []
         for path in paths:  # the two mesh arrays alone (np.load reads an npz key by key)
             with np.load(path, allow_pickle=False) as data:
@@ -440,9 +432,7 @@ class SDFSampleSet(Observation):
 
     @classmethod
     def from_cache(cls, path: str | Path, **options) -> SDFSampleSet:
-        """The SDF samples of one cached shape (`neuralsurf.shapes` npz)."""
-        from neuralsurf.shapes.cache import load_cache
-
+        """The SDF samples of one cached shape (`neuralsurf.priors.cache` npz)."""
         arrays = load_cache(path)
         return cls(torch.from_numpy(arrays["sdf_points"]), torch.from_numpy(arrays["sdf_values"]), **options)
 

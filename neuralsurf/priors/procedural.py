@@ -16,10 +16,20 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.shapes import csg
+from neuralsurf.extract import extract_mesh
+from neuralsurf.priors import csg
 from neuralsurf.structures import Mesh, Normalization
 
 SPLITS = ("train", "val", "test")
+
+UNIT_BOUNDS = torch.tensor([[-0.5] * 3, [0.5] * 3], dtype=torch.float64)
+"""Float64[Tensor, "2 3"]: the unit frame of every shape of a collection, and so of a prior: the
+cube [-0.5, 0.5]^3 (each shape's bounding box centred, longest side 1)."""
+
+
+def padded_unit_bounds(padding: float) -> Tensor:
+    """Float64[Tensor, "2 3"]: UNIT_BOUNDS grown by `padding` on every side."""
+    return UNIT_BOUNDS + torch.tensor([[-padding], [padding]], dtype=torch.float64)
 
 
 def _u(rng: np.random.Generator, lo: float, hi: float) -> float:
@@ -204,7 +214,7 @@ class Shape:
 
     def sdf(self, x: Tensor) -> Tensor:
         """Unit-frame x[..., 3] -> signed distance [...] (float64 inside; same dtype out), negative
-        inside: exact sign and zero set, exact distance outside (see `neuralsurf.shapes.csg`)."""
+        inside: exact sign and zero set, exact distance outside (see `neuralsurf.priors.csg`)."""
         if x.shape[-1] != 3:
             raise InputError(f"Shape.sdf expects points of shape (..., 3), got {tuple(x.shape)}")
         raw = self.normalization.to_world(x.double())
@@ -217,8 +227,6 @@ class Shape:
     def mesh(self, resolution: int = 128, padding: float = 0.05) -> Mesh:
         """Marching cubes of the analytic SDF over [-0.5 - padding, 0.5 + padding]^3 (unit frame,
         float32 vertices). Watertight when the shape is (see `check_shape`)."""
-        from neuralsurf.extract import extract_mesh
-
         half = 0.5 + padding
         bounds = np.array([[-half] * 3, [half] * 3])
         return extract_mesh(lambda x: self.sdf(x.double()).float(), resolution=resolution, bounds=bounds,

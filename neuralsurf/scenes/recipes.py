@@ -10,16 +10,28 @@ from __future__ import annotations
 
 import os
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 
 import torch
 
+from neuralsurf.data import DATASETS, cache_dir, find_folder
 from neuralsurf.errors import ConfigError, MissingDependencyError, NeuralsurfError
-from neuralsurf.geometry import cloud_from_mesh
-from neuralsurf.photometric import PhotometricStereoResult
+from neuralsurf.geometry import cloud_from_mesh, depth_to_cloud
+from neuralsurf.io import (
+    read_mesh,
+    read_photometric,
+    read_point_cloud,
+    read_range_scan_frames,
+    read_range_scans,
+    read_rgbd_folder,
+)
+from neuralsurf.photometric import PhotometricStereoResult, integrate_least_squares, photometric_stereo
 from neuralsurf.scenes.analytic import analytic_shape
+from neuralsurf.scenes.bunny import bunny
+from neuralsurf.scenes.photometric_rig import SpecularLobe, cap_lights, render_photometric
+from neuralsurf.scenes.scanner import intrinsics_from_fov, look_at, orbit_cameras, scan_depth
 from neuralsurf.structures import DepthFrames, Mesh, PhotometricCapture, PointCloud
 
 
@@ -61,8 +73,6 @@ class Scene:
 def data_root(root: str | Path | None = None) -> Path:
     """The folder of real captures: `root` if given, else $NEURALSURF_DATA, else the cache that
     `python -m neuralsurf data fetch` fills (neuralsurf.data.cache_dir())."""
-    from neuralsurf.data import cache_dir
-
     return Path(root or os.environ.get("NEURALSURF_DATA") or cache_dir()).expanduser()
 
 
@@ -70,8 +80,6 @@ def data_path(root: str | Path | None, relative: str | Path) -> Path:
     """Where `relative` (a path under a data root, e.g. "stanford_bunny/data/bun.conf") is read from:
     under `root` if given; else the first of $NEURALSURF_DATA, the fetch cache that holds it (where
     neuralsurf.data.fetch looks too); else under `data_root()`, for the message that it is missing."""
-    from neuralsurf.data import find_folder
-
     found = None if root else find_folder(relative)
     return found[1] if found is not None else data_root(root) / relative
 
@@ -79,16 +87,12 @@ def data_path(root: str | Path | None, relative: str | Path) -> Path:
 def _unavailable(path: Path, holder: str) -> SceneUnavailable:
     """The error of a scene whose data `path` is missing: the command that fetches the data set of folder
     `holder` (when neuralsurf.data has one), or point data_root at the folder holding `holder`/."""
-    from neuralsurf.data import DATASETS
-
     name = next((name for name, dataset in DATASETS.items() if dataset.folder == holder), None)
     get = f"run `python -m neuralsurf data fetch {name}`, " if name else ""
     return SceneUnavailable(f"{path} not found: {get}pass data_root=<folder holding {holder}/> or set NEURALSURF_DATA")
 
 
 def _bunny_mesh() -> Mesh:
-    from neuralsurf.scenes.bunny import bunny
-
     try:
         return bunny()
     except MissingDependencyError as error:
@@ -121,8 +125,6 @@ def analytic_scene(shape: str = "sphere", n_points: int = 20_000, noise_fraction
 
 def file_scene(path: str | Path, ground_truth: str | Path | None = None, name: str | None = None) -> Scene:
     """A point cloud read from `path`, with an optional ground-truth mesh file."""
-    from neuralsurf.io import read_mesh, read_point_cloud
-
     mesh = read_mesh(ground_truth) if ground_truth is not None else None
     return Scene(name or Path(path).stem, read_point_cloud(path), mesh, description=f"point cloud {path}")
 
@@ -132,8 +134,6 @@ def depth_scene(name: str, frames: DepthFrames, ground_truth: Mesh | None = None
     """A scene of depth frames: every `hold_out_every`-th frame (the 10th, 20th, ... for 10; 0 = none)
     is held out for scoring, the others are the input, also back-projected into a cloud (every
     `cloud_stride`-th pixel, image-space normals) for methods that take points."""
-    from neuralsurf.geometry import depth_to_cloud
-
     held_out = None
     if hold_out_every == 1:
         raise ConfigError(f"{name}: hold_out_every=1 would hold out every frame; use 0 (none) or 2 and more")
@@ -155,8 +155,6 @@ def depth_scene(name: str, frames: DepthFrames, ground_truth: Mesh | None = None
 def bunny_depth(name: str = "bunny_depth", n_views: int = 24, width: int = 320, height: int = 240,
                 noise: str = "kinect", seed: int = 0, stride: int = 1, hold_out_every: int = 0) -> Scene:
     """Synthetic depth views of the bunny (`scan_depth`, `noise` "none", "gaussian" or "kinect")."""
-    from neuralsurf.scenes.scanner import scan_depth
-
     mesh = _bunny_mesh()
     frames = scan_depth(mesh, n_views=n_views, width=width, height=height, noise=noise, seed=seed)
     return depth_scene(name, frames, mesh, hold_out_every, stride, f"{noise} noise")
@@ -169,8 +167,6 @@ def rgbd_scene(path: str, name: str | None = None, stride: int = 1, max_frames: 
     """A 7-Scenes, TUM or Redwood folder (`read_rgbd_folder`, every `stride`-th frame) as a depth scene
     with every `hold_out_every`-th frame held out; an optional ground-truth mesh file. A room: neural
     fields are meshed within `near_distance` metres of the input (None: everywhere)."""
-    from neuralsurf.io import read_mesh, read_rgbd_folder
-
     frames = read_rgbd_folder(path, stride=stride, max_frames=max_frames, with_color=False)
     mesh = read_mesh(ground_truth) if ground_truth else None
     return depth_scene(name or Path(path).name, frames, mesh, hold_out_every, cloud_stride, f"real RGB-D {path}",
@@ -193,8 +189,6 @@ def stanford_scans(name: str = "stanford_scans", root: str | None = None, conf: 
     """The real range scans of the Stanford bunny, aligned by their .conf and merged into one cloud
     (normals towards the scanners), and as one depth image per scan (read_range_scan_frames) for
     TSDF fusion; ground truth: Stanford's zippered reconstruction."""
-    from neuralsurf.io import read_mesh, read_range_scan_frames, read_range_scans
-
     holder = Path(conf).parts[0]
     base = data_path(root, holder).parent  # both files from the same copy
     conf_path, gt_path = base / conf, base / ground_truth
@@ -215,8 +209,6 @@ def stanford_scans(name: str = "stanford_scans", root: str | None = None, conf: 
 
 def _rig_view(mesh: Mesh, distance: float = 2.5) -> torch.Tensor:
     """Float64[Tensor, "4 4"]: a camera `distance` bounding-box sizes in front of the mesh (+z), looking at it."""
-    from neuralsurf.scenes.scanner import look_at
-
     lo, hi = mesh.bounds.double()
     center, extent = (lo + hi) / 2, float((hi - lo).max())
     return look_at(center + torch.tensor([0.0, 0.0, distance * extent], dtype=torch.float64), center, up=(0, 1, 0))
@@ -224,8 +216,6 @@ def _rig_view(mesh: Mesh, distance: float = 2.5) -> torch.Tensor:
 
 def _capture_scene(name: str, capture: PhotometricCapture, mesh: Mesh, text: str) -> Scene:
     """A one-view photometric scene; its cloud is the back-projection of the capture's exact depth."""
-    from neuralsurf.geometry import depth_to_cloud
-
     frames = DepthFrames(capture.depth[None], capture.K[None], capture.cam_to_world[None])
     cloud = depth_to_cloud(frames, with_normals=True)
     return Scene(name, cloud, mesh, description=text, photometric=(capture,))
@@ -237,8 +227,6 @@ def rig_lambertian(name: str = "rig_lambertian", size: int = 256, n_lights: int 
     """The bunny on the photometric rig, one view (size x size), `n_lights` DiLiGenT-like lights within
     `max_angle_deg` of the view axis: Lambertian (albedo 0.8), attached shadows only (no cast
     shadows), no noise. Ground truth: the rig's normal map."""
-    from neuralsurf.scenes.photometric_rig import cap_lights, render_photometric
-
     mesh = _bunny_mesh()
     capture = render_photometric(mesh, cap_lights(n_lights, max_angle_deg), cam_to_world=_rig_view(mesh),
                                  width=size, height=size, fov_deg=fov_deg, shadows=False)[0]
@@ -250,8 +238,6 @@ def rig_lambertian(name: str = "rig_lambertian", size: int = 256, n_lights: int 
 def rig_specular(name: str = "rig_specular", size: int = 256, n_lights: int = 96, max_angle_deg: float = 45.0,
                  fov_deg: float = 30.0, strength: float = 0.6, shininess: float = 40.0) -> Scene:
     """As `rig_lambertian` with a Blinn-Phong highlight (`strength`, `shininess`) and cast shadows."""
-    from neuralsurf.scenes.photometric_rig import SpecularLobe, cap_lights, render_photometric
-
     mesh = _bunny_mesh()
     capture = render_photometric(mesh, cap_lights(n_lights, max_angle_deg), cam_to_world=_rig_view(mesh),
                                  width=size, height=size, fov_deg=fov_deg, shadows=True,
@@ -266,9 +252,6 @@ def bunny_specular_ps(name: str = "bunny_specular_ps", root: str | None = None,
     """The 50-light specular bunny capture (DiLiGenT layout) under the data root, with ground-truth
     normals. It has no depth and no camera: its cloud is the relief integrated from the ground-truth
     normals (orthographic, pixel units), only so that the scene is complete; score normals on it."""
-    from neuralsurf.io import read_photometric
-    from neuralsurf.photometric import integrate_least_squares
-
     path = data_path(root, folder)
     if not path.is_dir():
         raise _unavailable(path, folder)
@@ -297,12 +280,6 @@ def rig_fusion(name: str = "rig_fusion", n_views: int = 8, width: int = 320, hei
     The input is the depth frames (`frames`, as for `bunny_depth`) and the stereo normal maps
     (`normal_maps`, one `PhotometricStereoResult` per view, camera frame, with confidence);
     `photometric` holds the rendered captures (images, lights, exact normals and depth)."""
-    from dataclasses import replace
-
-    from neuralsurf.photometric import photometric_stereo
-    from neuralsurf.scenes.photometric_rig import SpecularLobe, cap_lights, render_photometric
-    from neuralsurf.scenes.scanner import intrinsics_from_fov, orbit_cameras, scan_depth
-
     mesh = _bunny_mesh()
     vertices = mesh.vertices.double()
     lo, hi = vertices.min(0).values, vertices.max(0).values
@@ -336,61 +313,3 @@ class SceneSet:
     name: str
     scenes: tuple[Scene, ...]
     description: str = ""
-
-
-def _test_shapes(collection, limit: int | None):
-    """The built collection's first `limit` test shapes (a `neuralsurf.priors.ShapeCollection`)."""
-    collection.build(progress=False)
-    return collection.test_shapes(limit)
-
-
-@lru_cache(maxsize=4)
-def shapes_cloud(collection, name: str = "shapes_cloud", n_points: int = 3000, noise: float = 0.005,
-                 limit: int | None = None, seed: int = 0) -> SceneSet:
-    """`n_points` surface points of each test shape of `collection` with N(0, noise^2) noise (unit
-    frame: the shape's longest side is 1), no normals."""
-    from neuralsurf.priors import noisy_cloud
-
-    scenes = tuple(Scene(shape.name, PointCloud(noisy_cloud(shape.surface, n_points, noise, seed + i)), shape.mesh,
-                         description=f"{n_points} points, noise {noise:g}")
-                   for i, shape in enumerate(_test_shapes(collection, limit)))
-    return SceneSet(name, scenes, f"{len(scenes)} test shapes of {collection.description}; {n_points} surface "
-                                  f"points each, Gaussian noise {noise:g} (longest side 1)")
-
-
-ONE_VIEW_IMAGE = {"width": 160, "height": 120, "fov_deg": 50.0}
-"""The image of the shapes_one_view scene's camera (and of the OccNet's one-sided training views)."""
-
-
-def one_view_camera(seed: int, distance: float = 1.6) -> torch.Tensor:
-    """Float64[Tensor, "4 4"] cam_to_world looking at the origin from a random azimuth and an elevation
-    of 0.2 to 0.6 rad (from above, as a person sees a chair, mug or lamp) at `distance`."""
-    import math
-
-    import numpy as np
-
-    from neuralsurf.scenes.scanner import look_at
-
-    rng = np.random.default_rng(seed)
-    azimuth, elevation = rng.uniform(0, 2 * math.pi), rng.uniform(0.2, 0.6)
-    eye = distance * np.array([math.cos(azimuth) * math.cos(elevation), math.sin(elevation),
-                               math.sin(azimuth) * math.cos(elevation)])
-    return torch.as_tensor(look_at(eye, (0.0, 0.0, 0.0)), dtype=torch.float64)
-
-
-@lru_cache(maxsize=4)
-def shapes_one_view(collection, name: str = "shapes_one_view", width: int = ONE_VIEW_IMAGE["width"],
-                    height: int = ONE_VIEW_IMAGE["height"], fov_deg: float = ONE_VIEW_IMAGE["fov_deg"],
-                    distance: float = 1.6, noise: float = 0.001, limit: int | None = None, seed: int = 0) -> SceneSet:
-    """One synthetic depth view (Gaussian noise `noise`, unit frame) of each test shape of
-    `collection`, from a random side (`one_view_camera`); point methods get its back-projection."""
-    from neuralsurf.scenes.scanner import scan_depth
-
-    scenes = []
-    for i, shape in enumerate(_test_shapes(collection, limit)):
-        frames = scan_depth(shape.mesh, cam_to_world=one_view_camera(seed + i, distance)[None], width=width,
-                            height=height, fov_deg=fov_deg, noise="gaussian" if noise > 0 else "none",
-                            sigma=noise if noise > 0 else None, seed=seed + i)
-        scenes.append(depth_scene(shape.name, frames, shape.mesh, description=f"noise {noise:g}"))
-    return SceneSet(name, tuple(scenes), f"{len(scenes)} test shapes of {collection.description}; one "
-                                         f"{width}x{height} depth view each, Gaussian noise {noise:g}")

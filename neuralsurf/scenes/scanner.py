@@ -87,6 +87,20 @@ def orbit_cameras(
     return torch.stack([look_at(center + distance * d, center) for d in fibonacci_sphere(n_views)])
 
 
+ONE_VIEW_IMAGE = {"width": 160, "height": 120, "fov_deg": 50.0}
+"""The image of a one-view camera (the shapes_one_view scene's, and the OccNet's one-sided training views)."""
+
+
+def one_view_camera(seed: int, distance: float = 1.6) -> Tensor:
+    """Float64[Tensor, "4 4"] cam_to_world looking at the origin from a random azimuth and an elevation
+    of 0.2 to 0.6 rad (from above, as a person sees a chair, mug or lamp) at `distance`."""
+    rng = np.random.default_rng(seed)
+    azimuth, elevation = rng.uniform(0, 2 * math.pi), rng.uniform(0.2, 0.6)
+    eye = distance * np.array([math.cos(azimuth) * math.cos(elevation), math.sin(elevation),
+                               math.sin(azimuth) * math.cos(elevation)])
+    return torch.as_tensor(look_at(eye, (0.0, 0.0, 0.0)), dtype=torch.float64)
+
+
 def depth_edges(depth: Tensor, edge_jump: float) -> Tensor:
     """Bool[Tensor, "n h w"]: valid pixels with a 4-neighbour that is invalid or whose depth differs by
     more than `edge_jump` times the pixel's depth (pixels on the image border count their outside
