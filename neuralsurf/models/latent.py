@@ -2,7 +2,7 @@
 
 - `LatentCodes`: one code per training shape, initialised N(0, init_std^2) (DeepSDF: 0.01).
 - `AutoDecoder(decoder, codes)`: a decoder x, z -> sdf with the codes of a collection, trained
-  jointly over the collection (`neuralsurf.observations.CollectionSDF`).
+  jointly over the collection (`neuralsurf.priors.CollectionSDF`).
 - `LatentConditioned(decoder, latent_dim)`: one shape's field x -> decoder(x, code) with the code a
   Parameter; reconstruction is `fit(model, observations, trainable=[model.code])` under the frozen
   decoder.
