@@ -150,7 +150,8 @@ def free_port() -> int:
 
 
 def serves(command: str, cwd: Path, seconds: float = 120) -> None:
-    """Start a server command (tensorboard) on a free local port and check it answers HTTP, then stop it."""
+    """Start a server command (tensorboard, neuralsurf-view) on a free local port and check it answers HTTP,
+    then stop it."""
     port = free_port()
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
     process = subprocess.Popen(shlex.split(command) + ["--host", "127.0.0.1", "--port", str(port)], cwd=cwd,
@@ -187,7 +188,11 @@ def test_readme_command_runs(command, workspace):
     if missing:
         pytest.skip(f"needs the {missing[0]} data set: python -m neuralsurf data fetch {missing[0]}, or set "
                     f"NEURALSURF_DATA")
-    if command.split()[0] == "tensorboard":
+    if command.split()[0] == "neuralsurf-view":
+        pytest.importorskip("viser", reason="the view extra is not installed: pip install -e '.[view]'")
+        if not (Path(sys.executable).parent / "neuralsurf-view").is_file():
+            pytest.skip("the neuralsurf-view script is not installed in this environment: run ./install.sh again")
+    if command.split()[0] in ("tensorboard", "neuralsurf-view"):
         serves(command, workspace)
         return
     done = run(with_tiny_settings(command, workspace), workspace)
