@@ -1,0 +1,395 @@
+"""Normal integration: depth from a normal map, and depth error against a true map.
+
+`integrate_least_squares` (the gradient field's least-squares surface, centred differences) and
+`integrate_bilateral` (bilateral normal integration, Cao et al., ECCV 2022: one-sided differences
+reweighted so that the surface may break at depth discontinuities). Orthographic (no K: depth in units
+of `pixel_size`, up to an offset) or perspective (K: log-depth, depth up to a scale). Both are sparse
+linear least squares, solved directly (SciPy's SuperLU). Camera frame: x right, y down, z forward;
+normals facing the camera have z < 0.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.structures import check_intrinsics
+
+
+@dataclass(frozen=True)
+class NormalIntegration:
+    """A depth map integrated from a normal map."""
+
+    depth: Tensor
+    """Float[Tensor, "h w"]: perspective: z-depth up to a global scale (median 1 over the mask);
+    orthographic: relative depth in units of `pixel_size`, up to an offset (mean 0 over the mask);
+    0 outside the mask."""
+    mask: Tensor
+    """Bool[Tensor, "h w"]: pixels integrated."""
+    iterations: int
+    """Reweighting iterations run (0 for least squares)."""
+
+
+def _gradients(normals: Tensor, mask: Tensor, K: Tensor | None, pixel_size: float, max_slope: float):
+    """Target derivatives (p along u, q along v) of depth (orthographic) or log-depth (perspective)."""
+    n = normals.double().cpu().numpy()
+    nx, ny, nz = n[..., 0], n[..., 1], n[..., 2]
+    h, w = mask.shape
+    if K is None:
+        denominator = nz
+        px, qy = -nx * pixel_size, -ny * pixel_size
+        lateral = np.ones((h, w))
+    else:
+        K = np.asarray(torch.as_tensor(K, dtype=torch.float64).cpu())
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        x, y = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
+        denominator = nx * x + ny * y + nz  # n . r with r = (x, y, 1)
+        px, qy = -nx / K[0, 0], -ny / K[1, 1]
+        lateral = np.full((h, w), K[0, 0])  # log-depth difference * f = depth difference in pixel footprints
+    # grazing normals (n . r -> 0) give unbounded slopes: limit them to `max_slope` (in pixel footprints)
+    limit = max_slope / (lateral if K is not None else 1.0 / pixel_size)
+    safe = np.where(np.abs(denominator) > 1e-12, denominator, -1e-12)
+    p = np.clip(px / safe, -limit, limit)
+    q = np.clip(qy / safe, -limit, limit)
+    return p, q, (lateral if K is not None else np.full((h, w), 1.0 / pixel_size))
+
+
+def _check_integration_inputs(normals: Tensor, mask: Tensor | None, K) -> tuple[Tensor, Tensor]:
+    normals = torch.as_tensor(normals)
+    if normals.ndim != 3 or normals.shape[-1] != 3:
+        raise InputError(f"normals must be an (h, w, 3) normal map, got {tuple(normals.shape)}")
+    finite = torch.isfinite(normals).all(-1).cpu()
+    if mask is None:
+        mask = ~finite | (normals.norm(dim=-1) > 0).cpu()
+    mask = torch.as_tensor(mask).bool().cpu()
+    if mask.shape != normals.shape[:2]:
+        raise InputError(f"mask must be (h, w) = {tuple(normals.shape[:2])}, got {tuple(mask.shape)}")
+    if not finite[mask].all():
+        raise InputError(f"normals hold NaN or inf at {int((~finite & mask).sum())} masked pixels: mark pixels "
+                         f"without a normal by a zero normal or leave them out of the mask")
+    if mask.sum() < 2:
+        raise InputError("the mask holds fewer than 2 pixels: nothing to integrate")
+    if K is not None:
+        if tuple(torch.as_tensor(K).shape) != (3, 3):
+            raise InputError(f"K must be 3x3, got {tuple(torch.as_tensor(K).shape)}")
+        check_intrinsics(torch.as_tensor(K, dtype=torch.float64)[None], normals.shape[1], normals.shape[0])
+    return normals, mask
+
+
+def _unknown_index(mask: np.ndarray) -> np.ndarray:
+    """Int64[ndarray, "h w"]: each mask pixel's unknown (0, 1, ... in row-major order), -1 elsewhere."""
+    index = np.full(mask.shape, -1, dtype=np.int64)
+    index[mask] = np.arange(int(mask.sum()))
+    return index
+
+
+def _pairs(
+    mask: np.ndarray, index: np.ndarray, axis: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel pairs (a, b) with b the next pixel along `axis` (1: u, 0: v), both in the mask: flat
+    positions in the image and unknown indices."""
+    if axis == 1:
+        both = mask[:, :-1] & mask[:, 1:]
+        rows, cols = np.nonzero(both)
+        a, b = rows * mask.shape[1] + cols, rows * mask.shape[1] + cols + 1
+    else:
+        both = mask[:-1] & mask[1:]
+        rows, cols = np.nonzero(both)
+        a, b = rows * mask.shape[1] + cols, (rows + 1) * mask.shape[1] + cols
+    return a, b, index.ravel()[a], index.ravel()[b]
+
+
+def _solve(matrix, rhs: np.ndarray, refinements: int = 3) -> np.ndarray:
+    """Solve the normal equations of a difference system (symmetric, positive semi-definite: each
+    connected region's depth is free up to a constant) by a sparse LU factorisation after a tiny
+    Tikhonov term (1e-9 of the mean diagonal) that fixes those constants, then remove the term's bias by
+    iterative refinement against the unregularised system."""
+    from scipy.sparse import identity
+    from scipy.sparse.linalg import splu
+
+    epsilon = 1e-9 * float(matrix.diagonal().mean())
+    factor = splu(
+        (matrix + epsilon * identity(matrix.shape[0], format="csr")).tocsc(), permc_spec="MMD_AT_PLUS_A"
+    )
+    solution = factor.solve(rhs)
+    for _ in range(refinements):
+        solution = solution + factor.solve(rhs - matrix @ solution)
+    return solution
+
+
+def _finish(t: np.ndarray, mask: Tensor, K, iterations: int, dtype) -> NormalIntegration:
+    if K is None:
+        values = t - t.mean()
+    else:
+        values = np.exp(t - np.median(t))
+    depth = np.zeros(mask.shape)
+    depth[mask.numpy()] = values
+    return NormalIntegration(torch.from_numpy(depth).to(dtype), mask, iterations)
+
+
+def integrate_least_squares(
+    normals: Tensor,
+    mask: Tensor | None = None,
+    K: Tensor | None = None,
+    pixel_size: float = 1.0,
+    max_slope: float = 50.0,
+) -> NormalIntegration:
+    """Depth from a normal map by least squares: for each pair of neighbouring mask pixels, the depth
+    difference (log-depth under perspective) should be the mean of their two target derivatives.
+
+    Args:
+        normals: Float[Tensor, "h w 3"] unit normals, camera frame (z < 0 faces the camera).
+        mask: Bool[Tensor, "h w"]; None: where the normals are non-zero.
+        K: Float[Tensor, "3 3"] for a perspective camera; None: orthographic, pixels `pixel_size` apart.
+        max_slope: derivatives are limited to this many depth units per pixel footprint (grazing normals).
+    Returns:
+        NormalIntegration (depth up to scale under perspective, up to an offset under orthographic).
+    """
+    from scipy.sparse import coo_matrix
+
+    normals, mask = _check_integration_inputs(normals, mask, K)
+    m = mask.numpy()
+    index = _unknown_index(m)
+    p, q, _ = _gradients(normals, mask, K, pixel_size, max_slope)
+    rows, cols, vals, rhs = [], [], [], []
+    count = 0
+    for axis, target in ((1, p.ravel()), (0, q.ravel())):
+        a, b, ia, ib = _pairs(m, index, axis)
+        e = np.arange(count, count + len(a))
+        rows += [e, e]
+        cols += [ib, ia]
+        vals += [np.ones(len(a)), -np.ones(len(a))]
+        rhs.append((target[a] + target[b]) / 2)
+        count += len(a)
+    A = coo_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(count, int(m.sum()))
+    ).tocsr()
+    b = np.concatenate(rhs)
+    t = _solve((A.T @ A).tocsr(), A.T @ b)
+    return _finish(t, mask, K, 0, normals.dtype if normals.is_floating_point() else torch.float32)
+
+
+def integrate_bilateral(
+    normals: Tensor,
+    mask: Tensor | None = None,
+    K: Tensor | None = None,
+    pixel_size: float = 1.0,
+    k: float = 0.5,
+    iterations: int = 100,
+    tolerance: float = 1e-4,
+    max_slope: float = 50.0,
+) -> NormalIntegration:
+    """Discontinuity-preserving depth from a normal map: bilateral normal integration (BiNI, Cao et
+    al., ECCV 2022).
+
+    Every pixel asks its forward and backward differences along u and v to equal its own derivative.
+    The two sides along an axis share a unit weight by a sigmoid of the difference of their squared
+    depth jumps, w+ = sigmoid(k ((D- z)^2 - (D+ z)^2)), w- = 1 - w+, so that at a discontinuity the
+    side across the jump loses its weight; weights and depth are updated in turn (reweighted least
+    squares) until the energy changes by less than `tolerance` (relative). Depth jumps are measured in
+    pixel footprints (log-depth differences times the focal length under perspective), so `k` means
+    the same in both camera models. A pixel with one neighbour along an axis uses that side alone.
+
+    Args: as `integrate_least_squares`, plus the sharpness `k`, `iterations` and `tolerance`.
+    Returns:
+        NormalIntegration.
+    """
+    from scipy.sparse import coo_matrix, diags
+
+    if not k > 0:
+        raise ConfigError(f"k must be positive, got {k}")
+    normals, mask = _check_integration_inputs(normals, mask, K)
+    m = mask.numpy()
+    n_unknowns = int(m.sum())
+    index = _unknown_index(m)
+    p, q, footprint = _gradients(normals, mask, K, pixel_size, max_slope)
+    footprint = footprint.ravel()
+    # one-sided difference operators: rows = (pixel, direction), forward and backward per axis
+    blocks = []  # per axis: D [pairs x unknowns] (t_b - t_a), pixels a and b, their targets, footprint
+    for axis, target in ((1, p.ravel()), (0, q.ravel())):
+        a, b, ia, ib = _pairs(m, index, axis)
+        e = np.arange(len(a))
+        D = coo_matrix(
+            (np.r_[np.ones(len(a)), -np.ones(len(a))], (np.r_[e, e], np.r_[ib, ia])),
+            shape=(len(a), n_unknowns),
+        ).tocsr()
+        blocks.append((D, ia, ib, target[a], target[b], footprint[a]))
+    t = np.zeros(n_unknowns)
+    done, energy_before = 0, None
+    for done in range(1, iterations + 1):
+        system, rhs, terms = None, np.zeros(n_unknowns), []
+        for D, ia, ib, target_a, target_b, scale in blocks:
+            if done == 1:  # start from equal weights: 0.5 per side where both exist
+                w_forward = np.full(n_unknowns, 0.5)
+                has_forward = np.zeros(n_unknowns, bool)
+                has_backward = np.zeros(n_unknowns, bool)
+                has_forward[ia], has_backward[ib] = True, True
+            else:
+                jump = (D @ t) * scale  # pair (a -> b) depth difference in pixel footprints
+                forward_jump, backward_jump = np.zeros(n_unknowns), np.zeros(n_unknowns)
+                has_forward = np.zeros(n_unknowns, bool)
+                has_backward = np.zeros(n_unknowns, bool)
+                forward_jump[ia], has_forward[ia] = jump, True  # the pair is pixel a's forward side
+                backward_jump[ib], has_backward[ib] = jump, True  # and pixel b's backward side
+                w_forward = 1.0 / (1.0 + np.exp(-np.clip(k * (backward_jump**2 - forward_jump**2), -50, 50)))
+            w_forward = np.where(has_backward, w_forward, 1.0)
+            w_backward = np.where(has_forward, 1.0 - w_forward, 1.0)
+            # forward equation of a: t_b - t_a = p_a (weight wf[a]); backward one of b: t_b - t_a = p_b
+            # (weight wb[b]); their sum is one equation of weight wf + wb towards the weighted target
+            wf, wb = w_forward[ia], w_backward[ib]
+            weight = wf + wb
+            target = (wf * target_a + wb * target_b) / np.where(weight > 0, weight, 1.0)
+            part = D.T @ diags(weight) @ D
+            system = part if system is None else system + part
+            rhs += D.T @ (weight * target)
+            terms.append((D, wf, wb, target_a, target_b))
+        t = _solve(system.tocsr(), rhs)
+        energy = sum(
+            float((wf * (D @ t - ta) ** 2 + wb * (D @ t - tb) ** 2).sum()) for D, wf, wb, ta, tb in terms
+        )
+        if energy_before is not None and abs(energy - energy_before) <= tolerance * abs(energy_before):
+            break
+        energy_before = energy
+    return _finish(t, mask, K, done, normals.dtype if normals.is_floating_point() else torch.float32)
+
+
+INTEGRATORS = {"least_squares": integrate_least_squares, "bilateral": integrate_bilateral}
+"""Normal-integration methods by name (for configs): each `(normals, mask, K, **options) -> NormalIntegration`."""
+
+
+@dataclass(frozen=True)
+class DepthError:
+    """Depth error after aligning an estimate that is known up to scale and/or offset."""
+
+    mean_abs: float
+    """Mean absolute difference over the mask, in the truth's units."""
+    aligned: Tensor
+    """Float[Tensor, "h w"]: the estimate after alignment (0 outside the mask)."""
+    scale: float
+    offset: float
+
+
+def continuous_pieces(
+    depth: Tensor,
+    normals: Tensor,
+    mask: Tensor | None = None,
+    K: Tensor | None = None,
+    pixel_size: float = 1.0,
+    tolerance: float = 0.5,
+    max_slope: float = 3.0,
+    min_fraction: float = 0.01,
+) -> Tensor:
+    """The pieces of a true depth map that normal integration can recover, each up to its own scale
+    (perspective) or offset (orthographic): a part seen only across an occluding contour, such as an
+    ear in front of the body, is joined to the rest by no normal, so no integrator can place it.
+
+    Neighbouring mask pixels are joined where their depth step (log-depth under perspective) is the one
+    their normals predict (the mean of their target derivatives, as `integrate_least_squares` uses)
+    within `tolerance` pixel footprints, and the predicted slope is at most `max_slope` footprints per
+    pixel (grazing rims, where normals fix no step, join nothing). Pieces are the connected components
+    of the joined pixels; those under `min_fraction` of the mask are dropped (-1).
+
+    Args:
+        depth: Float[Tensor, "h w"] true z-depth (orthographic: depth in the units of `pixel_size`).
+        normals: Float[Tensor, "h w 3"] true unit normals, camera frame.
+        mask: Bool[Tensor, "h w"]; None: depth > 0.
+        K: Float[Tensor, "3 3"] for a perspective camera; None: orthographic.
+    Returns:
+        Int64[Tensor, "h w"]: a piece index per pixel (0 the largest), -1 outside every kept piece.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    depth, normals = torch.as_tensor(depth), torch.as_tensor(normals)
+    if depth.ndim != 2 or tuple(normals.shape[:2]) != tuple(depth.shape):
+        raise InputError(f"depth must be an (h, w) map of the normals' size, got {tuple(depth.shape)} "
+                         f"and normals {tuple(normals.shape)}")
+    if mask is None:
+        mask = (depth > 0) | ~torch.isfinite(depth)
+    normals, mask = _check_integration_inputs(normals, mask, K)
+    if not torch.isfinite(depth[mask]).all():
+        raise InputError("depth holds NaN or inf inside the mask: leave those pixels out of the mask")
+    m = mask.numpy()
+    index = _unknown_index(m)
+    z = depth.double().cpu().numpy()
+    t = np.log(np.where(m, z, 1.0)) if K is not None else np.where(m, z, 0.0)
+    p, q, footprint = _gradients(normals, mask, K, pixel_size, math.inf)  # unclipped: steep pairs are tested below
+    rows, cols = [], []
+    for axis, target in ((1, p.ravel()), (0, q.ravel())):
+        a, b, ia, ib = _pairs(m, index, axis)
+        predicted = (target[a] + target[b]) / 2
+        scale = footprint.ravel()[a]
+        step = t.ravel()[b] - t.ravel()[a]
+        joined = (np.abs(step - predicted) * scale <= tolerance) & (np.abs(predicted) * scale <= max_slope)
+        rows.append(ia[joined])
+        cols.append(ib[joined])
+    n = int(m.sum())
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    _, labels = connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False)
+    counts = np.bincount(labels)
+    order = np.argsort(-counts, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    kept = counts >= min_fraction * n
+    pieces = np.full(m.shape, -1, dtype=np.int64)
+    pieces[m] = np.where(kept[labels], rank[labels], -1)
+    return torch.from_numpy(pieces)
+
+
+def _alignment(e: Tensor, t: Tensor, align: str) -> tuple[float, float]:
+    """Least-squares (scale, offset) taking estimate values e [n] to truth t [n] under `align`."""
+    if align == "scale":
+        return float((e * t).sum() / (e * e).sum().clamp_min(1e-30)), 0.0
+    if align == "offset":
+        return 1.0, float((t - e).mean())
+    if align == "scale_offset":
+        design = torch.stack([e, torch.ones_like(e)], -1)
+        solution = torch.linalg.lstsq(design, t[:, None]).solution[:, 0]
+        return float(solution[0]), float(solution[1])
+    return 1.0, 0.0
+
+
+def depth_error(
+    estimate: Tensor, truth: Tensor, mask: Tensor | None = None, align: str = "scale", pieces: Tensor | None = None
+) -> DepthError:
+    """Mean absolute error of depth estimate [h, w] against truth [h, w] over `mask` (default: truth > 0)
+    after the least-squares alignment `align`: "scale" (s * estimate; perspective integration),
+    "offset" (estimate + o; orthographic integration), "scale_offset" (s * estimate + o) or "none".
+
+    With `pieces` (Int[Tensor, "h w"], `continuous_pieces`), each piece is aligned on its own and the
+    mean runs over the mask's pixels in a piece (>= 0); `scale` and `offset` are then those of the lowest
+    piece index scored (0, the largest, for `continuous_pieces`)."""
+    if estimate.shape != truth.shape or estimate.ndim != 2:
+        raise InputError(
+            f"depth maps must both be (h, w), got {tuple(estimate.shape)} and {tuple(truth.shape)}"
+        )
+    if align not in ("scale", "offset", "scale_offset", "none"):
+        raise ConfigError(f"align must be 'scale', 'offset', 'scale_offset' or 'none', got {align!r}")
+    truth = truth.to(estimate.device)
+    mask = (truth > 0) if mask is None else torch.as_tensor(mask, device=estimate.device).bool()
+    if pieces is None:
+        pieces = torch.zeros(mask.shape, dtype=torch.int64)
+    elif tuple(pieces.shape) != tuple(mask.shape):
+        raise InputError(f"pieces must be (h, w) = {tuple(mask.shape)}, got {tuple(pieces.shape)}")
+    pieces = torch.where(mask, torch.as_tensor(pieces, device=estimate.device), -1)
+    scored = pieces >= 0
+    if not scored.any():
+        raise InputError("no pixel to compare: the mask is empty")
+    if not (torch.isfinite(estimate[scored]).all() and torch.isfinite(truth[scored]).all()):
+        raise InputError("the depth maps hold NaN or inf inside the mask: leave those pixels out of the mask")
+    aligned = torch.zeros(mask.shape, dtype=torch.float64, device=estimate.device)
+    alignments = []
+    for piece in torch.unique(pieces[scored]).tolist():  # ascending
+        inside = pieces == piece
+        e = estimate[inside].double()
+        alignments.append(_alignment(e, truth[inside].double(), align))
+        aligned[inside] = e * alignments[-1][0] + alignments[-1][1]
+    scale, offset = alignments[0]
+    return DepthError(
+        float((aligned[scored] - truth[scored].double()).abs().mean()), aligned.to(estimate.dtype), scale, offset
+    )
