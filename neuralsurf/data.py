@@ -12,6 +12,9 @@
   The images are copied from the archive byte for byte; each pose and the intrinsics are written as
   4 x 4 (3 x 3) float64 values in ``%.18e`` notation, one row per line (what ``numpy.savetxt``
   writes), so that their bytes depend on the values only.
+- ``rgbd_dataset_freiburg1_desk/``: TUM RGB-D's fr1/desk sequence as its archive holds it (``rgb/``,
+  ``depth/``, ``rgb.txt``, ``depth.txt``, ``groundtruth.txt``, ``accelerometer.txt``; the TUM layout of
+  `neuralsurf.io.read_rgbd_folder`, whose intrinsics follow the ``freiburg1`` in the folder's name).
 
 Where it looks, in order:
 
@@ -23,8 +26,9 @@ Where it looks, in order:
    ``<cache>/<folder>``. The archive is kept; delete ``<cache>/downloads`` to reclaim the space.
 
 Scenes (`neuralsurf.scenes.recipes.data_path`) look in the same two places, so a fetched set needs
-no environment variable. A local copy may hold ``color.jpg`` images instead (neuralsurf.io reads both). From the shell: ``python -m neuralsurf data list`` and
-``python -m neuralsurf data fetch <name> [<name> ...]``.
+no environment variable. A local copy may hold ``color.jpg`` images instead (neuralsurf.io reads both). From the shell: ``python -m neuralsurf data list``,
+``python -m neuralsurf data fetch <name> [<name> ...]``, ``data verify <name> ...`` (a copy found against
+its manifest) and ``data manifest <name>`` (the sha256 lines of a copy found).
 
 Checksums. Each data set has a manifest, ``neuralsurf/data_manifests/<name>.sha256`` in
 ``sha256sum`` format (``cd <folder> && sha256sum -c <manifest>`` checks a copy by hand): the sha256
@@ -36,8 +40,14 @@ the files whose bytes are known:
 - 7scenes_redkitchen: ``camera-intrinsics.txt`` and the 100 ``pose.txt`` (their bytes follow from
   their values, see above). The colour and depth images are not in it: their bytes in Microsoft's
   archive are not known to this registry. The unpacker checks that every frame has its three files.
+- tum_fr1_desk: none (no file of TUM's archive has a sha256 known to this registry): a fetch warns that
+  nothing is verified, and the unpacker checks the layout (the three lists and the images they name).
+  Whoever has a trusted copy writes its manifest with ``python -m neuralsurf data manifest
+  tum_fr1_desk > neuralsurf/data_manifests/tum_fr1_desk.sha256``; every later fetch is then checked.
 
-The registry carries ``sha256=None`` for both archives (the archive-level sha256 is unknown), and a
+A manifest file that does not exist is an empty manifest.
+
+The registry carries ``sha256=None`` for every archive (the archive-level sha256 is unknown), and a
 fetch says so in a warning; the manifest check is what verifies a download. Fill in the sha256
 (``sha256sum`` of the archive) to have every later download checked before it is unpacked.
 """
@@ -63,7 +73,7 @@ from pathlib import Path
 from neuralsurf.errors import ConfigError, DownloadError, FileFormatError, NeuralsurfError
 
 __all__ = ["DATASETS", "Dataset", "cache_dir", "check_manifest", "download", "fetch", "locate", "main",
-           "read_manifest"]
+           "manifest_lines", "read_manifest"]
 
 _CHUNK = 1 << 20
 """Bytes read from the network per step."""
@@ -125,6 +135,48 @@ def _unpack_bunny(archive: Path, folder: Path) -> None:
             tar.extractall(folder, members=members, filter="data")
         else:  # regular files and folders only, inside `folder` (checked above)
             tar.extractall(folder, members=members)
+
+
+TUM_LISTS = ("rgb.txt", "depth.txt", "groundtruth.txt")
+"""The lists every TUM RGB-D sequence folder holds."""
+
+
+def _unpack_tum(archive: Path, folder: Path, sequence: str = "rgbd_dataset_freiburg1_desk") -> None:
+    """TUM's <sequence>.tgz holds <sequence>/{rgb,depth}/*.png and <sequence>/*.txt: keep them, minus
+    `<sequence>/`. Raises FileFormatError when a member lies outside that folder, a list is missing, or
+    an image a list names is not in the archive."""
+    with tarfile.open(archive) as tar:
+        members = []
+        for member in tar.getmembers():
+            parts = Path(member.name).parts
+            if ".." in parts or Path(member.name).is_absolute():
+                raise FileFormatError(f"{str(archive)!r} holds {member.name!r}, outside its folder; it is not TUM's "
+                                      f"{sequence}.tgz")
+            if len(parts) > 1 and parts[0] == sequence and (member.isfile() or member.isdir()):
+                member.name = str(Path(*parts[1:]))
+                members.append(member)
+        names = {m.name for m in members if m.isfile()}
+        lacking = [name for name in TUM_LISTS if name not in names]
+        if lacking:
+            raise FileFormatError(f"{str(archive)!r} holds no {sequence}/{lacking[0]}; it is not TUM's {sequence}.tgz")
+        for listed in ("rgb.txt", "depth.txt"):
+            text = tar.extractfile(next(m for m in members if m.name == listed)).read().decode("ascii", "replace")
+            missing = [words[1] for words in (line.split() for line in text.splitlines())
+                       if len(words) == 2 and not words[0].startswith("#") and words[1] not in names]
+            if missing:
+                raise FileFormatError(f"{str(archive)!r}: {listed} names {len(missing)} images the archive does not "
+                                      f"hold (first {missing[0]!r}); the archive is incomplete")
+        if hasattr(tarfile, "data_filter"):  # Python >= 3.11.4: also drops special permission bits
+            tar.extractall(folder, members=members, filter="data")
+        else:  # regular files and folders only, inside `folder` (checked above)
+            tar.extractall(folder, members=members)
+
+
+def _manifest(name: str) -> dict[str, str]:
+    """The manifest of data set `name` (`read_manifest` of data_manifests/<name>.sha256); {} when there is
+    no such file (no checksum of its files is known)."""
+    path = MANIFESTS / f"{name}.sha256"
+    return read_manifest(path) if path.is_file() else {}
 
 
 SEVEN_SCENES_K = ((585.0, 0.0, 320.0), (0.0, 585.0, 240.0), (0.0, 0.0, 1.0))
@@ -201,7 +253,7 @@ DATASETS: dict[str, Dataset] = {
         sha256=None,  # the archive's sha256 is not known; the manifest checks what it unpacks to
         prepare=_unpack_bunny,
         terms="Stanford 3D Scanning Repository: free for research; credit the Stanford Computer Graphics Laboratory",
-        manifest=read_manifest(MANIFESTS / "stanford_bunny.sha256"),
+        manifest=_manifest("stanford_bunny"),
         size="bunny.tar.gz (a few MB); unpacked about 22 MB",
     ),
     "7scenes_redkitchen": Dataset(
@@ -210,8 +262,17 @@ DATASETS: dict[str, Dataset] = {
         sha256=None,  # the archive's sha256 is not known; the manifest checks what it unpacks to
         prepare=_unpack_redkitchen,
         terms="Microsoft 7-Scenes: non-commercial research use",
-        manifest=read_manifest(MANIFESTS / "7scenes_redkitchen.sha256"),
+        manifest=_manifest("7scenes_redkitchen"),
         size="redkitchen.zip (several GB: all seven sequences, kept in <cache>/downloads); 100 frames unpacked",
+    ),
+    "tum_fr1_desk": Dataset(
+        folder="rgbd_dataset_freiburg1_desk",
+        url="https://cvg.cit.tum.de/rgbd/dataset/freiburg1/rgbd_dataset_freiburg1_desk.tgz",
+        sha256=None,  # neither the archive's sha256 nor its files' are known (see the module docstring)
+        prepare=_unpack_tum,
+        terms="TUM RGB-D benchmark (Sturm et al., IROS 2012): CC BY 4.0",
+        manifest=_manifest("tum_fr1_desk"),
+        size="rgbd_dataset_freiburg1_desk.tgz (a few hundred MB, kept in <cache>/downloads), unpacked as it is",
     ),
 }
 """The data sets `fetch` knows, by name."""
@@ -465,7 +526,7 @@ def _parser() -> argparse.ArgumentParser:
         description=f"Real data sets: list them, or fetch them into the cache. A data set is looked for in "
                     f"{roots}; scenes (stanford_scans, redkitchen) find it there without any setting.",
     )
-    commands = parser.add_subparsers(dest="command", required=True, metavar="{list,fetch}")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="{list,fetch,verify,manifest}")
     commands.add_parser("list", help="each data set: its folder, where it is found now, download size, terms",
                         description="Each data set: its folder, where it is found now (NEURALSURF_DATA, "
                                     "cache, or not present), what a fetch downloads, and its terms of use.")
@@ -475,12 +536,39 @@ def _parser() -> argparse.ArgumentParser:
                     "check it against its sha256 manifest. Prints each data set's folder, one per line.")
     fetch_parser.add_argument("names", nargs="+", metavar="name", help=f"one of: {', '.join(DATASETS)}")
     fetch_parser.add_argument("--no-progress", action="store_true", help="no download progress bar")
+    verify_parser = commands.add_parser(
+        "verify", help="check the copy found of each data set against its manifest (nothing is downloaded)",
+        description="Check the copy of each data set found (NEURALSURF_DATA or the cache) against its sha256 "
+                    "manifest; exit status 1 naming each missing or different file.")
+    verify_parser.add_argument("names", nargs="+", metavar="name", help=f"one of: {', '.join(DATASETS)}")
+    manifest_parser = commands.add_parser(
+        "manifest", help="print the sha256 of every file of the copy found (sha256sum format)",
+        description="Print '<sha256>  <path>' for every file of the copy of a data set found, for its "
+                    "manifest (neuralsurf/data_manifests/<name>.sha256) when that copy is trusted.")
+    manifest_parser.add_argument("name", help=f"one of: {', '.join(DATASETS)}")
     return parser
 
 
+def _present(name: str) -> Path:
+    """The folder of data set `name` found here (`locate`); DownloadError naming the fetch command if none."""
+    folder = locate(name)
+    if folder is None:
+        raise DownloadError(f"{name} is not present (neither NEURALSURF_DATA nor the cache holds "
+                            f"{_dataset(name).folder}/); get it with: python -m neuralsurf data fetch {name}")
+    return folder
+
+
+def manifest_lines(folder: str | Path) -> list[str]:
+    """``sha256sum`` lines (``<hex>  <relative posix path>``) of every file under `folder`, sorted by path."""
+    folder = Path(folder)
+    files = sorted(p for p in folder.rglob("*") if p.is_file())
+    return [f"{_sha256(path)}  {path.relative_to(folder).as_posix()}" for path in files]
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m neuralsurf data {list,fetch}``: returns the exit status (0 on success, 1 when a data set
-    is unknown or cannot be fetched: the message goes to stderr, without a traceback)."""
+    """``python -m neuralsurf data {list,fetch,verify,manifest}``: returns the exit status (0 on success, 1
+    when a data set is unknown, cannot be fetched, is absent or differs from its manifest: the message goes to
+    stderr, without a traceback)."""
     args = _parser().parse_args(argv)
     try:
         if args.command == "list":
@@ -489,8 +577,21 @@ def main(argv: Sequence[str] | None = None) -> int:
             for name in DATASETS:
                 print(_describe(name))
             return 0
+        if args.command == "manifest":
+            print("\n".join(manifest_lines(_present(args.name))))
+            return 0
         for name in args.names:
             _dataset(name)  # every name checked before anything is downloaded
+        if args.command == "verify":
+            failed = False
+            for name in args.names:
+                folder, manifest = _present(name), _dataset(name).manifest
+                problems = check_manifest(folder, manifest)
+                failed |= bool(problems)
+                print(f"{name}: {folder}: " + ("; ".join(problems) if problems else
+                      f"the {len(manifest)} files of its manifest match" if manifest else
+                      "no manifest: nothing to check against"), flush=True)
+            return int(failed)
         for name in args.names:
             print(fetch(name, progress=not args.no_progress), flush=True)
         return 0

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
+from scipy.spatial.transform import Rotation
 
 from neuralsurf import data
 from neuralsurf.errors import ConfigError, DownloadError, FileFormatError
@@ -371,10 +373,100 @@ def test_python_dash_m_neuralsurf_data_list_and_fetch(tmp_path):
 def test_data_help_names_both_commands(capsys):
     with pytest.raises(SystemExit) as done:
         data.main(["--help"])
-    assert done.value.code == 0 and "{list,fetch}" in capsys.readouterr().out
+    assert done.value.code == 0 and "{list,fetch,verify,manifest}" in capsys.readouterr().out
     with pytest.raises(SystemExit) as done:
         data.main(["fetch", "--help"])
     assert done.value.code == 0 and "sha256 manifest" in capsys.readouterr().out
+
+
+# ----------------------------------------------------------------------------------------------
+# TUM RGB-D: the archive as TUM publishes it, no checksum known; a manifest written from a trusted copy
+
+
+TUM = "rgbd_dataset_freiburg1_desk"
+
+
+def _tum_tarball(n: int = 3, drop: str | None = None) -> tuple[bytes, list[np.ndarray]]:
+    """A TUM-layout sequence of `n` 640x480 views of test_rgbd's plane through the freiburg1 intrinsics, as
+    <TUM>.tgz (without the member `drop`), and the poses."""
+    from test_rgbd import plane_depth, random_pose
+
+    from neuralsurf.io.rgbd import TUM_K
+
+    fx, fy, cx, cy = TUM_K["freiburg1"]
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    files, poses, lists = {}, [], {"depth.txt": ["# depth maps"], "rgb.txt": ["# color images"],
+                                   "groundtruth.txt": ["# timestamp tx ty tz qx qy qz qw"]}
+    for i in range(n):
+        stamp, pose = 1305031102.0 + i / 30, random_pose(30 + i)
+        poses.append(pose)
+        depth = io.BytesIO()
+        Image.fromarray(np.round(plane_depth(pose, K, 480, 640) * 5000).astype(np.uint16)).save(depth, format="PNG")
+        files[f"depth/{stamp:.6f}.png"] = depth.getvalue()
+        colour = io.BytesIO()
+        Image.fromarray(np.full((480, 640, 3), 40 * i, np.uint8)).save(colour, format="PNG")
+        files[f"rgb/{stamp + 0.01:.6f}.png"] = colour.getvalue()
+        lists["depth.txt"].append(f"{stamp:.6f} depth/{stamp:.6f}.png")
+        lists["rgb.txt"].append(f"{stamp + 0.01:.6f} rgb/{stamp + 0.01:.6f}.png")
+        quaternion = Rotation.from_matrix(pose[:3, :3]).as_quat()  # x y z w, as TUM writes it
+        lists["groundtruth.txt"].append(f"{stamp + 0.004:.4f} " + " ".join(f"{v:.6f}" for v in (*pose[:3, 3], *quaternion)))
+    files.update({name: ("\n".join(lines) + "\n").encode() for name, lines in lists.items()})
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w:gz") as tar:
+        for name, content in files.items():
+            if name != drop:
+                info = tarfile.TarInfo(f"{TUM}/{name}")
+                info.size = len(content)
+                tar.addfile(info, io.BytesIO(content))
+    return buffer.getvalue(), poses
+
+
+def test_tum_fetch_unpacks_the_sequence_readable_with_the_freiburg1_intrinsics(tmp_path, registry, capsys, monkeypatch):
+    from test_rgbd import assert_on_plane
+
+    from neuralsurf.io import read_rgbd_folder
+    from neuralsurf.io.rgbd import TUM_K
+
+    archive, poses = _tum_tarball()
+    registry("tum_fr1_desk", archive, {})  # as in the registry: no checksum known
+    with pytest.warns(UserWarning) as warned:
+        folder = data.fetch("tum_fr1_desk", progress=False)
+    said = " ".join(str(w.message) for w in warned)
+    assert "has no sha256" in said and "has no manifest: its unpacked files are not verified" in said
+    assert folder == tmp_path / "cache" / TUM and (folder / "groundtruth.txt").is_file()
+    frames = read_rgbd_folder(folder, with_color=False)
+    fx, fy, cx, cy = TUM_K["freiburg1"]  # from the folder's name
+    assert np.allclose(frames.K[0].double().numpy(), [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], atol=1e-4)
+    assert np.allclose(frames.cam_to_world.double().numpy(), np.stack(poses), atol=1e-5)
+    assert_on_plane(frames, atol=3e-4)  # 1/5000 m steps
+    # a trusted copy's manifest, then every file checked: a changed one is named
+    assert data.main(["manifest", "tum_fr1_desk"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    (tmp_path / "tum.sha256").write_text("\n".join(lines) + "\n")
+    manifest = data.read_manifest(tmp_path / "tum.sha256")
+    assert len(manifest) == 9 and data.check_manifest(folder, manifest) == []
+    (folder / "groundtruth.txt").write_text("# changed\n")
+    real = data.DATASETS["tum_fr1_desk"]
+    monkeypatch.setitem(data.DATASETS, "tum_fr1_desk", data.Dataset(real.folder, real.url, None, real.prepare, real.terms,
+                                                                    manifest))
+    assert data.main(["verify", "tum_fr1_desk"]) == 1
+    assert "groundtruth.txt has sha256" in capsys.readouterr().out
+
+
+def test_a_tum_archive_without_an_image_its_list_names_is_a_file_format_error(tmp_path, registry):
+    archive, _ = _tum_tarball(drop="depth/1305031102.033333.png")
+    registry("tum_fr1_desk", archive, {})
+    with pytest.warns(UserWarning), pytest.raises(FileFormatError, match=(
+            "depth.txt names 1 images the archive does not hold .*1305031102.033333.png.*data fetch tum_fr1_desk")):
+        data.fetch("tum_fr1_desk", progress=False)
+    assert _left_in(tmp_path / "cache") == ["downloads"]
+
+
+def test_verify_and_manifest_name_the_fetch_command_of_an_absent_set(tmp_path, monkeypatch, capsys):
+    monkeypatch.delenv("NEURALSURF_DATA", raising=False)
+    monkeypatch.setenv("NEURALSURF_CACHE", str(tmp_path))
+    assert data.main(["verify", "tum_fr1_desk"]) == 1
+    assert "python -m neuralsurf data fetch tum_fr1_desk" in capsys.readouterr().err
 
 
 # ----------------------------------------------------------------------------------------------
