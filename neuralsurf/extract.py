@@ -238,16 +238,61 @@ def off_level(values: Tensor, level: float, min_fraction: float = 1e-4) -> Tenso
     return values
 
 
+def cells_of_points(valid: np.ndarray) -> np.ndarray:
+    """Bool[ndarray, "X Y Z"] valid points -> Bool[ndarray, "X-1 Y-1 Z-1"] cells whose 8 corners are all
+    valid (a separable erosion: three pairwise ANDs)."""
+    cells = valid[:-1] & valid[1:]
+    cells = cells[:, :-1] & cells[:, 1:]
+    return cells[:, :, :-1] & cells[:, :, 1:]
+
+
+def level_set(values: np.ndarray, level: float = 0.0, valid: np.ndarray | None = None,
+              cells: np.ndarray | None = None, device: torch.device | str = "cpu") -> tuple[np.ndarray, np.ndarray]:
+    """Marching cubes of the `level` set of Float[ndarray, "X Y Z"] point values, in grid units.
+
+    valid: Bool[ndarray, "X Y Z"] points with a value (e.g. observed TSDF voxels): a cell with an invalid
+    corner gets no faces. cells: Bool[ndarray, "X-1 Y-1 Z-1"] the cells to mesh (default all), e.g. one
+    piece of a larger grid. Returns vertices Float32[ndarray, "v 3"] and faces Int64[ndarray, "f 3"],
+    oriented towards values above `level`; both empty when no cell holds a face. A vertex's position
+    depends only on its edge's two values, so two calls that share a plane of points give the same
+    vertices on it. On a CUDA `device` (all cells) the cubes are marched there (`neuralsurf.marching`:
+    the same vertices as skimage's, ambiguous cells triangulated alike or otherwise); else by skimage's
+    Lewiner marching cubes on the CPU, skipping masked cells.
+    """
+    from skimage.measure import marching_cubes as skimage_marching_cubes
+
+    empty = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64)
+    finite = values if valid is None else np.where(valid, values, np.float32(level + 1.0))
+    if not float(finite.min()) < level < float(finite.max()):
+        return empty
+    on_gpu = torch.device(device).type == "cuda" and valid is None and cells is None
+    finite = off_level(torch.from_numpy(finite).to(device if on_gpu else "cpu"), level)
+    if on_gpu:
+        from neuralsurf.marching import marching_cubes_torch
+
+        vertices, faces = (t.cpu().numpy() for t in marching_cubes_torch(finite, level))
+        return vertices.astype(np.float32), faces.astype(np.int64)
+    mask = None
+    if valid is not None or cells is not None:
+        keep = cells_of_points(valid) if valid is not None else cells
+        keep = keep if cells is None or valid is None else keep & cells
+        if not keep.any():
+            return empty
+        mask = np.zeros(values.shape, dtype=bool)
+        mask[1:, 1:, 1:] = keep  # skimage reads a cell's mask at its last corner
+    try:
+        vertices, faces, _, _ = skimage_marching_cubes(finite.numpy(), level, mask=mask, allow_degenerate=False)
+    except RuntimeError:  # "No surface found": every cell with a sign change is masked
+        return empty
+    return vertices.astype(np.float32), faces.astype(np.int64)  # outward
+
+
 def marching_cubes(values: np.ndarray, grid: Grid, level: float = 0.0, valid: np.ndarray | None = None,
                    device: torch.device | str = "cpu") -> Mesh:
     """Float[ndarray, "X Y Z"] values at the grid points -> Mesh of the `level` set (world frame,
-    faces oriented towards values above `level`). Cells with a corner where `valid` (Bool[ndarray,
-    "X Y Z"]) is False produce no faces (e.g. unobserved TSDF voxels). Raises ExtractionError if no
-    face remains. On a CUDA `device` (and without `valid`) the cubes are marched there
-    (`neuralsurf.marching`: the same vertices as skimage's, ambiguous cells triangulated alike or
-    otherwise); else by skimage's Lewiner marching cubes on the CPU."""
-    from skimage.measure import marching_cubes as skimage_marching_cubes
-
+    faces oriented towards values above `level`), by `level_set`: cells with a corner where `valid`
+    (Bool[ndarray, "X Y Z"]) is False produce no faces (e.g. unobserved TSDF voxels). Raises
+    ExtractionError if no face remains."""
     finite = values if valid is None else np.where(valid, values, level + 1.0).astype(values.dtype)
     low, high = float(finite.min()), float(finite.max())
     if not low < level < high:
@@ -257,24 +302,11 @@ def marching_cubes(values: np.ndarray, grid: Grid, level: float = 0.0, valid: np
             f"the field has no {level:g}-level set in the box: its values there lie in [{low:.4g}, {high:.4g}]; "
             f"pass bounds that contain the surface, or a level between those values{constant}"
         )
-    on_gpu = torch.device(device).type == "cuda" and valid is None
-    finite = off_level(torch.from_numpy(finite).to(device if on_gpu else "cpu"), level)
-    if on_gpu:
-        from neuralsurf.marching import marching_cubes_torch
-
-        vertices, faces = (t.cpu().numpy() for t in marching_cubes_torch(finite, level))
-    else:
-        vertices, faces, _, _ = skimage_marching_cubes(finite.numpy(), level, allow_degenerate=False)  # outward
-    if valid is not None:
-        cell = np.floor(vertices[faces].mean(1)).astype(np.int64)  # a face lies inside its cell
-        cell_valid = ~_cell_extremes(torch.from_numpy(~valid).float())[1].bool().numpy()
-        faces = faces[cell_valid[tuple(np.minimum(cell, np.array(cell_valid.shape) - 1).T)]]
-        used, faces = np.unique(faces, return_inverse=True)
-        vertices, faces = vertices[used], faces.reshape(-1, 3)
+    vertices, faces = level_set(values, level, valid, device=device)
     if len(faces) == 0:
         raise ExtractionError("marching cubes found no faces in the valid part of the grid")
     world = grid.origin + vertices.astype(np.float64) * grid.spacing
-    return Mesh(torch.from_numpy(world.astype(np.float32)), torch.from_numpy(faces.astype(np.int64)))
+    return Mesh(torch.from_numpy(world.astype(np.float32)), torch.from_numpy(faces))
 
 
 def extract_mesh(
@@ -489,7 +521,8 @@ def slice_image(values, max_abs: float | None = None, bands: int = 10) -> np.nda
 
 
 __all__ = [
-    "Grid", "GridSamples", "extract_mesh", "field_slice", "make_grid", "marching_cubes", "sample_grid", "slice_image",
+    "Grid", "GridSamples", "extract_mesh", "field_slice", "level_set", "make_grid", "marching_cubes", "sample_grid",
+    "slice_image",
 ]
 
 

@@ -70,7 +70,7 @@ from torch import Tensor
 
 from neuralsurf.devices import resolve_device
 from neuralsurf.errors import ConfigError, ExtractionError, FileFormatError, InputError
-from neuralsurf.extract import as_bounds
+from neuralsurf.extract import as_bounds, level_set
 from neuralsurf.geometry import kinect_sigma
 from neuralsurf.io.npz import write_npz
 from neuralsurf.structures import DepthFrames, Mesh
@@ -86,10 +86,10 @@ each eager, cache-sized on a CPU; ~12 compiled, where a step costs ~0.5 ms more;
 _FRAMES_PER_PASS = {"cpu": 1, "cuda": 32}
 """Default frames fused per pass: one on a CPU (each frame visits only its own voxels); on a GPU a
 batch, so that the fixed cost of a pass (kernel launches, a few host syncs) is shared."""
-_MESH_CHUNK_BLOCKS = 8
-"""Marching cubes runs on chunks of this many blocks per axis."""
-_PIN = 1e-4
-"""A surface crossing closer than this fraction of an edge to a grid point is placed on the point."""
+_MESH_BLOCKS = 4096
+"""Blocks meshed per marching-cubes call (about 60 bytes per voxel: 0.15 GB for blocks of 8^3)."""
+_OFF_POINT = 5e-5
+"""A marching-cubes vertex nearer than this (grid units) to a grid point in every coordinate is on it."""
 _MAX_KEYS = 1 << 24
 """Candidate block keys enumerated at a time (bounds memory when boxes are large)."""
 _BITMAP_LIMIT = 1 << 27
@@ -872,26 +872,29 @@ class TSDFVolume:
 
     # ------------------------------------------------------------------------------- extraction
 
-    def _gather(self, blocks: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
-        """Int64[Tensor, "c c c 3"] block coordinates (any, possibly outside) -> their tsdf, weight
-        Float[Tensor, "cB cB cB"] and colour Float[Tensor, "cB cB cB 3"] assembled, weight 0 where absent."""
-        counts = self.block_counts.to(blocks.device)
-        inside = ((blocks >= 0) & (blocks < counts)).all(-1)
-        keys = (blocks[..., 0] * counts[1] + blocks[..., 1]) * counts[2] + blocks[..., 2]
-        slots = torch.where(
-            inside, self._slots_of(torch.where(inside, keys, 0).reshape(-1)).reshape(keys.shape), -1
-        )
-        present = slots >= 0
-        safe = slots.clamp_min(0)
-        c, b = blocks.shape[0], self.block_size
+    def _points(self, lo: list[int], hi: list[int]) -> tuple[Tensor, Tensor, Tensor | None]:
+        """The grid points lo <= (i, j, k) < hi (any box, possibly reaching outside the grid) -> their tsdf,
+        weight Float[Tensor, "X Y Z"] and colour Float[Tensor, "X Y Z 3"] | None; 0 where no block is."""
+        size = self.block_size
+        first = [index // size for index in lo]
+        counts = [(high - 1) // size + 1 - start for high, start in zip(hi, first)]
+        axes = [torch.arange(start, start + n, device=self.device) for start, n in zip(first, counts)]
+        blocks = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        limit = self.block_counts.to(self.device)
+        inside = ((blocks >= 0) & (blocks < limit)).all(1)
+        keys = (blocks[:, 0] * limit[1] + blocks[:, 1]) * limit[2] + blocks[:, 2]
+        slots = torch.full_like(keys, -1)
+        slots[inside] = self._slots_of(keys[inside])
+        present = (slots >= 0).nonzero()[:, 0]
+        start = [low - f * size for low, f in zip(lo, first)]
 
         def assemble(storage: Tensor) -> Tensor:
-            values = torch.where(
-                present.reshape(-1, *[1] * (storage.ndim - 1)), storage[safe.reshape(-1)], 0.0
-            )  # (c^3, B^3[, 3])
-            values = values.reshape(c, c, c, b, b, b, *storage.shape[2:])
-            values = values.permute(0, 3, 1, 4, 2, 5, *range(6, values.ndim))
-            return values.reshape(c * b, c * b, c * b, *storage.shape[2:])
+            values = storage.new_zeros((len(keys),) + storage.shape[1:])
+            values[present] = storage[slots[present]]
+            channels = storage.shape[2:]
+            values = values.view(*counts, size, size, size, *channels).permute(0, 3, 1, 4, 2, 5, *range(6, 6 + len(channels)))
+            values = values.reshape(counts[0] * size, counts[1] * size, counts[2] * size, *channels)
+            return values[tuple(slice(s, s + high - low) for s, low, high in zip(start, lo, hi))]
 
         color = None if self._color is None else assemble(self._color)
         return assemble(self._tsdf), assemble(self._weight), color
@@ -899,179 +902,144 @@ class TSDFVolume:
     def to_dense(self) -> tuple[Tensor, Tensor]:
         """Float[Tensor, "X Y Z"] signed distances (NaN where unobserved) and weights of the whole grid
         (small volumes: tests, plots)."""
-        counts = [int(c) for c in self.block_counts]
-        axes = [torch.arange(c, device=self.device) for c in counts]
-        blocks = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1)
-        size = max(counts)
-        pad = torch.full((size, size, size, 3), -1, dtype=torch.int64, device=self.device)
-        pad[: counts[0], : counts[1], : counts[2]] = blocks
-        tsdf, weight, _ = self._gather(pad)
-        shape = self.grid_shape
-        tsdf, weight = tsdf[: shape[0], : shape[1], : shape[2]], weight[: shape[0], : shape[1], : shape[2]]
+        tsdf, weight, _ = self._points([0, 0, 0], list(self.grid_shape))
         return torch.where(weight > 0, tsdf, torch.nan), weight
+
+    def _color_at(self, points: np.ndarray) -> Tensor:
+        """Float64[ndarray, "v 3"] vertices (grid units, each on a grid edge) -> Float[Tensor, "v 3"] the
+        colour interpolated along that edge."""
+        lower = np.floor(points).astype(np.int64)
+        fraction = points - lower
+        axis = fraction.argmax(1)
+        upper = lower.copy()
+        upper[np.arange(len(points)), axis] += 1
+        t = torch.from_numpy(fraction[np.arange(len(points)), axis]).to(self.device, torch.float32)[:, None]
+
+        def lookup(index: np.ndarray) -> Tensor:
+            index = torch.from_numpy(np.minimum(index, np.array(self.grid_shape) - 1)).to(self.device)
+            block, local = index // self.block_size, index % self.block_size
+            limit = self.block_counts.to(self.device)
+            slots = self._slots_of((block[:, 0] * limit[1] + block[:, 1]) * limit[2] + block[:, 2])
+            offset = (local[:, 0] * self.block_size + local[:, 1]) * self.block_size + local[:, 2]
+            return self._color[slots.clamp_min(0), offset]
+
+        return torch.lerp(lookup(lower), lookup(upper), t).clamp(0, 1).cpu()
+
+    def _block_tiles(self, keys: Tensor, tsdf: Tensor, weight: Tensor) -> tuple[Tensor, Tensor, tuple[int, int, int]]:
+        """The grid points of some blocks with a margin, one cube per block, packed side by side.
+
+        A block's cube holds its points from one before its first to two after its last along each axis
+        (side S = B + 3): its own cells and, for every point of them, the six neighbours (`off_level`).
+        Args: keys Int64[Tensor, "m"] block keys; tsdf, weight: Float[Tensor, "(used + 1) B^3"] the stored
+        blocks and a last one of zeros (where absent blocks read). Returns tsdf Float[Tensor, "aS bS cS"]
+        and valid Bool[Tensor, "aS bS cS"] (observed), block i's cube at tile (i // (b c), i // c % b,
+        i % c), and (a, b, c).
+        """
+        size, side, absent = self.block_size, self.block_size + 3, len(tsdf) - 1
+        a = b = max(1, round(len(keys) ** (1 / 3)))
+        c = -(-len(keys) // (a * b))
+        shifts = torch.stack(torch.meshgrid(*[torch.arange(-1, 2, device=self.device)] * 3, indexing="ij"), -1)
+        slots = self._slots_of(self._keys_around(keys, shifts.reshape(27, 3)))  # (m, 27)
+        slots = torch.cat([slots.masked_fill_(slots < 0, absent), slots.new_full((a * b * c - len(keys), 27), absent)])
+        step = torch.arange(side, device=self.device) - 1
+        near, within = step.div(size, rounding_mode="floor") + 1, step % size  # neighbour 0..2, voxel in it
+        neighbour = (near[:, None, None] * 9 + near[None, :, None] * 3 + near[None, None, :]).view(-1)
+        voxel = ((within[:, None, None] * size + within[None, :, None]) * size + within[None, None, :]).view(-1)
+        index = torch.add(voxel, slots[:, neighbour], alpha=size**3)  # (tiles, S^3)
+        packed = lambda t: t.view(a, b, c, side, side, side).permute(0, 3, 1, 4, 2, 5).reshape(a * side, b * side, c * side)
+        return packed(tsdf.view(-1)[index]), packed(weight.view(-1)[index] > 0), (a, b, c)
+
+    def _keys_around(self, keys: Tensor, shifts: Tensor) -> Tensor:
+        """Int64[Tensor, "m"] block keys, Int64[Tensor, "s 3"] block offsets -> Int64[Tensor, "m s"] the keys
+        of the shifted blocks, -1 outside the grid."""
+        blocks = self._block_coords(keys)[:, None] + shifts
+        limit = self.block_counts.to(self.device)
+        inside = ((blocks >= 0) & (blocks < limit)).all(-1)
+        return torch.where(inside, (blocks[..., 0] * limit[1] + blocks[..., 1]) * limit[2] + blocks[..., 2], -1)
 
     def extract_mesh(self) -> Mesh:
         """The 0-level set of the fused TSDF as a Mesh in the world frame, faces oriented outward
-        (towards positive TSDF, i.e. the cameras), with vertex colours when `with_color`."""
+        (towards positive TSDF, i.e. the cameras), with vertex colours when `with_color`.
+
+        The blocks that may own a cell with a sign change (an observed value <= 0 in them or in one of
+        the seven blocks after them), _MESH_BLOCKS at a time, are packed as cubes side by side
+        (`_block_tiles`) and meshed by `neuralsurf.extract.level_set`, each cube's own cells only and
+        cells with an unobserved corner skipped. A vertex on a block's face is found from the same values
+        in each block that shares it; vertices are merged by the grid edge they lie on, so the mesh has
+        no seams between blocks."""
         if self.frames_integrated == 0:
             raise ExtractionError("the TSDF volume is empty: call integrate(frames) before extract_mesh()")
-        observed = (self._weight[: self._used] > 0).any(1).nonzero()[:, 0]
-        if not len(observed):
+        threads = (1 if self.threads == "auto" else self.threads) if self.device.type == "cpu" else None
+        with torch_threads(threads):
+            return self._extract_mesh()
+
+    def _extract_mesh(self) -> Mesh:
+        tsdf, weight = self._tsdf[: self._used], self._weight[: self._used]
+        observed = weight > 0
+        if not observed.any():
             raise ExtractionError(
                 f"none of the {self.frames_integrated} integrated frames observed a surface inside the bounds "
                 f"{self.bounds.tolist()}: check the bounds, the poses (cam_to_world, not world_to_camera) and "
                 f"the depth units (metres)"
             )
-        if self.sparse:
-            keys = self._keys[torch.isin(self._slots, observed)]
-        else:
-            keys = observed
-        chunk = _MESH_CHUNK_BLOCKS
-        chunks = torch.unique(self._block_coords(keys) // chunk, dim=0).cpu()
-        r = torch.arange(chunk + 1)
-        local = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1).to(self.device)
-        grid_points = np.array(self.grid_shape, dtype=np.int64)
-        keys_out, points_out, colors_out, faces_out = [], [], [], []
-        n_vertices = 0
-        for corner in chunks:
-            tsdf, weight, color = self._gather(corner.to(self.device) * chunk + local)
-            side = chunk * self.block_size + 1
-            tsdf, weight = tsdf[:side, :side, :side], weight[:side, :side, :side]
-            color = None if color is None else color[:side, :side, :side]
-            start = corner.numpy() * chunk * self.block_size
-            piece = _mesh_chunk(
-                tsdf.cpu().numpy(),
-                (weight > 0).cpu().numpy(),
-                None if color is None else color.cpu().numpy(),
-                start,
-                grid_points,
-            )
-            if piece is None:
-                continue
-            keys_out.append(piece[0])
-            points_out.append(piece[1])
-            colors_out.append(piece[2])
-            faces_out.append(piece[3] + n_vertices)
-            n_vertices += len(piece[0])
-        if not faces_out:
+        slots = torch.arange(self._used, device=self.device)
+        keys, slots = (self._keys, self._slots) if self.sparse else (slots, slots)
+        inside = (observed & (tsdf <= 0)).any(1)[slots]  # per key
+        upper = torch.stack(torch.meshgrid(*[torch.arange(2, device=self.device)] * 3, indexing="ij"), -1)
+        around = self._keys_around(keys, upper.reshape(8, 3))
+        where = torch.searchsorted(keys, around).clamp_max(len(keys) - 1)
+        keys = keys[observed.any(1)[slots] & ((keys[where] == around) & inside[where]).any(1)]
+        zero = tsdf.new_zeros(1, tsdf.shape[1])
+        tsdf, weight = torch.cat([tsdf, zero]), torch.cat([weight, zero])
+        size, side = self.block_size, self.block_size + 3
+        own = torch.zeros(side, dtype=torch.bool)
+        own[1 : size + 1] = True  # a cube's own cells: first corners at its block's voxels
+        own = own[:, None, None] & own[None, :, None] & own[None, None, :]
+        points, faces, count = [], [], 0
+        for part in keys.split(_MESH_BLOCKS):
+            values, valid, (a, b, c) = self._block_tiles(part, tsdf, weight)
+            cells = own.repeat(a, b, c)[:-1, :-1, :-1].numpy()
+            vertices, triangles = level_set(values.cpu().numpy(), 0.0, valid.cpu().numpy(), cells)
+            tile = np.floor(vertices / side).astype(np.int64)
+            block = self._block_coords(part).cpu().numpy()[(tile[:, 0] * b + tile[:, 1]) * c + tile[:, 2]]
+            points.append(block * size - 1 + (vertices.astype(np.float64) - tile * side))
+            faces.append(triangles + count)
+            count += len(vertices)
+        if not count:
             raise ExtractionError(
                 "the fused TSDF has no zero crossing between observed voxels: the frames see no surface with "
                 "both sides inside the truncation band; check the truncation (a few voxels) and the poses"
             )
-        keys = np.concatenate(keys_out)
-        _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-        faces = inverse[np.concatenate(faces_out)]
-        faces = faces[
-            (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])
-        ]
-        used, faces = np.unique(faces, return_inverse=True)
-        faces = faces.reshape(-1, 3)
-        points = np.concatenate(points_out)[first][used]
+        points, faces = _merge_by_edge(np.concatenate(points), np.concatenate(faces), self.grid_shape)
         vertices = torch.from_numpy((self.origin + points * self.voxel_size).astype(np.float32))
-        colors = None
-        if self.with_color:
-            colors = torch.from_numpy(
-                np.clip(np.concatenate(colors_out)[first][used], 0, 1).astype(np.float32)
-            )
-        return Mesh(vertices, torch.from_numpy(faces.astype(np.int64)), colors)
+        colors = self._color_at(points) if self.with_color else None
+        return Mesh(vertices, torch.from_numpy(faces), colors)
 
 
-def _mesh_chunk(
-    tsdf: np.ndarray, valid: np.ndarray, color: np.ndarray | None, start: np.ndarray, grid_points: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray] | None:
-    """Marching cubes of one chunk, with vertex keys for welding.
+def _merge_by_edge(points: np.ndarray, faces: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
+    """Merge the vertices that lie on the same grid edge (or grid point).
 
-    Args:
-        tsdf: Float[ndarray, "X Y Z"] values of the chunk's grid points (the chunk's cells are all of
-            its (X-1)(Y-1)(Z-1) cells); valid: Bool[ndarray, "X Y Z"] observed points;
-        color: Float[ndarray, "X Y Z 3"] | None; start: Int[ndarray, "3"] grid index of point (0, 0, 0);
-        grid_points: Int[ndarray, "3"] grid points per axis of the whole volume (for keys).
-    Returns:
-        None without faces, else keys Int[ndarray, "v"] (4 * global linear grid index of the edge's lower
-        point + 1 + axis, or + 0 for a crossing on a grid point), grid positions Float64[ndarray,
-        "v 3"], colours Float[ndarray, "v 3"] | None, and faces Int[ndarray, "f 3"] (outward).
-    """
-    from skimage.measure import marching_cubes
-
-    invalid = torch.from_numpy(~valid)[None, None].float()
-    cell_ok = (
-        torch.nn.functional.max_pool3d(invalid, 2, stride=1)[0, 0].numpy() == 0
-    )  # all 8 corners observed
-    values = np.where(valid, tsdf, np.float32(1.0)).astype(np.float32)
-    t = torch.from_numpy(values)[None, None]
-    cell_max = torch.nn.functional.max_pool3d(t, 2, stride=1)[0, 0].numpy()
-    cell_min = -torch.nn.functional.max_pool3d(-t, 2, stride=1)[0, 0].numpy()
-    surface = cell_ok & (cell_min <= 0) & (cell_max > 0)
-    if not surface.any():
-        return None
-    vertices, faces, _, _ = marching_cubes(values, 0.0, allow_degenerate=True)
-    cell = np.floor(vertices[faces].mean(1)).astype(np.int64)
-    cell = np.clip(cell, 0, np.array(surface.shape) - 1)
-    faces = faces[surface[tuple(cell.T)]]
-    if not len(faces):
-        return None
-    used, faces = np.unique(faces, return_inverse=True)
-    faces = faces.reshape(-1, 3)
-    keys, points, colors = _edge_keys(vertices[used], values, color, start, grid_points)
-    return keys, points, colors, faces
-
-
-def _edge_keys(
-    vertices: np.ndarray,
-    values: np.ndarray,
-    color: np.ndarray | None,
-    start: np.ndarray,
-    grid_points: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """The grid edge of every marching-cubes vertex, found from the values (not from the float32
-    position, which differs between chunks), and its exact float64 position and colour.
-
-    A vertex lies on an edge through its nearest grid point g; of the six edges at g with a sign
-    change, it is the one whose exact crossing is closest. Crossings within _PIN of a grid point
-    are keyed (and placed) at the point, so every chunk makes the same choice.
-
-    Args: vertices Float[ndarray, "v 3"] chunk-local; values Float[ndarray, "X Y Z"]; color
-        Float[ndarray, "X Y Z 3"] | None; start, grid_points as in `_mesh_chunk`.
-    Returns: keys Int[ndarray, "v"], positions Float64[ndarray, "v 3"] (global grid units), colours.
-    """
-    shape = np.array(values.shape)
-    g = np.clip(np.round(vertices).astype(np.int64), 0, shape - 1)
-    best = np.full(len(g), np.inf)
-    keys = np.zeros(len(g), dtype=np.int64)
-    points = g.astype(np.float64)
-    colors = None if color is None else color[tuple(g.T)].astype(np.float64)
-    f_g = values[tuple(g.T)].astype(np.float64)
-    for axis in range(3):
-        for direction in (-1, 1):
-            n = g.copy()
-            n[:, axis] += direction
-            ok = (n[:, axis] >= 0) & (n[:, axis] < shape[axis])
-            n = np.clip(n, 0, shape - 1)
-            f_n = values[tuple(n.T)].astype(np.float64)
-            ok &= (np.minimum(f_g, f_n) <= 0) & (np.maximum(f_g, f_n) >= 0) & (f_g != f_n)
-            frac = np.where(ok, f_g / np.where(ok, f_g - f_n, 1.0), 0.0)  # crossing at g + frac * direction
-            position = g.astype(np.float64)
-            position[:, axis] += direction * frac
-            distance = np.abs(vertices - position).max(1)
-            better = ok & (distance < best)
-            best = np.where(better, distance, best)
-            pinned = (frac < _PIN) | (frac > 1 - _PIN)
-            at = np.where((frac > 1 - _PIN)[:, None], n, g)
-            lower = np.minimum(g, n)
-            key_point = np.where(pinned[:, None], at, lower) + start
-            linear = np.ravel_multi_index(tuple(key_point.T), tuple(grid_points), mode="clip")
-            key = 4 * linear + np.where(pinned, 0, 1 + axis)
-            keys = np.where(better, key, keys)
-            snapped = np.where(pinned[:, None], at.astype(np.float64), position)
-            points = np.where(better[:, None], snapped, points)
-            if colors is not None:
-                mix = (1 - frac)[:, None] * color[tuple(g.T)] + frac[:, None] * color[tuple(n.T)]
-                mixed = np.where(pinned[:, None], color[tuple(at.T)], mix)
-                colors = np.where(better[:, None], mixed, colors)
-    lost = ~np.isfinite(best)
-    if lost.any():  # a vertex with no sign-changing edge at its nearest point (cannot happen for valid cells)
-        keys[lost] = 4 * np.ravel_multi_index(tuple((g[lost] + start).T), tuple(grid_points), mode="clip")
-    return keys, points + start, colors
+    A marching-cubes vertex lies on a grid edge, at least _OFF_POINT from its ends unless on a grid
+    point (`off_level` keeps values off the level by 1e-4 of their differences), so its edge is the
+    lower point of the one non-integral coordinate; a few lie inside a cell (Lewiner's ambiguous cases)
+    and stay apart.
+    Args: points Float64[ndarray, "v 3"] grid units; faces Int[ndarray, "f 3"]; shape: grid points per axis.
+    Returns: the merged points and renumbered faces, without faces that lost a corner."""
+    nearest = np.round(points)
+    off = np.abs(points - nearest)
+    axis = off.argmax(1)
+    on_point = off.max(1) < _OFF_POINT
+    lower = nearest.astype(np.int64)
+    rows = np.arange(len(points))
+    lower[rows, axis] = np.where(on_point, lower[rows, axis], np.floor(points[rows, axis]).astype(np.int64))
+    linear = np.ravel_multi_index(tuple(lower.T), tuple(int(n) for n in shape), mode="clip")
+    key = linear * 4 + np.where(on_point, 3, axis)
+    inner = (off >= _OFF_POINT).sum(1) > 1  # a vertex inside a cell (an ambiguous case's): never merged
+    key[inner] = -1 - rows[inner]
+    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    faces = inverse.reshape(-1)[faces]
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
+    return points[first], faces
 
 
 def fuse_open3d(
