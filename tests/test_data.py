@@ -489,6 +489,19 @@ def test_data_root_is_the_fetch_cache_when_neuralsurf_data_is_unset(tmp_path, mo
     assert recipes.data_path(None, "stanford_bunny") == tmp_path / "cache" / "stanford_bunny"
 
 
+def test_the_tum_scene_holds_frames_out_and_names_its_fetch_command_when_absent(tmp_path, monkeypatch):
+    from neuralsurf.scenes.captures import rgbd_capture
+
+    monkeypatch.delenv("NEURALSURF_DATA", raising=False)
+    monkeypatch.setenv("NEURALSURF_CACHE", str(tmp_path / "cache"))
+    with pytest.raises(recipes.SceneUnavailable, match=f"{TUM} not found: run `python -m neuralsurf data fetch tum_fr1_desk`"):
+        rgbd_capture("tum_fr1_desk", TUM)
+    with tarfile.open(fileobj=io.BytesIO(_tum_tarball()[0])) as tar:
+        tar.extractall(tmp_path / "mine")  # the test's own archive
+    scene = rgbd_capture("tum_fr1_desk", TUM, root=str(tmp_path / "mine"), hold_out_every=3, cloud_stride=8)
+    assert len(scene.frames) == 2 and len(scene.held_out) == 1 and scene.depth_input and scene.ground_truth is None
+
+
 def test_scenes_read_real_data_from_the_cache(tmp_path, monkeypatch, shared_data):
     folder = shared_data / "7scenes_redkitchen_every10"
     if not folder.is_dir():
