@@ -250,9 +250,33 @@ def _extent(items: list[Item]) -> tuple[np.ndarray, float]:
     return (lo + hi) / 2, float((hi - lo).max()) or 1.0
 
 
+UP_DIRECTIONS = ("+x", "+y", "+z", "-x", "-y", "-z")
+
+
+def screen_axes(up: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(right, up, towards the viewer) unit vectors (3,) of the opening view for a scene whose up is `up`
+    ("+y": x right, y up, z towards the viewer; "+z": y right, z up, x towards the viewer; ...): meshes
+    stand side by side along "right"."""
+    axis, sign = "xyz".index(up[1]), (1.0 if up[0] == "+" else -1.0)
+    eye = np.eye(3)
+    return sign * eye[(axis + 2) % 3], sign * eye[axis], eye[(axis + 1) % 3]
+
+
 def _node(group: int, index: int, variant: str) -> str:
     """Scene-tree name of an item's node: /scene_<g>/item_<i>/<variant>."""
     return f"/scene_{group}/item_{index}/{variant}"
+
+
+def coloured_glb(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray) -> bytes:
+    """A GLB of a mesh with vertex colours (uint8 (v, 3)), smooth normals and a matte, double-sided,
+    non-metallic material: glTF's default material is metallic, which shows black without an environment map."""
+    import trimesh
+
+    material = trimesh.visual.material.PBRMaterial(metallicFactor=0.0, roughnessFactor=0.9, doubleSided=True)
+    visual = trimesh.visual.TextureVisuals(material=material)
+    visual.vertex_attributes["color"] = np.concatenate([colours, np.full((len(colours), 1), 255, np.uint8)], 1)
+    mesh = trimesh.Trimesh(vertices, faces, visual=visual, process=False)
+    return mesh.export(file_type="glb", include_normals=True)
 
 
 class Viewer:
@@ -263,6 +287,9 @@ class Viewer:
         viser = _import_viser()
         if not groups:
             raise InputError("nothing to show: no meshes")
+        if up not in UP_DIRECTIONS:
+            raise InputError(f"up={up!r} is not an axis; choose one of {', '.join(UP_DIRECTIONS)}")
+        self._up, self._focused = up, None
         self.groups = groups
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.scene.set_up_direction(up)
@@ -323,13 +350,8 @@ class Viewer:
                                                   visible=False), np.zeros(3))]
         self.nodes[name] = label
         if item.coloured is not None:
-            import trimesh
-
-            vertices, faces, colours = item.coloured
-            rgba = np.concatenate([colours, np.full((len(colours), 1), 255, np.uint8)], 1)
             name = _node(g, i, "coloured")
-            mesh = trimesh.Trimesh(vertices, faces, vertex_colors=rgba, process=False)
-            handles["coloured"] = [(scene.add_mesh_trimesh(name, mesh, visible=False), np.zeros(3))]
+            handles["coloured"] = [(scene.add_glb(name, coloured_glb(*item.coloured), visible=False), np.zeros(3))]
             self.nodes[name] = label
         return handles
 
@@ -341,13 +363,13 @@ class Viewer:
         coloured = self.colours.value != "grey"
         group = self.groups[chosen]
         centre, size = _extent(group.items)
+        side, up, depth = screen_axes(self._up)
         slot = 0
         for g, handles in enumerate(self._handles):
             self._folders[g].visible = g == chosen
             for i, (item, nodes) in enumerate(zip(self.groups[g].items, handles)):
                 shown = g == chosen and self.boxes[g][i].value
-                offset = np.array([1.25 * size * slot if side_by_side and item.label not in (INPUT, CAMERAS) else 0.0,
-                                   0.0, 0.0])
+                offset = side * 1.25 * size * slot if side_by_side and item.label not in (INPUT, CAMERAS) else np.zeros(3)
                 variant = "coloured" if coloured and "coloured" in nodes else "grey"
                 for key, handles_and_bases in nodes.items():
                     for handle, base in handles_and_bases:
@@ -356,9 +378,13 @@ class Viewer:
                 if shown and side_by_side and item.faces is not None:
                     slot += 1
         count = max(slot, 1) if side_by_side else 1
-        middle = centre + np.array([1.25 * size * (count - 1) / 2, 0.0, 0.0])
-        self.server.initial_camera.look_at = tuple(middle)
-        self.server.initial_camera.position = tuple(middle + np.array([0.0, 0.3, 1.0]) * size * (1.5 + 0.9 * count))
+        middle = centre + side * 1.25 * size * (count - 1) / 2
+        eye = middle + (0.3 * up + depth) * size * (0.8 + 0.8 * count)
+        self.server.initial_camera.look_at, self.server.initial_camera.position = tuple(middle), tuple(eye)
+        if chosen != self._focused:  # another scene: every open page looks at it
+            self._focused = chosen
+            for client in self.server.get_clients().values():
+                client.camera.position, client.camera.look_at = tuple(eye), tuple(middle)
         scale = group.scale
         self.legend.content = (f"Colours: distance to the ground truth, viridis from 0 (purple) to {scale:.3g} "
                                f"(yellow) scene units." if coloured and scale else "")
@@ -379,7 +405,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("paths", nargs="+", help="a run folder of evaluate.py, folders of meshes or mesh files")
     parser.add_argument("--host", default="127.0.0.1", help="address to serve on (0.0.0.0: every interface)")
     parser.add_argument("--port", type=int, default=8080)
-    parser.add_argument("--up", default="+y", help="the scene's up direction: +x, +y, +z, -x, -y, -z")
+    parser.add_argument("--up", default="+y", choices=UP_DIRECTIONS, help="the scenes' up axis (default +y)")
     args = parser.parse_args(argv)
     try:
         _import_viser()

@@ -15,7 +15,18 @@ from test_error_colours import GT_RADIUS, RADII, oracle_run, sphere
 from neuralsurf.errors import InputError, MissingDependencyError
 from neuralsurf.evaluation.render import viridis
 from neuralsurf.io import write_mesh
-from neuralsurf.view import CAMERAS, GROUND_TRUTH, INPUT, Viewer, collect, main
+from neuralsurf.view import (
+    CAMERAS,
+    GROUND_TRUTH,
+    INPUT,
+    UP_DIRECTIONS,
+    Group,
+    Item,
+    Viewer,
+    collect,
+    main,
+    screen_axes,
+)
 
 
 def free_port() -> int:
@@ -90,6 +101,19 @@ def test_without_viser_it_says_how_to_install_it(tmp_path, monkeypatch, capsys):
     with pytest.raises(MissingDependencyError, match=r"pip install 'neuralsurf\[view\]'"):
         Viewer(collect([tmp_path / "a.ply"]))
     assert main([str(tmp_path / "a.ply")]) == 2 and "pip install 'neuralsurf[view]'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("up", UP_DIRECTIONS)
+def test_the_opening_view_is_upright_and_right_handed(up):
+    right, upward, towards = screen_axes(up)
+    assert np.allclose(np.cross(right, upward), towards)  # x right, y up, z towards the viewer (OpenGL)
+    assert np.allclose(upward, (1 if up[0] == "+" else -1) * np.eye(3)["xyz".index(up[1])])
+
+
+def test_an_up_that_is_not_an_axis_is_named():
+    pytest.importorskip("viser")
+    with pytest.raises(InputError, match="up='y' is not an axis; choose one of"):
+        Viewer([Group("a", [Item("m", np.zeros((1, 3)))])], up="y")
 
 
 def _yellow_pixels(png: bytes) -> int:
