@@ -8,14 +8,13 @@ from neuralsurf.baselines.icp import (
     register_multiway,
 )
 from neuralsurf.baselines.poisson import reconstruct_poisson
-from neuralsurf.baselines.tsdf import TSDFVolume, depth_bounds, fuse_open3d
+from neuralsurf.baselines.tsdf import TSDFVolume, depth_bounds
 
 __all__ = [
     "Registration",
     "TSDFVolume",
     "depth_bounds",
     "evaluate_registration",
-    "fuse_open3d",
     "reconstruct_poisson",
     "register_global",
     "register_icp",
