@@ -87,13 +87,14 @@ def _mesh_arrays(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]
 
 
 def _mesh_item(label: str, path: Path, coloured: Path | None = None, visible: bool = True) -> Item:
-    """A mesh file as an Item; `coloured` (a file with vertex colours) or the file's own colours colour it."""
+    """A mesh file as an Item, coloured by the vertex colours of the file `coloured` when given (a run's
+    error-coloured mesh), else by its own vertex colours unless they are all one colour (a writer's filler)."""
     vertices, faces, colours = _mesh_arrays(path)
     shaded = None
-    if coloured is not None and coloured.is_file():
-        other = _mesh_arrays(coloured)
+    if coloured is not None:
+        other = _mesh_arrays(coloured) if coloured.is_file() else (None, None, None)
         shaded = other if other[2] is not None else None
-    elif colours is not None:
+    elif colours is not None and (colours != colours[:1]).any():
         shaded = (vertices, faces, colours)
     return Item(label, vertices, faces, shaded, visible=visible)
 
@@ -104,17 +105,16 @@ def is_run(folder: Path) -> bool:
 
 
 def run_rows(folder: Path) -> list[dict[str, Any]]:
-    """The rows of a results folder: rows/*.json (`neuralsurf.evaluation.store`), else results.json's."""
+    """The rows of a results folder: results.json's, else rows/*.json (`neuralsurf.evaluation.store`)."""
     from neuralsurf.evaluation.store import read_rows
 
-    rows = read_rows(folder) if (folder / "rows").is_dir() else []
-    if not rows and (folder / "results.json").is_file():
+    if (folder / "results.json").is_file():  # the suite's order, rewritten after every row
         try:
-            rows = json.loads((folder / "results.json").read_text()).get("rows", [])
+            return json.loads((folder / "results.json").read_text()).get("rows", [])
         except ValueError as error:
             raise InputError(f"{folder / 'results.json'} is not JSON ({error}); rebuild it: python evaluate.py "
                              f"report={folder}") from None
-    return rows
+    return read_rows(folder)
 
 
 def _scene_input(folder: Path, scene: str) -> list[Item]:
@@ -385,9 +385,11 @@ class Viewer:
             self._focused = chosen
             for client in self.server.get_clients().values():
                 client.camera.position, client.camera.look_at = tuple(eye), tuple(middle)
-        scale = group.scale
-        self.legend.content = (f"Colours: distance to the ground truth, viridis from 0 (purple) to {scale:.3g} "
-                               f"(yellow) scene units." if coloured and scale else "")
+        scale, any_colours = group.scale, any(item.coloured is not None for item in group.items)
+        self.legend.content = ("" if not coloured else
+                               f"Colours: distance to the ground truth, viridis from 0 (purple) to {scale:.3g} "
+                               f"(yellow) scene units." if scale else
+                               "Colours: the meshes' own." if any_colours else "No ground truth here: grey.")
 
     @property
     def port(self) -> int:
