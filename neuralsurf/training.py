@@ -9,6 +9,7 @@ import os
 import time
 import warnings
 from collections.abc import Callable, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -108,36 +109,53 @@ def field_state(model: nn.Module, normalization: Normalization, margin: float, s
             "normalization": normalization.state_dict(), "margin": float(margin), "step": int(steps)}
 
 
-def load_field(path: str | Path, model: nn.Module | None = None, device: str | torch.device = "cpu") -> NormalizedField:
-    """The world-frame field saved by `FitResult.save` or by a fit's checkpoint (`run/checkpoints/last.pt`).
+def load_model(path: str | Path, prior: bool = False, model: nn.Module | None = None) -> tuple[nn.Module, dict]:
+    """The model of a neuralsurf checkpoint and the checkpoint's state: a single-shape field (what
+    `load_field` reads) or, with `prior`, a learned prior (`neuralsurf.priors.load_prior`).
 
     The model is rebuilt from its stored constructor arguments (an allowlist of neuralsurf's model
-    classes and plain values: nothing in the file can choose code to run), or pass `model` to load the
-    weights into one of your own. Raises CheckpointError for a file that is not such a checkpoint.
+    classes and plain values: nothing in the file can choose code to run), or a field's weights are
+    loaded into `model`. Raises CheckpointError for a missing file, a file that is not such a
+    checkpoint, or one that holds the other kind of model.
     """
     path = Path(path)
     if not path.is_file():
-        raise CheckpointError(f"checkpoint {path} not found; pass the last.pt of a run or a file of FitResult.save")
+        raise CheckpointError(f"prior checkpoint {path} not found; pass the checkpoints/last.pt of a train.py "
+                              f"experiment=shapes_* run" if prior else
+                              f"checkpoint {path} not found; pass the last.pt of a run or a file of FitResult.save")
     state = load_checkpoint(path)
+    name = stored_class(state)
+    if prior and (not isinstance(state.get("model_spec"), dict) or "model" not in state):
+        raise CheckpointError(f"{path} holds no rebuildable model; it was not written by a neuralsurf fit")
+    if prior and name in REBUILDABLE and name not in PRIOR_CLASSES:
+        raise CheckpointError(f"{path} holds a {name}, not a learned prior (AutoDecoder or OccupancyNetwork): a "
+                              f"single-shape field; load it with neuralsurf.load_field")
     missing = [key for key in ("model", "normalization", "margin") + (("model_spec",) if model is None else ())
                if key not in state]
-    if missing:
+    if not prior and missing:
         raise CheckpointError(f"{path} lacks {missing}: it was not written by neuralsurf's fit or FitResult.save "
                               f"(checkpoints of neuralsurf before 0.2 cannot be loaded; fit again)")
-    if model is None and state["model_spec"] is None:
+    if not prior and model is None and state["model_spec"] is None:
         raise CheckpointError(f"{path} holds a model of a class neuralsurf cannot rebuild; pass it: "
                               f"load_field(path, model=YourModel(...))")
-    if stored_class(state) in PRIOR_CLASSES:
-        raise CheckpointError(f"{path} holds a learned prior ({stored_class(state)}), not a single-shape field; "
+    if not prior and name in PRIOR_CLASSES:
+        raise CheckpointError(f"{path} holds a learned prior ({name}), not a single-shape field; "
                               f"load it with neuralsurf.priors.load_prior and complete a shape with complete_cloud")
-    margin = stored_margin(state, path)
     if model is None:
-        model = build_checked(state["model_spec"], state["model"], f"{path}: model")
-    else:
-        try:
-            model.load_state_dict(check_weights(state["model"], f"{path}: model"))
-        except (RuntimeError, KeyError, TypeError, ValueError) as error:
-            raise CheckpointError(f"{path} does not match its model: {error}") from None
+        return build_checked(state["model_spec"], state["model"], f"{path}: model"), state
+    try:
+        model.load_state_dict(check_weights(state["model"], f"{path}: model"))
+    except (RuntimeError, KeyError, TypeError, ValueError) as error:
+        raise CheckpointError(f"{path} does not match its model: {error}") from None
+    return model, state
+
+
+def load_field(path: str | Path, model: nn.Module | None = None, device: str | torch.device = "cpu") -> NormalizedField:
+    """The world-frame field saved by `FitResult.save` or by a fit's checkpoint (`run/checkpoints/last.pt`):
+    its model rebuilt by `load_model` (or pass `model` to load the weights into one of your own).
+    Raises CheckpointError for a file that is not such a checkpoint."""
+    model, state = load_model(path, model=model)
+    margin = stored_margin(state, Path(path))
     try:
         normalization = Normalization.from_state_dict(state["normalization"])
     except (RuntimeError, KeyError, TypeError, ValueError, AttributeError) as error:
@@ -210,6 +228,197 @@ def _as_observations(observations) -> list[Observation]:
     return observations
 
 
+class FitDiverged(NeuralsurfError):
+    """The fit's loss became NaN or inf: lower the learning rate or check the input for outliers."""
+
+    def __init__(self, terms: dict[str, torch.Tensor], total: torch.Tensor, step: int) -> None:
+        bad = [name for name, value in terms.items() if not torch.isfinite(value)]
+        super().__init__(f"the fit diverged: loss became {total.item()} at step {step} (terms {bad}); lower the "
+                         f"learning rate (optimizer.lr, trainer.encoding_lr) or check the input for outliers")
+
+
+class Checkpoints:
+    """A fit's training state in `run_dir/checkpoints/last.pt` (nothing without `run_dir`).
+
+    `save` writes the field (`field_state`: what `load_field` reads) with the optimiser, the scheduler,
+    the sampling generator, torch's global RNG, the history, the wall time and `config`, atomically
+    and only where `writes` (rank 0). `resume` loads all of it back (on every rank), so that the fit
+    continues exactly where it stopped."""
+
+    def __init__(self, run_dir: str | Path | None, model: nn.Module, normalization: Normalization, margin: float,
+                 optimizer: torch.optim.Optimizer, scheduler: torch.optim.lr_scheduler.LRScheduler,
+                 generator: torch.Generator, config: dict | None = None, writes: bool = True) -> None:
+        self.path = Path(run_dir) / "checkpoints" / CHECKPOINT_NAME if run_dir is not None else None
+        self.model, self.normalization, self.margin = model, normalization, margin
+        self.optimizer, self.scheduler, self.generator = optimizer, scheduler, generator
+        self.config, self.writes = config or {}, writes
+
+    def resume(self, steps: int) -> tuple[int, float, dict[str, list[float]]]:
+        """(steps done, seconds spent, history) of the saved fit, its state loaded into the model,
+        optimiser, scheduler, generator and torch's RNG; (0, 0.0, {}) when there is no checkpoint.
+        Warns when it already holds `steps` steps or more."""
+        if self.path is None or not self.path.exists():
+            return 0, 0.0, {}
+        state = load_checkpoint(self.path)
+        try:
+            self.model.load_state_dict(state["model"])
+            self.optimizer.load_state_dict(state["optimizer"])
+        except (RuntimeError, ValueError, KeyError) as error:
+            raise CheckpointError(f"checkpoint {self.path} does not match this model ({error}); "
+                                  f"use another run directory or resume=False") from None
+        self.scheduler.load_state_dict(state["scheduler"])
+        self.generator.set_state(state["generator"])
+        torch.set_rng_state(state["torch_rng"])
+        step = int(state["step"])
+        if step >= steps:
+            warnings.warn(f"{self.path} already holds {step} >= {steps} steps; nothing to train")
+        return step, float(state["seconds"]), {k: list(v) for k, v in state["history"].items()}
+
+    def save(self, step: int, seconds: float, history: dict[str, list[float]]) -> None:
+        """Write the state after `step` steps (a no-op without a run directory or where not `writes`)."""
+        if self.path is None or not self.writes:
+            return
+        save_checkpoint(self.path, {
+            **field_state(self.model, self.normalization, self.margin, step),
+            "optimizer": _portable(self.optimizer.state_dict()), "scheduler": self.scheduler.state_dict(),
+            "generator": self.generator.get_state(), "torch_rng": torch.get_rng_state(), "history": history,
+            "seconds": seconds, "config": self.config,
+        })
+
+
+class TrainStep:
+    """One optimisation step of the weighted loss terms: `step(batches, index) -> (terms, total)`
+    (forward of `LossTerms`, backward, the optimiser's step).
+
+    Eager, a NaN or inf loss raises FitDiverged before the update, so the model still holds the state
+    before step `index`. With `cuda_graph`, on one CUDA device with a capturable optimiser (`graphable`)
+    the step is replayed as a CUDA graph (`GraphedStep`: the same steps without the launch cost); its
+    update is then applied before the loss is read, so `check` raises FitDiverged when the caller
+    reads the loss (logging and checkpoint steps). Under a process group (`world` > 1) the terms run
+    inside DistributedDataParallel. Call `scheduled` after each scheduler step."""
+
+    def __init__(self, model: nn.Module, observations: list[Observation], samplers: list,
+                 optimizer: torch.optim.Optimizer, device: torch.device, world: int = 1, cuda_graph: bool = True):
+        self.optimizer = optimizer
+        self.weights = {f"{o.name}/{term}": w for o, s in zip(observations, samplers) for term, w in s.weights.items()}
+        self.loss_terms: nn.Module = LossTerms(model, observations, samplers)
+        if world > 1:  # after the resume: its broadcast of rank 0's weights also waits for every rank's reading
+            self.loss_terms = torch.nn.parallel.DistributedDataParallel(self.loss_terms)
+        self.graphed = (GraphedStep(self._forward_and_update, optimizer, device)
+                        if cuda_graph and graphable(optimizer, device, world) else None)
+
+    def __call__(self, batches: list, index: int) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        if self.graphed is not None:
+            return self.graphed(batches)
+        terms, total = self._forward(batches)
+        if not torch.isfinite(total):
+            raise FitDiverged(terms, total, index)
+        self._update(total)
+        return terms, total
+
+    def scheduled(self) -> None:
+        """After the scheduler's step: its learning rates reach the graph's copies of them."""
+        if self.graphed is not None:
+            self.graphed.set_learning_rates()
+
+    def check(self, terms: dict[str, torch.Tensor], total: torch.Tensor, index: int) -> None:
+        """FitDiverged for a replayed step whose loss is not finite (an eager step raised already)."""
+        if self.graphed is not None and not torch.isfinite(total):
+            raise FitDiverged(terms, total, index)
+
+    def _forward(self, batches: list) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        terms = self.loss_terms(batches)
+        return terms, sum(self.weights[name] * value for name, value in terms.items())
+
+    def _update(self, total: torch.Tensor) -> None:
+        self.optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        self.optimizer.step()
+
+    def _forward_and_update(self, batches: list) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        terms, total = self._forward(batches)
+        self._update(total)  # detached below: a kept autograd graph would tie the next step to this one's stream
+        return {name: value.detach() for name, value in terms.items()}, total.detach()
+
+
+class FitMonitor:
+    """What a fit shows as it goes: the history of logged values (every `log_every` steps and at the
+    end), a progress bar over its steps (`bar`), a line in the log per tenth of the fit, and, with a
+    `run_dir`, TensorBoard scalars, SDF slices every `image_every` steps and meshes every `mesh_every`
+    steps; and its wall time, counting `seconds_before` (a resumed fit's)."""
+
+    def __init__(self, steps: int, start_step: int, seconds_before: float, history: dict[str, list[float]],
+                 params: list[nn.Parameter], optimizer: torch.optim.Optimizer, world_field: NormalizedField,
+                 run_dir: str | Path | None, progress: bool, log_every: int, image_every: int, mesh_every: int):
+        from tqdm.auto import tqdm
+
+        self.steps, self.seconds_before, self.history = steps, seconds_before, history
+        self.params, self.optimizer, self.world_field = params, optimizer, world_field
+        self.log_every, self.image_every, self.mesh_every = log_every, image_every, mesh_every
+        self.writer = _summary_writer(Path(run_dir)) if run_dir is not None else None
+        self.bar = tqdm(range(start_step, steps), initial=start_step, total=steps, disable=not progress,
+                        desc="fit", dynamic_ncols=True)
+        self.started = self.window_start = time.perf_counter()
+        self.window_steps = 0
+        self.report_every = max(1, steps // 10)  # a progress line in the log per tenth of the fit, at a logging step
+        self.next_report, self.reported, self.report_start = start_step + 1, start_step, self.started
+
+    def seconds(self) -> float:
+        """Wall time of the fit so far, counting the time before a resume."""
+        return self.seconds_before + time.perf_counter() - self.started
+
+    def after_step(self, done: int, terms: dict[str, torch.Tensor], total: torch.Tensor) -> None:
+        """Record and show what is due after `done` steps."""
+        self.window_steps += 1
+        if done % self.log_every == 0 or done == self.steps:
+            self._record(done, terms, total)
+        if self.writer is not None and self.image_every and (done % self.image_every == 0 or done == self.steps):
+            _log_slices(self.writer, self.world_field, done)
+        if self.writer is not None and self.mesh_every and done % self.mesh_every == 0:
+            _log_mesh(self.writer, self.world_field, done)
+
+    def finish(self) -> None:
+        """A last preview of the field (none for models without one, e.g. OccNet) and the events flushed."""
+        if self.writer is not None:
+            if self.image_every or self.mesh_every:
+                _log_mesh(self.writer, self.world_field, self.steps)
+            self.writer.close()
+
+    def _record(self, done: int, terms: dict[str, torch.Tensor], total: torch.Tensor) -> None:
+        now = time.perf_counter()
+        record = mean_over_ranks({name: float(value.detach()) for name, value in terms.items()}
+                                 | {"total": float(total.detach())})
+        record.update(step=done, lr=self.optimizer.param_groups[0]["lr"], grad_norm=_grad_norm(self.params),
+                      steps_per_s=self.window_steps / (now - self.window_start))
+        self.window_start, self.window_steps = now, 0
+        for name, value in record.items():
+            self.history.setdefault(name, []).append(value)
+        self.bar.set_postfix(loss=f"{record['total']:.2e}")
+        if done >= self.next_report or done == self.steps:
+            log.info(progress_line(record, self.steps, (done - self.reported) / (now - self.report_start)))
+            self.next_report = (done // self.report_every + 1) * self.report_every
+            self.reported, self.report_start = done, now
+        if self.writer is not None:
+            for name, value in record.items():
+                if name != "step":
+                    self.writer.add_scalar(f"loss/{name}" if name in terms or name == "total" else f"train/{name}",
+                                           value, done)
+
+
+@contextmanager
+def only_trainable(model: nn.Module, params: list[nn.Parameter]):
+    """Within the block, the model's parameters outside `params` do not require gradients (so that
+    DistributedDataParallel leaves them alone); restored on leaving it."""
+    frozen = [p for p in model.parameters() if p.requires_grad and all(p is not q for q in params)]
+    for p in frozen:
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p in frozen:
+            p.requires_grad_(True)
+
+
 def fit(
     model: nn.Module,
     observations: Observation | PointCloud | Sequence[Observation],
@@ -242,157 +451,56 @@ def fit(
     `optimizer(param_groups)` builds the optimiser (default: Adam, lr 1e-3) over `trainable` (all of
     the model's parameters by default; e.g. only a latent code under a frozen decoder), the model's
     `encoding` at `encoding_lr`; the lr follows a warm-up and a cosine decay to `min_lr_ratio`.
-    With `run_dir`, TensorBoard events go there and checkpoints to `run_dir/checkpoints/last.pt`
-    every `checkpoint_every` steps (and at the end); with `resume`, an existing checkpoint there is
-    loaded and training continues exactly where it stopped. `config` is stored in checkpoints.
-    Under torchrun (a process group, `neuralsurf.distributed`) the gradients are averaged over the
-    processes by DistributedDataParallel, the logged values are their means, and only rank 0 writes
-    checkpoints and TensorBoard events (every rank resumes from them).
-    With `cuda_graph`, a fit on one GPU replays its step as a CUDA graph (`neuralsurf.graphs`: the
-    same steps, without the launch cost); a diverged loss is then caught at the next logging or
-    checkpoint step, and that step is not saved.
+    With `run_dir`: TensorBoard events there (`FitMonitor`), checkpoints every `checkpoint_every` steps
+    and at the end, and with `resume` an existing one loaded to continue exactly (`Checkpoints`;
+    `config` is stored in them). Under torchrun the gradients are averaged over the processes and
+    only rank 0 writes. With `cuda_graph`, one GPU replays the step as a CUDA graph (`TrainStep`).
     """
     if not (isinstance(steps, int) and not isinstance(steps, bool) and steps >= 1):
         raise ConfigError(f"fit needs an integer steps >= 1, got {steps!r}")
     observations = _as_observations(observations)
     device = resolve_device(device)
     normalization = normalization or Normalization.from_points(union_bounds(observations))
-    box = 0.5 + margin
-    samplers = [o.prepare(normalization, box, device, seed + i) for i, o in enumerate(observations)]
+    samplers = [o.prepare(normalization, 0.5 + margin, device, seed + i) for i, o in enumerate(observations)]
     model = model.to(device).train()
     groups = parameter_groups(model, None if trainable is None else list(trainable), encoding_lr)
     params = [p for g in groups for p in g["params"]]
-    frozen = [p for p in model.parameters() if p.requires_grad and all(p is not q for q in params)]
     optimizer = optimizer(groups)
     scheduler = torch.optim.lr_scheduler.LambdaLR(
-        optimizer, lambda s: cosine_schedule(s, steps, warmup_steps, min_lr_ratio)
-    )
+        optimizer, lambda s: cosine_schedule(s, steps, warmup_steps, min_lr_ratio))
     generator = torch.Generator().manual_seed(seed)
-    history: dict[str, list[float]] = {}
-    start_step, seconds_before = 0, 0.0
-
-    run_dir = Path(run_dir) if run_dir is not None else None
-    checkpoint_path = run_dir / "checkpoints" / CHECKPOINT_NAME if run_dir else None
-    if resume and checkpoint_path is not None and checkpoint_path.exists():
-        state = load_checkpoint(checkpoint_path)
-        try:
-            model.load_state_dict(state["model"])
-            optimizer.load_state_dict(state["optimizer"])
-        except (RuntimeError, ValueError, KeyError) as error:
-            raise CheckpointError(
-                f"checkpoint {checkpoint_path} does not match this model ({error}); "
-                f"use another run directory or resume=False"
-            ) from None
-        scheduler.load_state_dict(state["scheduler"])
-        generator.set_state(state["generator"])
-        torch.set_rng_state(state["torch_rng"])
-        history = {k: list(v) for k, v in state["history"].items()}
-        start_step, seconds_before = int(state["step"]), float(state["seconds"])
-        if start_step >= steps:
-            warnings.warn(f"{checkpoint_path} already holds {start_step} >= {steps} steps; nothing to train")
-
     rank, world = rank_and_world()
-    writer = _summary_writer(run_dir) if rank == 0 else None
+    checkpoints = Checkpoints(run_dir, model, normalization, margin, optimizer, scheduler, generator, config,
+                              writes=rank == 0)
+    start_step, seconds, history = checkpoints.resume(steps) if resume else (0, 0.0, {})
     world_field = NormalizedField(model, normalization, margin=margin)
-    weights = {f"{o.name}/{term}": w for o, s in zip(observations, samplers) for term, w in s.weights.items()}
+    monitor = FitMonitor(steps, start_step, seconds, history, params, optimizer, world_field,
+                         run_dir if rank == 0 else None, progress and rank == 0, log_every, image_every, mesh_every)
 
-    def checkpoint(step: int, seconds: float) -> None:
-        if checkpoint_path is None or rank != 0:
-            return
-        save_checkpoint(checkpoint_path, {
-            **field_state(model, normalization, margin, step), "optimizer": _portable(optimizer.state_dict()),
-            "scheduler": scheduler.state_dict(), "generator": generator.get_state(),
-            "torch_rng": torch.get_rng_state(), "history": history, "seconds": seconds, "config": config or {},
-        })
-
-    from tqdm.auto import tqdm
-
-    bar = tqdm(range(start_step, steps), initial=start_step, total=steps, disable=not progress or rank != 0,
-               desc="fit", dynamic_ncols=True)
-    started, window_start, window_steps = time.perf_counter(), time.perf_counter(), 0
-    done = start_step
-    report_every = max(1, steps // 10)  # a progress line in the log per tenth of the fit, at a logging step
-    next_report, reported, report_start = start_step + 1, start_step, started
-    for p in frozen:
-        p.requires_grad_(False)
-    loss_terms = LossTerms(model, observations, samplers)
-    if world > 1:  # after the resume: its broadcast of rank 0's weights also waits for every rank's reading
-        loss_terms = torch.nn.parallel.DistributedDataParallel(loss_terms)
-
-    def forward(batches: list) -> tuple[dict, torch.Tensor]:
-        terms = loss_terms(batches)
-        return terms, sum(weights[name] * value for name, value in terms.items())
-
-    def update(total: torch.Tensor) -> None:
-        optimizer.zero_grad(set_to_none=True)
-        total.backward()
-        optimizer.step()
-
-    def forward_and_update(batches: list) -> tuple[dict, torch.Tensor]:
-        terms, total = forward(batches)
-        update(total)  # detached below: a kept autograd graph would tie the next step to this one's stream
-        return {name: value.detach() for name, value in terms.items()}, total.detach()
-
-    graphed = (GraphedStep(forward_and_update, optimizer, device)
-               if cuda_graph and graphable(optimizer, device, world) else None)
-    try:
-        for step in bar:
+    with only_trainable(model, params):
+        train_step = TrainStep(model, observations, samplers, optimizer, device, world, cuda_graph)
+        for step in monitor.bar:
             batches = [sampler.sample(generator) for sampler in samplers]
-            if graphed is None:
-                terms, total = forward(batches)
-                if not torch.isfinite(total):
-                    checkpoint(step, seconds_before + time.perf_counter() - started)
-                    raise _diverged(terms, total, step)
-                update(total)
-            else:
-                terms, total = graphed(batches)
+            try:
+                terms, total = train_step(batches, step)
+            except FitDiverged:
+                checkpoints.save(step, monitor.seconds(), history)  # the state before the diverged step
+                raise
             scheduler.step()
-            if graphed is not None:
-                graphed.set_learning_rates()
-            window_steps += 1
-
+            train_step.scheduled()
             done = step + 1
             saving = done % checkpoint_every == 0 or done == steps
-            if graphed is not None and (saving or done % log_every == 0) and not torch.isfinite(total):
-                raise _diverged(terms, total, step)  # a graphed step's update is applied: no checkpoint of it
-            if done % log_every == 0 or done == steps:
-                now = time.perf_counter()
-                record = mean_over_ranks({name: float(value.detach()) for name, value in terms.items()}
-                                         | {"total": float(total.detach())})
-                record.update(step=done, lr=optimizer.param_groups[0]["lr"],
-                              grad_norm=_grad_norm(params), steps_per_s=window_steps / (now - window_start))
-                window_start, window_steps = now, 0
-                for name, value in record.items():
-                    history.setdefault(name, []).append(value)
-                bar.set_postfix(loss=f"{record['total']:.2e}")
-                if done >= next_report or done == steps:
-                    log.info(progress_line(record, steps, (done - reported) / (now - report_start)))
-                    next_report = (done // report_every + 1) * report_every
-                    reported, report_start = done, now
-                if writer is not None:
-                    for name, value in record.items():
-                        if name != "step":
-                            tag = f"loss/{name}" if name in terms or name == "total" else f"train/{name}"
-                            writer.add_scalar(tag, value, done)
-            if writer is not None and image_every and (done % image_every == 0 or done == steps):
-                _log_slices(writer, world_field, done)
-            if writer is not None and mesh_every and done % mesh_every == 0:
-                _log_mesh(writer, world_field, done)
+            if saving or done % log_every == 0:
+                train_step.check(terms, total, step)  # a replayed step is applied already: not saved
+            monitor.after_step(done, terms, total)
             if saving:
-                checkpoint(done, seconds_before + time.perf_counter() - started)
-    finally:
-        for p in frozen:
-            p.requires_grad_(True)
-    bar.close()
+                checkpoints.save(done, monitor.seconds(), history)
+    monitor.bar.close()
     model.eval()
     _check_converged(history)
-    _check_field(model, max(done, start_step))
-    if writer is not None:
-        if image_every or mesh_every:  # previews of the field (none for models without one, e.g. OccNet)
-            _log_mesh(writer, world_field, steps)
-        writer.close()
-    return FitResult(model, normalization, world_field.eval(), history, max(done, start_step),
-                     seconds_before + time.perf_counter() - started)
+    _check_field(model, max(steps, start_step))
+    monitor.finish()
+    return FitResult(model, normalization, world_field.eval(), history, max(steps, start_step), monitor.seconds())
 
 
 def progress_line(record: dict[str, float], steps: int, steps_per_s: float) -> str:
@@ -402,14 +510,6 @@ def progress_line(record: dict[str, float], steps: int, steps_per_s: float) -> s
     step = int(record["step"])
     return (f"step {step}/{steps} ({100 * step / steps:.0f}%): loss {record['total']:.4g} ({terms}), "
             f"lr {record['lr']:.3g}, {steps_per_s:.1f} steps/s")
-
-
-def _diverged(terms: dict, total: torch.Tensor, step: int) -> NeuralsurfError:
-    bad = [name for name, value in terms.items() if not torch.isfinite(value)]
-    return NeuralsurfError(
-        f"the fit diverged: loss became {total.item()} at step {step} (terms {bad}); lower the "
-        f"learning rate (optimizer.lr, trainer.encoding_lr) or check the input for outliers"
-    )
 
 
 def _portable(optimizer_state: dict) -> dict:
