@@ -13,10 +13,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from neuralsurf.errors import CheckpointError
 from neuralsurf.models import SDFMLP, AutoDecoder, CBNDecoder, LatentCodes, OccupancyNetwork, PointNetEncoder
-from neuralsurf.models.spec import REBUILDABLE, build_checked
-from neuralsurf.training import PRIOR_CLASSES, load_checkpoint, stored_class
+from neuralsurf.training import load_model
 
 
 def deepsdf(n_shapes: int, latent_dim: int = 64, width: int = 256, depth: int = 8, skip_layers=(4,),
@@ -46,16 +44,4 @@ def occupancy_network(n_shapes: int, latent_dim: int = 128, encoder_hidden: int 
 def load_prior(path: str | Path, device: str | torch.device = "cpu") -> nn.Module:
     """The trained prior (an AutoDecoder or OccupancyNetwork, unit frame, eval mode) of a run's
     `checkpoints/last.pt`. Rebuilt from the allowlist of model classes (`models.spec`)."""
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"prior checkpoint {path} not found; pass the checkpoints/last.pt of a "
-                              f"train.py experiment=shapes_* run")
-    state = load_checkpoint(path)
-    if not isinstance(state.get("model_spec"), dict) or "model" not in state:
-        raise CheckpointError(f"{path} holds no rebuildable model; it was not written by a neuralsurf fit")
-    name = stored_class(state)
-    if name in REBUILDABLE and name not in PRIOR_CLASSES:
-        raise CheckpointError(f"{path} holds a {name}, not a learned prior (AutoDecoder or OccupancyNetwork): a "
-                              f"single-shape field; load it with neuralsurf.load_field")
-    model = build_checked(state["model_spec"], state["model"], f"{path}: model")
-    return model.to(device).eval()
+    return load_model(path, prior=True)[0].to(device).eval()
