@@ -12,7 +12,6 @@ import functools
 import json
 import logging
 import os
-import random
 import sys
 import time
 from collections.abc import Callable
@@ -20,8 +19,6 @@ from pathlib import Path
 from typing import Any
 
 import hydra
-import numpy as np
-import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
@@ -38,7 +35,7 @@ from neuralsurf.evaluation import run_benchmark
 from neuralsurf.evaluation.jobs import job_threads, row_settings, set_threads, shard_pairs
 from neuralsurf.evaluation.methods import extract_scene_mesh
 from neuralsurf.evaluation.render import interpolation_picture
-from neuralsurf.evaluation.runner import environment
+from neuralsurf.evaluation.runner import environment, seed_everything
 from neuralsurf.evaluation.store import cached_scene, rebuild_report, settings_key
 from neuralsurf.io import read_mesh, write_mesh
 from neuralsurf.io.meshes import mesh_format
@@ -49,12 +46,6 @@ from neuralsurf.runlock import busy_message, run_lock
 from neuralsurf.training import CHECKPOINT_NAME, fit, load_checkpoint
 
 log = logging.getLogger("neuralsurf")
-
-
-def seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
 
 
 def run_directory(cfg: DictConfig) -> Path:
