@@ -394,12 +394,6 @@ def _centred_query(points: Tensor, mesh: Mesh, caller: str):
     return scene, o3d.core.Tensor(query)
 
 
-def mesh_signed_distance(points: Tensor, mesh: Mesh) -> Tensor:
-    """Float[Tensor, "n"]: signed distance to a watertight mesh, negative inside."""
-    distance = point_to_mesh_distance(points, mesh)
-    return torch.where(mesh_contains(points, mesh), -distance, distance)
-
-
 def mesh_contains(points: Tensor, mesh: Mesh) -> Tensor:
     """Bool[Tensor, "n"]: which points lie inside a watertight mesh (majority of 3 ray parities)."""
     import open3d as o3d

@@ -5,7 +5,6 @@ drawn with PIL (matplotlib is not a dependency)."""
 
 from __future__ import annotations
 
-import io
 import math
 from pathlib import Path
 
@@ -160,12 +159,6 @@ def labelled_row(images: list[np.ndarray], labels: list[str]) -> Image.Image:
                   font=_font(size))
         x += image.shape[1]
     return canvas
-
-
-def png_bytes(image: Image.Image) -> bytes:
-    buffer = io.BytesIO()
-    image.save(buffer, format="PNG")
-    return buffer.getvalue()
 
 
 def _nice_max(value: float) -> float:
