@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from open3d_tsdf import integrate_voxel_block_grid, voxel_block_grid, voxel_block_grid_inputs  # this folder
 
 from neuralsurf.baselines import TSDFVolume, depth_bounds
 from neuralsurf.scenes.recipes import data_root
@@ -111,12 +112,6 @@ def voxel_block_grid_cuda(frames: DepthFrames, voxel: float) -> tuple[float, np.
     """Open3D's VoxelBlockGrid on CUDA: (seconds for all frames, mesh vertices), or None without CUDA
     in Open3D."""
     import open3d as o3d
-
-    from neuralsurf.baselines.tsdf import (
-        integrate_voxel_block_grid,
-        voxel_block_grid,
-        voxel_block_grid_inputs,
-    )
 
     if not o3d.core.cuda.is_available():
         return None

@@ -4,18 +4,19 @@ marching-cubes call as the reference of the chunked extraction, the bunny bar, 7
 from __future__ import annotations
 
 import math
+import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from neuralsurf.baselines import TSDFVolume, depth_bounds, fuse_open3d
+from neuralsurf.baselines import TSDFVolume, depth_bounds
 from neuralsurf.baselines.tsdf import (
     camera_to_grid,
     candidate_blocks,
-    fuse_voxel_block_grid,
     kinect_sigma,
     pixel_weights,
 )
@@ -23,6 +24,9 @@ from neuralsurf.errors import ConfigError, DeviceError, ExtractionError, InputEr
 from neuralsurf.geometry import backproject_depth, point_to_mesh_distance
 from neuralsurf.scenes import Sphere, bunny, scan_depth
 from neuralsurf.structures import DepthFrames, Mesh
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from open3d_tsdf import fuse_open3d, fuse_voxel_block_grid  # Open3D's fusions, shared with the benchmarks
 
 SPHERE = Sphere(center=(0.02, -0.01, 0.03), radius=0.3)
 BOX = torch.tensor([[-0.4] * 3, [0.4] * 3], dtype=torch.float64)

@@ -62,6 +62,7 @@ import numbers
 import os
 import warnings
 import zipfile
+from concurrent.futures import Executor, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -708,41 +709,65 @@ class TSDFVolume:
         bar = progress_bar(desc="TSDF fusion", total=len(frames), unit="frame", enabled=progress)
         cpu = self.device.type == "cpu"
         compiled = cpu and (depth.numel() >= _COMPILE_PIXELS if self.compiled is None else self.compiled)
-        threads = (None if compiled else 1) if self.threads == "auto" else self.threads
-        with torch_threads(threads if cpu else None):
-            self._integrate_all(frames, depth, colors, bar, compiled)
+        workers = 1
+        if cpu and not compiled:  # eager: chunks on `workers` threads, each torch op on one
+            workers = torch.get_num_threads() if self.threads in (None, "auto") else self.threads
+            threads = 1
+        else:
+            threads = None if self.threads == "auto" else self.threads
+        with torch_threads(threads if cpu else None), ThreadPoolExecutor(workers) as pool:
+            self._integrate_all(frames, depth, colors, bar, compiled, pool if workers > 1 else None)
         bar.close()
         return self
 
-    def _integrate_all(self, frames: DepthFrames, depth: Tensor, colors: Tensor | None, bar, compiled: bool) -> None:
+    def _integrate_all(
+        self, frames: DepthFrames, depth: Tensor, colors: Tensor | None, bar, compiled: bool, pool: Executor | None
+    ) -> None:
         """The passes of `integrate` over depth Float[Tensor, "n h w"] and colours (on the device),
-        compiled or eager."""
-        for start in range(0, len(frames), self.frames_per_pass):
-            part = slice(start, start + self.frames_per_pass)
+        compiled or eager; with a `pool`, a pass's candidate blocks are found while the pass before fuses."""
+        passes = [slice(start, start + self.frames_per_pass) for start in range(0, len(frames), self.frames_per_pass)]
+        candidates = lambda part: self._candidates(
+            depth[part], frames.K[part].cpu(), frames.cam_to_world[part].cpu(), compiled
+        )
+        upcoming = None
+        for i, part in enumerate(passes):
+            blocks = candidates(part) if upcoming is None else upcoming.result()
+            upcoming = None if pool is None or i + 1 == len(passes) else pool.submit(candidates, passes[i + 1])
             self._integrate_frames(
                 depth[part],
                 frames.K[part].cpu(),
                 frames.cam_to_world[part].cpu(),
                 None if colors is None else colors[part],
                 compiled,
+                blocks,
+                pool,
             )
             self.frames_integrated += len(depth[part])
             bar.update(len(depth[part]))
 
-    def _integrate_frames(
-        self, depth: Tensor, K: Tensor, cam_to_world: Tensor, colors: Tensor | None, compiled: bool
-    ) -> None:
-        """Fuse depth images Float[Tensor, "f h w"] seen by K Float[Tensor, "f 3 3"] at cam_to_world
-        Float[Tensor, "f 4 4"] (both on the CPU), colours Float[Tensor, "f h w 3"] | None, in order;
-        `compiled`: through `_COMPILED` (CPU)."""
+    def _candidates(self, depth: Tensor, K: Tensor, cam_to_world: Tensor, compiled: bool) -> tuple[Tensor, Tensor | None]:
+        """`candidate_blocks` of depth images Float[Tensor, "f h w"] seen by K Float[Tensor, "f 3 3"] at
+        cam_to_world Float[Tensor, "f 4 4"] (both on the CPU)."""
         origin = torch.as_tensor(self.origin, dtype=torch.float64)
         rotation, translation = camera_to_grid(cam_to_world, origin, self.voxel_size)
         to = lambda t: t.to(self.device, depth.dtype)
-        run = lambda function: _COMPILED[function] if compiled else function
-        keys, frame_keys = candidate_blocks(
+        return candidate_blocks(
             depth, to(K), to(rotation), to(translation), self.truncation, self.free_space, self.block_size,
-            self.block_counts, run(tile_box_codes), _TILE["compiled" if compiled else "eager"],
+            self.block_counts, _COMPILED[tile_box_codes] if compiled else tile_box_codes,
+            _TILE["compiled" if compiled else "eager"],
         )
+
+    def _integrate_frames(
+        self, depth: Tensor, K: Tensor, cam_to_world: Tensor, colors: Tensor | None, compiled: bool,
+        blocks: tuple[Tensor, Tensor | None], pool: Executor | None,
+    ) -> None:
+        """Fuse depth images Float[Tensor, "f h w"] seen by K Float[Tensor, "f 3 3"] at cam_to_world
+        Float[Tensor, "f 4 4"] (both on the CPU), colours Float[Tensor, "f h w 3"] | None, in order, into
+        their candidate `blocks` (`_candidates`); `compiled`: through `_COMPILED` (CPU); with a `pool`,
+        chunks of blocks side by side on its threads."""
+        origin = torch.as_tensor(self.origin, dtype=torch.float64)
+        run = lambda function: _COMPILED[function] if compiled else function
+        keys, frame_keys = blocks
         slots = self._slots_of(keys)
         if self.sparse:  # allocate the blocks these frames touch for the first time
             fresh = slots < 0
@@ -759,7 +784,8 @@ class TSDFVolume:
         fuse = run(fuse_blocks)
         chunk_observations = _CHUNK_OBSERVATIONS["compiled"] if compiled else self._chunk_observations
         per_chunk = max(1, chunk_observations // (voxels * n_frames))
-        for start in range(0, len(keys), per_chunk):
+
+        def fuse_chunk(start: int) -> None:
             chunk, chunk_slots = keys[start : start + per_chunk], slots[start : start + per_chunk]
             frame_mask = None
             if frame_keys is not None:  # a frame updates only the blocks its own band touches
@@ -767,9 +793,16 @@ class TSDFVolume:
                 where = torch.searchsorted(frame_keys, tagged).clamp_max(len(frame_keys) - 1)
                 frame_mask = (frame_keys[where] == tagged).to(depth.dtype)
             fuse(
-                self._tsdf, self._weight, self._color, chunk_slots, self._block_coords(chunk) * self.block_size, self._local, projection, padded, limits, frame_mask,
-                weights, colors,
+                self._tsdf, self._weight, self._color, chunk_slots, self._block_coords(chunk) * self.block_size,
+                self._local, projection, padded, limits, frame_mask, weights, colors,
             )
+
+        starts = range(0, len(keys), per_chunk)
+        if pool is None or len(starts) == 1:
+            for start in starts:
+                fuse_chunk(start)
+        else:  # chunks hold distinct blocks: they can run side by side
+            list(pool.map(fuse_chunk, starts))
 
     # ------------------------------------------------------------------------------ save / load
 
@@ -1042,105 +1075,6 @@ def _merge_by_edge(points: np.ndarray, faces: np.ndarray, shape) -> tuple[np.nda
     return points[first], faces
 
 
-def fuse_open3d(
-    frames: DepthFrames, bounds, voxel_size: float, truncation: float, with_color: bool = False
-) -> Mesh:
-    """Reference: Open3D's UniformTSDFVolume on the same frames, its voxel centres on our grid points.
-
-    The uniform volume is a cube of `resolution` voxels per side covering `bounds`; its voxel centres
-    `origin + (i + 0.5) voxel_size` coincide with TSDFVolume's grid points `bounds[0] + i voxel_size`.
-    Note that Open3D updates every voxel with sdf > -truncation (free space included) and measures
-    sdf along the ray, not along z, so the two volumes differ away from the surface.
-    """
-    import open3d as o3d
-
-    box = as_bounds(bounds)
-    resolution = int(np.ceil((box[1] - box[0]).max() / voxel_size)) + 1
-    integration = o3d.pipelines.integration
-    color_type = (
-        integration.TSDFVolumeColorType.RGB8 if with_color else integration.TSDFVolumeColorType.NoColor
-    )
-    volume = integration.UniformTSDFVolume(
-        length=resolution * voxel_size,
-        resolution=resolution,
-        sdf_trunc=truncation,
-        color_type=color_type,
-        origin=box[0] - 0.5 * voxel_size,
-    )
-    for i in range(len(frames)):
-        volume.integrate(*open3d_frame(frames[i], with_color))
-    return Mesh.from_open3d(volume.extract_triangle_mesh())
-
-
-def voxel_block_grid(voxel_size: float, block_size: int = 8, device: str = "CPU:0", capacity: int = 50_000):
-    """An empty Open3D VoxelBlockGrid (tensor API) with float tsdf and weight, as Open3D's examples
-    make it; its grid points are whole multiples of `voxel_size` in the world frame."""
-    import open3d as o3d
-    import open3d.core as o3c
-
-    return o3d.t.geometry.VoxelBlockGrid(
-        ("tsdf", "weight"), (o3c.float32, o3c.float32), ((1), (1)), voxel_size, block_size, capacity,
-        o3c.Device(device),
-    )
-
-
-def voxel_block_grid_inputs(frames: DepthFrames, device: str = "CPU:0") -> list[tuple]:
-    """Per frame, Open3D's (depth Image in metres, intrinsic, extrinsic = world_to_camera) tensors."""
-    import open3d as o3d
-    import open3d.core as o3c
-
-    inputs = []
-    for i in range(len(frames)):
-        depth = o3d.t.geometry.Image(o3c.Tensor(frames.depth[i].cpu().numpy())).to(o3c.Device(device))
-        intrinsic = o3c.Tensor(frames.K[i].double().cpu().numpy())
-        extrinsic = o3c.Tensor(np.linalg.inv(frames.cam_to_world[i].double().cpu().numpy()))
-        inputs.append((depth, intrinsic, extrinsic))
-    return inputs
-
-
-def integrate_voxel_block_grid(grid, inputs: list[tuple], voxel_size: float, truncation: float) -> None:
-    """Open3D's fastest fusion path, frame by frame: compute_unique_block_coordinates, then integrate,
-    with truncation = trunc_voxel_multiplier * voxel_size and no depth limit."""
-    multiplier = truncation / voxel_size
-    for depth, intrinsic, extrinsic in inputs:
-        blocks = grid.compute_unique_block_coordinates(depth, intrinsic, extrinsic, 1.0, 1e6, multiplier)
-        grid.integrate(blocks, depth, intrinsic, extrinsic, 1.0, 1e6, multiplier)
-
-
-def fuse_voxel_block_grid(
-    frames: DepthFrames, voxel_size: float, truncation: float, block_size: int = 8, device: str = "CPU:0"
-) -> Mesh:
-    """Reference: Open3D's VoxelBlockGrid on the same frames; the mesh of every voxel observed once
-    or more, as TSDFVolume meshes (Open3D keeps voxels with weight > weight_threshold: 0 here; its
-    default, 3, needs four observations). Its grid points are
-    whole multiples of the voxel size: TSDFVolume's coincide when its bounds start on one.
-    Open3D reads the depth at the pixel floor(u), floor(v) (TSDFVolume: the nearest pixel)."""
-    grid = voxel_block_grid(voxel_size, block_size, device)
-    integrate_voxel_block_grid(grid, voxel_block_grid_inputs(frames, device), voxel_size, truncation)
-    return Mesh.from_open3d(grid.extract_triangle_mesh(weight_threshold=0.0).to_legacy())
-
-
-def open3d_frame(frame: DepthFrames, with_color: bool = False):
-    """One frame as Open3D's (RGBDImage, PinholeCameraIntrinsic, extrinsic = world_to_camera)."""
-    import open3d as o3d
-
-    h, w = frame.height, frame.width
-    K = frame.K[0].double().cpu().numpy()
-    intrinsic = o3d.camera.PinholeCameraIntrinsic(w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
-    color = np.zeros((h, w, 3), np.uint8)
-    if with_color and frame.colors is not None:
-        color = np.ascontiguousarray((frame.colors[0].cpu().numpy() * 255).round().astype(np.uint8))
-    rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
-        o3d.geometry.Image(color),
-        o3d.geometry.Image(np.ascontiguousarray(frame.depth[0].cpu().numpy())),
-        depth_scale=1.0,
-        depth_trunc=1e6,
-        convert_rgb_to_intensity=False,
-    )
-    extrinsic = np.linalg.inv(frame.cam_to_world[0].double().cpu().numpy())
-    return rgbd, intrinsic, extrinsic
-
-
 __all__ = [
     "WEIGHTINGS",
     "TSDFVolume",
@@ -1149,15 +1083,9 @@ __all__ = [
     "camera_to_grid",
     "candidate_blocks",
     "depth_bounds",
-    "fuse_open3d",
-    "fuse_voxel_block_grid",
     "grid_to_pixel",
-    "integrate_voxel_block_grid",
     "observe_blocks",
-    "open3d_frame",
     "pad_image",
     "pixel_weights",
-    "voxel_block_grid",
-    "voxel_block_grid_inputs",
     "world_to_camera",
 ]
