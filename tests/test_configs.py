@@ -180,6 +180,7 @@ def test_an_override_of_an_observation_that_is_not_selected_is_a_config_error():
     assert set(observation_configs(cfg, overrides[:2], dict(cfg.hydra.runtime.choices))) == {"rays"}
 
 
+@pytest.mark.subprocess
 def test_train_py_reports_an_override_of_an_unselected_observation_in_one_line(tmp_path):
     folder = write_7scenes_plane(tmp_path / "capture")
     command = [sys.executable, "train.py", "data=rgbd", f"data.path={folder}", "data.hold_out_every=0",

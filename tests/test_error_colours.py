@@ -122,6 +122,7 @@ def test_without_renders_the_coloured_meshes_are_still_saved_and_linked(tmp_path
     assert report.count("class='colour-bar'") == 2 and "distance to ground truth\"" not in report
 
 
+@pytest.mark.browser
 def test_tiny_report_shows_an_error_render_with_a_colour_bar_for_every_mesh_with_a_ground_truth(tmp_path):
     from selenium.webdriver.common.by import By
     from test_evaluation import ALWAYS_FAILS, chromium_driver, tiny_run

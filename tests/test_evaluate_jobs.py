@@ -76,6 +76,7 @@ def sequential(tmp_path_factory) -> Path:
     return folder
 
 
+@pytest.mark.subprocess
 def test_a_killed_run_keeps_its_finished_rows_and_a_rerun_computes_only_the_rest(tmp_path, sequential):
     script = tmp_path / "crashing_evaluate.py"
     script.write_text(CRASHING.format(method="poisson"))
@@ -98,6 +99,7 @@ def test_a_killed_run_keeps_its_finished_rows_and_a_rerun_computes_only_the_rest
     assert_same_results(report_rows(run), report_rows(sequential))
 
 
+@pytest.mark.subprocess
 def test_the_report_is_rebuilt_from_the_stored_rows_alone(tmp_path, sequential):
     from neuralsurf.cli import evaluate
 
@@ -157,6 +159,7 @@ def test_a_changed_setting_reruns_only_its_row(tmp_path, caplog):
     assert all(r["settings"]["n_samples"] == 1000 for r in stored(tmp_path).values())
 
 
+@pytest.mark.subprocess
 def test_joblib_jobs_give_the_rows_of_the_sequential_run_and_one_report(tmp_path, sequential):
     sweep = tmp_path / "sweep"
     out = evaluate_py(["-m", *TINY[:1], "methods=[neural_sdf],[poisson,tsdf]", "hydra/launcher=joblib",
@@ -170,6 +173,7 @@ def test_joblib_jobs_give_the_rows_of_the_sequential_run_and_one_report(tmp_path
     assert all(f"<td>{m}</td>" in html for m in ("neural_sdf", "poisson", "tsdf"))
 
 
+@pytest.mark.subprocess
 def test_submitit_local_jobs_write_one_results_folder(tmp_path, sequential):
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher", reason="pip install neuralsurf[cluster]")
     sweep = tmp_path / "sweep"

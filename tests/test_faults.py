@@ -135,6 +135,7 @@ def test_a_nan_in_a_camera_pose_is_an_input_error_naming_the_frame(entry, part):
         DepthFrames(torch.ones(3, 6, 8), K, poses)
 
 
+@pytest.mark.subprocess
 def test_a_second_run_into_a_busy_run_directory_is_refused_and_a_killed_ones_lock_is_free(tmp_path):
     import os
     import signal

@@ -4,6 +4,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from neuralsurf.training import load_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
@@ -13,6 +15,7 @@ TINY = ["trainer.steps=4", "trainer.progress=false", "trainer.checkpoint_every=4
         "observation.shapes.samples_per_shape=64", "score.n_points=500", "score.latent_steps=2", "extract.resolution=32"]
 
 
+@pytest.mark.subprocess
 def test_multirun_gives_one_run_directory_per_job(tmp_path):
     sweep = tmp_path / "sweep"
     command = [sys.executable, "train.py", "-m", "experiment=shapes_deepsdf_tiny", "model.latent_dim=8,16",

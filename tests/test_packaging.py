@@ -25,6 +25,7 @@ def test_score_compares_two_mesh_files_and_exits_0(tmp_path, capsys):
     assert "missing.ply" in capsys.readouterr().err
 
 
+@pytest.mark.subprocess
 def test_score_console_script_exits_0_and_its_help_is_whole(tmp_path):
     write_mesh(tmp_path / "a.ply", Sphere(radius=1.0).mesh())
     score = Path(sys.executable).parent / "neuralsurf-score"
@@ -38,11 +39,13 @@ def test_score_console_script_exits_0_and_its_help_is_whole(tmp_path):
     assert "longest side 1." in help_text and "--samples" in help_text and "--json" in help_text
 
 
+@pytest.mark.subprocess
 def test_python_dash_m_names_its_commands():
     done = subprocess.run([sys.executable, "-m", "neuralsurf"], capture_output=True, text=True, cwd=REPO, check=False)
     assert done.returncode != 0 and "train,evaluate,score" in done.stderr
 
 
+@pytest.mark.subprocess
 @pytest.mark.slow
 def test_pip_install_then_train_from_an_empty_folder(tmp_path):
     """`pip install .` (not editable) into a fresh virtual environment (dependencies from this one), then

@@ -180,6 +180,7 @@ def test_the_readme_has_the_two_set_up_commands_and_ci_runs_the_test_command():
     assert len(README.read_text().splitlines()) <= 260
 
 
+@pytest.mark.subprocess
 @pytest.mark.parametrize("command", [c for c in readme_commands() if c != TEST_COMMAND])
 def test_readme_command_runs(command, workspace):
     if command.startswith("./install.sh") and Path(sys.prefix).resolve() != (REPO / ".venv").resolve():
@@ -199,6 +200,7 @@ def test_readme_command_runs(command, workspace):
     assert done.returncode == 0, f"{command}\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
 
 
+@pytest.mark.subprocess
 @pytest.mark.parametrize("index", range(len(readme_python_blocks())))
 def test_readme_python_block_runs(index, workspace):
     script = workspace / f"readme_block_{index}.py"
@@ -214,6 +216,7 @@ def test_tiny_settings_go_after_every_train_and_evaluate_call():
     assert with_tiny_settings("neuralsurf-score mesh.ply gt.ply") == "neuralsurf-score mesh.ply gt.ply"
 
 
+@pytest.mark.subprocess
 def test_tiny_overrides_follow_the_composed_config(workspace):
     rgbd = tiny_overrides("python train.py data=rgbd data.path=my_capture", workspace)
     assert "data.max_frames=6" in rgbd and "observation.rays.denoise_k=0" in rgbd

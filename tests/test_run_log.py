@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -15,6 +17,7 @@ def train(run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
     return subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=300, check=False)
 
 
+@pytest.mark.subprocess
 def test_train_log_holds_a_progress_line_per_tenth_of_the_steps_and_the_warnings(tmp_path):
     overrides = ("experiment=sphere_sdf", "trainer.steps=40", "trainer.log_every=2", "extract.resolution=32",
                  "trainer.image_every=0")
@@ -28,6 +31,7 @@ def test_train_log_holds_a_progress_line_per_tenth_of_the_steps_and_the_warnings
     assert "already holds 40 >= 40 steps; nothing to train" in (tmp_path / "train.log").read_text()
 
 
+@pytest.mark.subprocess
 def test_a_missing_key_or_file_is_one_clear_line_in_the_console_and_the_log(tmp_path):
     done = train(tmp_path / "no_path", "data=file")
     assert done.returncode == 1
