@@ -32,6 +32,9 @@ NEEDS_DATA = {"redkitchen": "7scenes_redkitchen", "7scenes_redkitchen": "7scenes
 NEURALSURF_DATA nor the cache has it: the tests never download)."""
 TINY_EVALUATE = ["suite=tiny", "render_size=64"]
 """Appended to evaluate.py commands: the command's own scenes=/methods= still win over the suite's."""
+SUITE_ONLY = re.compile(r"(python evaluate\.py|neuralsurf-evaluate|python -m neuralsurf evaluate) suite=(\w+)")
+"""An evaluate.py command naming only a suite: the tiny settings would replace that suite (the run would be
+the bare command's), so its composed config is checked instead (the suites run in test_evaluation)."""
 SMALL_OBSERVATIONS = {
     "PointSamples": {"n_near": 20_000, "n_free": 5_000, "winding_points": 1_000},
     "DepthRays": {"max_rays": 200_000, "winding_points": 1_000, "denoise_k": 0},
@@ -195,6 +198,13 @@ def test_readme_command_runs(command, workspace):
             pytest.skip("the neuralsurf-view script is not installed in this environment: run ./install.sh again")
     if command.split()[0] in ("tensorboard", "neuralsurf-view"):
         serves(command, workspace)
+        return
+    suite = SUITE_ONLY.fullmatch(command)
+    if suite:
+        done = run(f"{command} --cfg job", workspace)
+        assert done.returncode == 0, f"{command} does not compose:\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}"
+        cfg = yaml.safe_load(done.stdout)
+        assert cfg["scenes"] and set(cfg["scenes"]) <= set(cfg["scene"]) and set(cfg["methods"]) <= set(cfg["method"])
         return
     done = run(with_tiny_settings(command, workspace), workspace)
     assert done.returncode == 0, f"{command}\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
