@@ -84,3 +84,34 @@ def test_bad_weights_are_reported():
     batch = sphere_batch(with_normals=False)
     with pytest.raises(ConfigError, match="lacks its data"):
         point_terms(evaluate_sdf_batch(ExactSphere(), batch), batch, {"normal": 1.0})
+
+
+def test_the_point_loss_has_the_parameter_gradients_finite_differences_give_in_float64():
+    """gradcheck of the fit's weighted point loss (every term on, grad f inside the normal and eikonal
+    terms, so the backward is a double backward) with respect to a small SDFMLP's weights, on an
+    analytic sphere's samples."""
+    from torch.func import functional_call
+
+    from neuralsurf.models import SDFMLP
+    from neuralsurf.sampling import SDFBatch
+
+    torch.manual_seed(0)
+    model = SDFMLP(width=8, depth=2, skip_layers=(), weight_norm=False, softplus_beta=10.0).double()
+    sphere = Sphere(radius=0.3)
+    generator = torch.Generator().manual_seed(0)
+    surface = sphere.sample_surface(6, seed=2)
+    near = surface.points + 0.02 * torch.randn(6, 3, dtype=torch.float64, generator=generator)
+    free = torch.rand(4, 3, dtype=torch.float64, generator=generator) - 0.5
+    batch = SDFBatch(surface.points, surface.normals, near, free, sphere.sdf(near), sphere.sdf(free))
+    weights = {"surface": 3.0, "sdf": 1.0, "normal": 0.1, "eikonal": 0.1, "off_surface": 0.5}
+    names = [name for name, _ in model.named_parameters()]
+
+    def loss(*parameters):
+        field = lambda x: functional_call(model, dict(zip(names, parameters)), (x,))
+        terms = point_terms(evaluate_sdf_batch(field, batch), batch, weights, clamp=0.1, off_surface_alpha=10.0)
+        assert list(terms) == list(weights)
+        return sum(weights[name] * value for name, value in terms.items())
+
+    parameters = tuple(p.detach().clone().requires_grad_(True) for p in model.parameters())
+    assert all(p.dtype == torch.float64 for p in parameters)
+    assert torch.autograd.gradcheck(loss, parameters, eps=1e-6, atol=1e-6)
