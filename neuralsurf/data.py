@@ -523,8 +523,9 @@ def _parser() -> argparse.ArgumentParser:
              "~/.cache/neuralsurf)")
     parser = argparse.ArgumentParser(
         prog="python -m neuralsurf data",
-        description=f"Real data sets: list them, or fetch them into the cache. A data set is looked for in "
-                    f"{roots}; scenes (stanford_scans, redkitchen) find it there without any setting.",
+        description=f"Real data sets: list them, fetch them into the cache, verify a copy against its manifest or "
+                    f"print a copy's checksums. A data set is looked for in {roots}; scenes (stanford_scans, "
+                    f"redkitchen, tum_fr1_desk) find it there without any setting.",
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="{list,fetch,verify,manifest}")
     commands.add_parser("list", help="each data set: its folder, where it is found now, download size, terms",
