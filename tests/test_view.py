@@ -95,6 +95,15 @@ def test_bad_paths_are_clear_errors(tmp_path, capsys):
     assert main([str(tmp_path / "empty")]) == 2 and "holds no meshes" in capsys.readouterr().err
 
 
+def test_python_dash_m_neuralsurf_view_is_the_same_command(tmp_path, monkeypatch, capsys):
+    import runpy
+
+    monkeypatch.setattr(sys, "argv", ["neuralsurf", "view", str(tmp_path / "nowhere")])
+    with pytest.raises(SystemExit) as done:
+        runpy.run_module("neuralsurf", run_name="__main__")
+    assert done.value.code == 2 and "neuralsurf-view: " in capsys.readouterr().err
+
+
 def test_without_viser_it_says_how_to_install_it(tmp_path, monkeypatch, capsys):
     write_mesh(tmp_path / "a.ply", sphere(1.0, 1))
     monkeypatch.setitem(sys.modules, "viser", None)
