@@ -35,6 +35,7 @@ from neuralsurf.evaluation import run_benchmark
 from neuralsurf.evaluation.jobs import job_threads, row_settings, set_threads, shard_pairs
 from neuralsurf.evaluation.methods import extract_scene_mesh
 from neuralsurf.evaluation.render import interpolation_picture
+from neuralsurf.evaluation.report import metrics_table
 from neuralsurf.evaluation.runner import environment, seed_everything
 from neuralsurf.evaluation.store import cached_scene, rebuild_report, settings_key
 from neuralsurf.io import read_mesh, write_mesh
@@ -55,13 +56,6 @@ def run_directory(cfg: DictConfig) -> Path:
     if HydraConfig.initialized():
         return Path(HydraConfig.get().runtime.output_dir)
     return Path(cfg.get("run_dir") or "outputs/run")
-
-
-def format_table(metrics: dict[str, float]) -> str:
-    """A two-column Markdown table of metric names and values."""
-    rows = [f"| {name} | {value:.6g} |" if isinstance(value, float) else f"| {name} | {value} |"
-            for name, value in metrics.items()]
-    return "\n".join(["| metric | value |", "|---|---|", *rows])
 
 
 RESULT_KEYS = ("data", "model", "observation", "optimizer", "seed")
@@ -186,7 +180,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
                    "extract_seconds": extract_seconds, "steps": result.steps}
         (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
         _log_hparams(run_dir, cfg, metrics)
-        log.info("scene %s: mesh written to %s\n%s", scene.name, mesh_path.resolve(), format_table(metrics))
+        log.info("scene %s: mesh written to %s\n%s", scene.name, mesh_path.resolve(), metrics_table(metrics))
         return metrics
 
 
@@ -234,7 +228,7 @@ def train_collection(cfg: DictConfig, collection: ShapeCollection, run_dir: Path
     _log_hparams(run_dir, cfg, metrics)
     log.info("%s: %d test shapes completed from %s noisy points; mesh of %s in %s\n%s", collection.name,
              len(per_shape), score.get("n_points", 3000), per_shape[0]["shape"], run_dir.resolve(),
-             format_table(metrics))
+             metrics_table(metrics))
     return metrics
 
 
@@ -470,5 +464,5 @@ def score_main(argv: list[str] | None = None) -> int:
     except NeuralsurfError as error:
         print(f"neuralsurf-score: {error}", file=sys.stderr)
         return 1
-    print(json.dumps(metrics, indent=2) if args.json else format_table(metrics))
+    print(json.dumps(metrics, indent=2) if args.json else metrics_table(metrics))
     return 0

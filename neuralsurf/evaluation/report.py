@@ -36,17 +36,28 @@ def _cell(value: Any) -> str:
     return str(value)
 
 
+def markdown(header: list[str], rows: list[list[str]]) -> str:
+    """A Markdown table: the `header` line, its rule, then one line per row of cells (text)."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return "\n".join(lines + ["| " + " | ".join(cells) + " |" for cells in rows])
+
+
 def markdown_table(rows: list[dict[str, Any]]) -> str:
     """One line per row: the headline metrics; skipped/failed rows show their reason."""
-    lines = ["| " + " | ".join(h for _, h in TABLE_COLUMNS) + " |", "|" + "---|" * len(TABLE_COLUMNS)]
+    lines = []
     for row in rows:
         if row["status"] == "ok":
-            cells = [_cell(row.get(key)) for key, _ in TABLE_COLUMNS]
+            lines.append([_cell(row.get(key)) for key, _ in TABLE_COLUMNS])
         else:
             reason = row.get("reason", "").replace("|", "/").replace("\n", " ")[:120]
-            cells = [row["method"], row["scene"], f"{row['status']}: {reason}"] + [""] * (len(TABLE_COLUMNS) - 3)
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+            lines.append([row["method"], row["scene"], f"{row['status']}: {reason}"] + [""] * (len(TABLE_COLUMNS) - 3))
+    return markdown([h for _, h in TABLE_COLUMNS], lines)
+
+
+def metrics_table(metrics: dict[str, Any]) -> str:
+    """A two-column Markdown table of metric names and values (floats to 6 significant digits)."""
+    return markdown(["metric", "value"], [[name, f"{value:.6g}" if isinstance(value, float) else str(value)]
+                                          for name, value in metrics.items()])
 
 
 def write_tables(rows: list[dict[str, Any]], run_dir: Path, extra: dict[str, Any] | None = None) -> None:
