@@ -6,8 +6,8 @@
 A run shows, per scene (a drop-down picks it): each method's mesh, coloured by each vertex's distance to
 the ground truth where the run wrote error-coloured meshes (`neuralsurf.evaluation.distances`; viridis, one
 scale per scene), the ground truth, what each method missed (the ground truth coloured by its distance to
-the method's mesh, off at first), and the input points and depth cameras when the run kept its scenes
-(`scene_cache`). The meshes stand side by side or overlaid; a check box per mesh shows or hides it.
+the method's mesh, off at first), and the input points, depth cameras and held-out cameras when the run
+kept its scenes (`scene_cache`). The meshes stand side by side or overlaid; a check box per mesh shows or hides it.
 
 It serves the page with viser (the `view` extra: ``pip install 'neuralsurf[view]'``), whose wheel carries
 its web client: nothing is fetched from the internet. Stop it with Ctrl+C.
@@ -35,9 +35,11 @@ MAX_POINTS = 200_000
 GREY = (200, 200, 200)
 INPUT_COLOUR = (230, 90, 40)
 CAMERA_COLOUR = (40, 90, 230)
+HELD_OUT_COLOUR = (220, 30, 160)
 GROUND_TRUTH = "ground truth"
 INPUT = "input points"
 CAMERAS = "cameras"
+HELD_OUT = "held-out cameras"
 
 
 @dataclass
@@ -57,6 +59,8 @@ class Item:
     """Float[ndarray, "n 4 4"] camera-to-world (OpenCV) of cameras, with `fov` (vertical, rad) and `aspect`."""
     fov: float = 0.8
     aspect: float = 4 / 3
+    colour: tuple[int, int, int] = INPUT_COLOUR
+    """Of points and cameras."""
     visible: bool = True
     """Shown when the viewer opens."""
 
@@ -138,14 +142,19 @@ def _scene_input(folder: Path, scene: str) -> list[Item]:
     points = built.cloud.points.detach().cpu().numpy().astype(np.float32)
     if len(points):
         items.append(Item(INPUT, points[:: max(1, len(points) // MAX_POINTS)], visible=False))
-    frames = built.frames if built.frames is not None and getattr(built, "depth_input", False) else None
-    if frames is not None and len(frames):
-        K = frames.K.detach().cpu().double().numpy()
-        height, width = frames.height, frames.width
-        poses = frames.cam_to_world.detach().cpu().double().numpy()
-        items.append(Item(CAMERAS, poses[:, :3, 3].astype(np.float32), poses=poses,
-                          fov=float(2 * np.arctan(height / (2 * K[0, 1, 1]))), aspect=width / height, visible=False))
+    if built.frames is not None and getattr(built, "depth_input", False) and len(built.frames):
+        items.append(_cameras(CAMERAS, built.frames, CAMERA_COLOUR))
+    if getattr(built, "held_out", None) is not None and len(built.held_out):
+        items.append(_cameras(HELD_OUT, built.held_out, HELD_OUT_COLOUR))
     return items
+
+
+def _cameras(label: str, frames, colour: tuple[int, int, int]) -> Item:
+    """The cameras of DepthFrames as a hidden Item (their centres, poses, vertical field of view, aspect)."""
+    K = frames.K.detach().cpu().double().numpy()
+    poses = frames.cam_to_world.detach().cpu().double().numpy()
+    return Item(label, poses[:, :3, 3].astype(np.float32), poses=poses, colour=colour, visible=False,
+                fov=float(2 * np.arctan(frames.height / (2 * K[0, 1, 1]))), aspect=frames.width / frames.height)
 
 
 def run_groups(folder: Path) -> list[Group]:
@@ -334,14 +343,14 @@ class Viewer:
                 x, y, z, w = Rotation.from_matrix(pose[:3, :3]).as_quat()
                 name = _node(g, i, f"camera_{c}")
                 handles.setdefault("grey", []).append((scene.add_camera_frustum(
-                    name, fov=item.fov, aspect=item.aspect, scale=size, color=CAMERA_COLOUR, wxyz=(w, x, y, z),
+                    name, fov=item.fov, aspect=item.aspect, scale=size, color=item.colour, wxyz=(w, x, y, z),
                     position=tuple(pose[:3, 3]), visible=False, thickness=0.1 * size), pose[:3, 3].copy()))
                 self.nodes[name] = label
             return handles
         if item.faces is None:
             size = 0.004 * _extent(self.groups[g].items)[1]
             name = _node(g, i, "points")
-            handles["grey"] = [(scene.add_point_cloud(name, item.vertices, INPUT_COLOUR, point_size=size,
+            handles["grey"] = [(scene.add_point_cloud(name, item.vertices, item.colour, point_size=size,
                                                       visible=False), np.zeros(3))]
             self.nodes[name] = label
             return handles
@@ -369,7 +378,7 @@ class Viewer:
             self._folders[g].visible = g == chosen
             for i, (item, nodes) in enumerate(zip(self.groups[g].items, handles)):
                 shown = g == chosen and self.boxes[g][i].value
-                offset = side * 1.25 * size * slot if side_by_side and item.label not in (INPUT, CAMERAS) else np.zeros(3)
+                offset = side * 1.25 * size * slot if side_by_side and item.faces is not None else np.zeros(3)
                 variant = "coloured" if coloured and "coloured" in nodes else "grey"
                 for key, handles_and_bases in nodes.items():
                     for handle, base in handles_and_bases:

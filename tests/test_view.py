@@ -18,6 +18,7 @@ from neuralsurf.io import write_mesh
 from neuralsurf.view import (
     CAMERAS,
     GROUND_TRUTH,
+    HELD_OUT,
     INPUT,
     UP_DIRECTIONS,
     Group,
@@ -66,9 +67,11 @@ def test_the_run_s_input_points_and_cameras_come_from_its_scene_cache(run, tmp_p
     shutil.copytree(run, tmp_path, dirs_exist_ok=True)
     frames = scan_depth(sphere(GT_RADIUS, 3), n_views=3, width=32, height=24)
     (tmp_path / "scenes").mkdir()
-    torch.save(depth_scene("ball", frames), tmp_path / "scenes" / "ball-0123.pt")  # as evaluate.py's scene cache
+    scene = depth_scene("ball", frames, hold_out_every=3)  # the third view held out
+    torch.save(scene, tmp_path / "scenes" / "ball-0123.pt")  # as evaluate.py's scene cache
     items = {item.label: item for item in collect([tmp_path])[0].items}
-    assert np.allclose(items[CAMERAS].poses, frames.cam_to_world.double().numpy())
+    assert np.allclose(items[CAMERAS].poses, frames.cam_to_world[:2].double().numpy())
+    assert np.allclose(items[HELD_OUT].poses, frames.cam_to_world[2:].double().numpy())
     K = frames.K[0].double().numpy()
     assert items[CAMERAS].fov == pytest.approx(2 * np.arctan(24 / (2 * K[1, 1])))
     assert len(items[INPUT].vertices) > 0 and not items[INPUT].visible
