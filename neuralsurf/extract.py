@@ -287,6 +287,36 @@ def level_set(values: np.ndarray, level: float = 0.0, valid: np.ndarray | None =
     return vertices.astype(np.float32), faces.astype(np.int64)  # outward
 
 
+_ON_POINT = 5e-5
+"""A marching-cubes vertex nearer than this (grid units) to a grid point in every coordinate is on it."""
+
+
+def merge_on_edges(points: np.ndarray, faces: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
+    """Merge the vertices that lie on the same grid edge (or grid point).
+
+    A marching-cubes vertex lies on a grid edge, at least _ON_POINT from its ends unless on a grid
+    point (`off_level` keeps values off the level by 1e-4 of their differences), so its edge is the
+    lower point of the one non-integral coordinate; a few lie inside a cell (Lewiner's ambiguous cases)
+    and stay apart.
+    Args: points Float64[ndarray, "v 3"] grid units; faces Int[ndarray, "f 3"]; shape: grid points per axis.
+    Returns: the merged points and renumbered faces, without faces that lost a corner."""
+    nearest = np.round(points)
+    off = np.abs(points - nearest)
+    axis = off.argmax(1)
+    on_point = off.max(1) < _ON_POINT
+    lower = nearest.astype(np.int64)
+    rows = np.arange(len(points))
+    lower[rows, axis] = np.where(on_point, lower[rows, axis], np.floor(points[rows, axis]).astype(np.int64))
+    linear = np.ravel_multi_index(tuple(lower.T), tuple(int(n) for n in shape), mode="clip")
+    key = linear * 4 + np.where(on_point, 3, axis)
+    inner = (off >= _ON_POINT).sum(1) > 1  # a vertex inside a cell (an ambiguous case's): never merged
+    key[inner] = -1 - rows[inner]
+    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    faces = inverse.reshape(-1)[faces]
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
+    return points[first], faces
+
+
 def marching_cubes(values: np.ndarray, grid: Grid, level: float = 0.0, valid: np.ndarray | None = None,
                    device: torch.device | str = "cpu") -> Mesh:
     """Float[ndarray, "X Y Z"] values at the grid points -> Mesh of the `level` set (world frame,
@@ -521,8 +551,8 @@ def slice_image(values, max_abs: float | None = None, bands: int = 10) -> np.nda
 
 
 __all__ = [
-    "Grid", "GridSamples", "extract_mesh", "field_slice", "level_set", "make_grid", "marching_cubes", "sample_grid",
-    "slice_image",
+    "Grid", "GridSamples", "extract_mesh", "field_slice", "level_set", "make_grid", "marching_cubes", "merge_on_edges",
+    "sample_grid", "slice_image",
 ]
 
 

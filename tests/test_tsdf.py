@@ -14,14 +14,10 @@ import torch
 from scipy.spatial import cKDTree
 
 from neuralsurf.baselines import TSDFVolume, depth_bounds
-from neuralsurf.baselines.tsdf import (
-    camera_to_grid,
-    candidate_blocks,
-    kinect_sigma,
-    pixel_weights,
-)
+from neuralsurf.baselines.tsdf_bands import candidate_blocks
+from neuralsurf.baselines.tsdf_voxels import camera_to_grid, pixel_weights
 from neuralsurf.errors import ConfigError, DeviceError, ExtractionError, InputError, NeuralsurfError
-from neuralsurf.geometry import backproject_depth, point_to_mesh_distance
+from neuralsurf.geometry import backproject_depth, kinect_sigma, point_to_mesh_distance
 from neuralsurf.scenes import Sphere, bunny, scan_depth
 from neuralsurf.structures import DepthFrames, Mesh
 

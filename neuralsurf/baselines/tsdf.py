@@ -7,61 +7,35 @@ The volume
     Grid points ("voxels") sit at `bounds[0] + (i, j, k) * voxel_size` and are stored in blocks of
     `block_size`^3 voxels: `tsdf` and `weight` are (slots, block_size^3) tensors (plus `color`,
     (slots, block_size^3, 3)). Dense mode allocates every block of the box up front (slot = linear
-    block index); sparse mode allocates a block the first time a frame's band touches it (see
-    below) and finds slots through a sorted tensor of block keys (`torch.searchsorted`), so memory follows
-    the observed surfaces, not the box.
+    block index); sparse mode allocates a block the first time a frame's band touches it and finds
+    slots through a sorted tensor of block keys (`torch.searchsorted`), so memory follows the observed
+    surfaces, not the box. Stored values are signed distances in metres, in [-truncation, truncation].
 
 Integration, a pass of `frames_per_pass` frames at a time (one on a CPU, 32 on a GPU)
-    1. The band's blocks: the blocks that the segment z in [d - truncation - free_space,
-       d + truncation] of some valid pixel's footprint meets (depth d), found from the exact boxes
-       of small image tiles (`candidate_blocks`); as in Open3D's VoxelBlockGrid (whose band is [d - truncation,
-       d + truncation]), a frame updates the voxels of these blocks only, and in sparse mode they
-       are allocated.
-    2. For the voxels of those blocks and each frame of the pass: pixel coordinates by one small
-       matmul per block and one per block-local offset (K [R | t] folded with the grid),
-       nearest-pixel projection, projective signed distance sdf = depth(pixel) - z (positive in
-       front of the surface, i.e. outside); then, frame after frame, for the voxels where the depth
-       is valid and sdf >= -truncation (in front of the surface at any distance: the free space of
-       the band's blocks is observed too), the running weighted averages of min(sdf, truncation):
-       tsdf <- (W tsdf + w sdf) / (W + w), colour likewise, W <- min(W + w, max_weight), so a pass
-       gives what one frame at a time gives. Voxels never updated have weight 0 and count as
-       unobserved.
-       Why the free space in the band's blocks matters: a surface seen at a grazing angle has
-       voxels just in front of it whose projective distances are many truncations (1 / cos of the
-       angle); an update limited to sdf <= some margin leaves them unobserved and their cells
-       unmeshed (that update, with a margin of half a voxel, kept 0.64 of VoxelBlockGrid's mesh
-       vertices on 10 frames of 7-Scenes at 1 cm; the band's blocks keep 0.98-1.0). Behind the
-       surface the band ends at -truncation along the ray, as in Open3D: a single grazing view
-       still leaves stripes there, which other views fill. `free_space` > 0 carves further towards
-       the camera (removes floating outliers, closes holes seen from afar), at a cost.
-    Speed on a CPU: the voxels go through in chunks of _CHUNK_OBSERVATIONS (cache-sized) in float
-    arithmetic only (bool tensors are several times slower there), and `integrate` runs torch on
-    `threads` threads (eager, 1: many short vectorised ops, whose thread synchronisation costs more
-    than it gains on a few cores and stalls badly when other processes hold the cores).
-    Compiled (`compiled`, by default for calls of _COMPILE_PIXELS depth pixels or more), the tiles'
-    boxes and the voxel pass run as loops compiled by torch.compile (`CompiledOnCPU`) on all of torch's
-    threads: on 7-Scenes at 1 cm, 2 cores, 19 ms a frame instead of 56, after a compilation of 20-35 s
-    once per process (about 11 s from torch's on-disk cache when compiled before): for long sequences.
-    Stored values are signed distances in metres (not normalised), in [-truncation, truncation].
+    1. The blocks that the frames' truncation bands touch (`tsdf_bands.candidate_blocks`; allocated
+       in sparse mode): as in Open3D's VoxelBlockGrid, a frame updates the voxels of these only.
+    2. Their voxels' running weighted averages of the projective signed distance, nearest pixel,
+       frame after frame (`tsdf_voxels.fuse_blocks`), in chunks of _CHUNK_OBSERVATIONS.
+    On a CPU, eager: each torch op on one thread (many short ops, whose thread synchronisation costs
+    more than it gains on a few cores), the chunks of a pass on `threads` worker threads side by side,
+    and the next pass's blocks found meanwhile. Compiled (`compiled`, by default for calls of
+    _COMPILE_PIXELS depth pixels or more): the band search and the voxel pass as loops compiled by
+    torch.compile (`CompiledOnCPU`), for long sequences (20-35 s of compilation once per process).
 
 Extraction
-    Marching cubes (scikit-image) of the 0-level runs per chunk of blocks, on the chunk's voxels
-    plus the first layer of the next chunk, so every cell is meshed by exactly one chunk. Cells
-    with an unobserved corner produce no faces. Vertices are welded across chunks by the grid edge
-    they lie on (a key computed from the voxel values, identical in both chunks), and placed by
-    float64 interpolation of those values, so the mesh is the one a single marching-cubes call on
-    the whole grid would give, with no seams between chunks or blocks.
+    Marching cubes through `neuralsurf.extract.level_set` on the blocks that may hold a sign change,
+    packed as cubes with a margin (`TSDFVolume._block_tiles`), cells with an unobserved corner
+    skipped; vertices merged by the grid edge they lie on (`neuralsurf.extract.merge_on_edges`), so
+    the mesh has no seams between blocks.
 """
 
 from __future__ import annotations
 
 import contextlib
-import functools
 import math
 import numbers
 import os
 import warnings
-import zipfile
 from concurrent.futures import Executor, ThreadPoolExecutor
 from pathlib import Path
 
@@ -69,11 +43,18 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from neuralsurf.baselines.tsdf_bands import _TILE, candidate_blocks, tile_box_codes
+from neuralsurf.baselines.tsdf_files import load_volume, save_volume
+from neuralsurf.baselines.tsdf_voxels import (
+    camera_to_grid,
+    fuse_blocks,
+    grid_to_pixel,
+    pad_image,
+    pixel_weights,
+)
 from neuralsurf.devices import resolve_device
-from neuralsurf.errors import ConfigError, ExtractionError, FileFormatError, InputError
-from neuralsurf.extract import as_bounds, level_set
-from neuralsurf.geometry import kinect_sigma
-from neuralsurf.io.npz import write_npz
+from neuralsurf.errors import ConfigError, ExtractionError, InputError
+from neuralsurf.extract import as_bounds, level_set, merge_on_edges
 from neuralsurf.structures import DepthFrames, Mesh
 
 WEIGHTINGS = ("constant", "depth")
@@ -89,16 +70,8 @@ _FRAMES_PER_PASS = {"cpu": 1, "cuda": 32}
 batch, so that the fixed cost of a pass (kernel launches, a few host syncs) is shared."""
 _MESH_BLOCKS = 4096
 """Blocks meshed per marching-cubes call (about 60 bytes per voxel: 0.15 GB for blocks of 8^3)."""
-_OFF_POINT = 5e-5
-"""A marching-cubes vertex nearer than this (grid units) to a grid point in every coordinate is on it."""
-_MAX_KEYS = 1 << 24
-"""Candidate block keys enumerated at a time (bounds memory when boxes are large)."""
-_BITMAP_LIMIT = 1 << 27
-"""Candidate blocks are deduplicated in a bitmap over all blocks up to this many blocks, else sorted."""
 _BYTES_PER_VOXEL = {False: 8, True: 20}
 """tsdf + weight (float32), plus three float32 colour channels."""
-TSDF_FORMAT = "neuralsurf.TSDFVolume/1"
-"""Tag of the .npz files written by `TSDFVolume.save` (bumped when their layout changes)."""
 
 
 @contextlib.contextmanager
@@ -152,331 +125,10 @@ def depth_bounds(frames: DepthFrames, margin: float = 0.0) -> Tensor:
     return torch.stack([lo - margin, hi + margin])
 
 
-def pixel_weights(depth: Tensor, weighting: str) -> Tensor:
-    """Float[Tensor, "h w"] z-depth -> Float[Tensor, "h w"] weight of each pixel's observation."""
-    if weighting == "constant":
-        return torch.ones_like(depth)
-    return (kinect_sigma(torch.tensor(0.4)) / kinect_sigma(depth)) ** 2
-
-
-def world_to_camera(cam_to_world: Tensor) -> tuple[Tensor, Tensor]:
-    """Float[Tensor, "... 4 4"] rigid poses -> rotations Float64[Tensor, "... 3 3"] and translations
-    Float64[Tensor, "... 3"] with x_camera = rotation @ x_world + translation."""
-    pose = cam_to_world.double()
-    rotation = pose[..., :3, :3].transpose(-1, -2)
-    return rotation, -(rotation @ pose[..., :3, 3:])[..., 0]
-
-
-def camera_to_grid(cam_to_world: Tensor, origin: Tensor, voxel_size: float) -> tuple[Tensor, Tensor]:
-    """Float[Tensor, "f 4 4"] poses -> rotations Float64[Tensor, "f 3 3"] and translations Float64[Tensor,
-    "f 3"] with x_grid = rotation @ x_camera + translation, grid coordinates being voxel indices from
-    `origin` Float64[Tensor, "3"]."""
-    pose = cam_to_world.double()
-    return pose[:, :3, :3] / voxel_size, (pose[:, :3, 3] - origin) / voxel_size
-
-
-def grid_to_pixel(K: Tensor, cam_to_world: Tensor, origin: Tensor, voxel_size: float) -> Tensor:
-    """Float[Tensor, "f 3 4"]: per frame, grid index (homogeneous) -> (z u, z v, z) with (u, v) pixel
-    coordinates, K [R | t] composed with the grid (relative to `origin` for precision)."""
-    rotation, translation = world_to_camera(cam_to_world)
-    extrinsic = torch.cat([rotation * voxel_size, (rotation @ origin + translation)[..., None]], 2)
-    return (K.double() @ extrinsic).float()
-
-
-def _unique_keys(keys: Tensor, total: int) -> Tensor:
-    """Int64[Tensor, "n"] keys in [0, total) -> sorted unique keys: by a bitmap over [0, total), or by
-    sorting where there are far fewer keys than that (measured on 2 cores: a bitmap costs about 2 ns per
-    entry, a sort about 80 ns per key) or the bitmap would be too large."""
-    if total <= _BITMAP_LIMIT and 40 * len(keys) >= total:
-        return torch.zeros(total, dtype=torch.bool, device=keys.device).index_fill_(0, keys, True).nonzero()[:, 0]
-    return torch.unique(keys)
-
-
-def box_keys(lo: Tensor, hi: Tensor, block_counts: Tensor, tags: Tensor | None = None) -> Tensor:
-    """Keys of every block in some boxes: lo, hi Float[Tensor, "n 3"] inclusive block ranges (clipped
-    to the volume) -> Int64[Tensor, "k"] linear keys (i * ny + j) * nz + k, with repeats, plus each
-    box's Int64[Tensor, "n"] `tags` (an offset such as frame * blocks) when given. Boxes are
-    enumerated in groups of equal span, at most _MAX_KEYS keys at a time."""
-    counts = block_counts.to(lo.device, torch.float32)
-    keep = ((hi >= 0) & (lo < counts) & (hi >= lo)).all(1)
-    lo, hi = lo[keep].clamp_min(0), torch.minimum(hi[keep], counts - 1)
-    small = tags is None and int(block_counts.prod()) < 2**31
-    dtype = torch.int32 if small else torch.int64
-    strides = torch.tensor(
-        [int(block_counts[1] * block_counts[2]), int(block_counts[2]), 1], dtype=dtype, device=lo.device
-    )
-    extent = (hi - lo).to(dtype)
-    first = (lo.to(dtype) * strides).sum(1, dtype=dtype)
-    if tags is not None:
-        first = first + tags[keep]
-    span = extent.amax(1)
-    keys = [torch.empty(0, dtype=torch.int64, device=lo.device)]
-    for size in torch.unique(span).tolist():
-        pick = (span == size).nonzero()[:, 0]
-        steps = torch.arange(size + 1, dtype=dtype, device=lo.device)
-        for part in pick.split(max(1, _MAX_KEYS // (size + 1) ** 3)):
-            # key offsets along each axis, (p, 3, size + 1); steps past a box's end repeat its last block
-            offsets = torch.minimum(steps, extent[part][..., None]) * strides[:, None]
-            box = (
-                first[part][:, None, None, None]
-                + offsets[:, 0, :, None, None]
-                + offsets[:, 1, None, :, None]
-                + offsets[:, 2, None, None, :]
-            )
-            keys.append(box.reshape(-1).long())
-    return torch.cat(keys)
-
-
 _COMPILE_PIXELS = 300 * 640 * 480
 """TSDFVolume(compiled=None) compiles an `integrate` call on a CPU from this many depth pixels on. Measured on
 7-Scenes at 1 cm, 2 cores: 56 ms a frame eager, 19 compiled after a compilation of 11 s (from torch's
 on-disk cache; 20-35 s without): compiling pays from about 300 frames of 640 x 480."""
-_TILE = {"compiled": 1, "eager": 2}
-"""Pixels per side of the tiles that `candidate_blocks` boxes. Measured on 7-Scenes at 1 cm (one frame:
-tiles of 1 pixel give 2,737 blocks, of 2 pixels 2,782 for a quarter of the vectorised ops, of 4 pixels
-2,826): compiled, single pixels (a fused loop; their boxes never need `box_keys`); eager, 2 x 2 tiles."""
-_NO_BLOCK, _WIDE = -1, -2
-"""`tile_box_codes` of a tile that adds no box and of one whose box spans more than two blocks on an axis."""
-
-
-def tile_block_ranges(
-    depth: Tensor, pixel_to_grid: Tensor, translation: Tensor, band: Tensor, tile: int
-) -> tuple[list[Tensor], list[Tensor], Tensor]:
-    """The blocks that the box of each image tile's piece of the band spans.
-
-    A tile's piece: the points whose pixel coordinates lie in the footprint of its tile x tile pixels
-    and whose z lies in [nearest - band[0], deepest + band[1]] (its smallest and largest valid depths).
-    Its box is exact: along each axis a point is z times an affine function of (u, v) plus a constant,
-    so the extremes lie at the footprint's corners and at the two ends of z; it holds the pieces of the
-    tile's pixels.
-
-    Args:
-        depth: Float[Tensor, "f h w"] z-depth (0 = invalid), h and w multiples of `tile`.
-        pixel_to_grid: Float[Tensor, "f 3 3"] rotation @ K^-1; translation: Float[Tensor, "f 3"] the camera
-            centre in grid units (x_grid = rotation @ x_camera + translation).
-        band: Float[Tensor, "3"] metres in front of and behind the depth, and voxels per block side.
-        tile: pixels per tile side.
-    Returns:
-        first, last: per axis, Float[Tensor, "f h/tile w/tile"] the box's first and last block (not clipped to
-        the volume; one tensor an axis, as a tile's three axes side by side vectorise badly); seen:
-        Bool[Tensor, "f h/tile w/tile"] where the tile has a valid depth.
-    """
-    pixels = lambda image: [image[:, i::tile, j::tile] for i in range(tile) for j in range(tile)]  # of each tile
-    nearest = functools.reduce(torch.minimum, pixels(torch.where(depth > 0, depth, math.inf)))
-    deepest = functools.reduce(torch.maximum, pixels(depth))
-    centres = lambda n: torch.arange(n, device=depth.device, dtype=depth.dtype) * tile + (tile - 1) / 2
-    u, v = centres(depth.shape[2] // tile), centres(depth.shape[1] // tile)[:, None]  # pixel units
-    near, far = (nearest - band[0]).clamp_min(1e-6), deepest + band[1]
-    first, last = [], []
-    for axis in range(3):
-        a, b, c = (pixel_to_grid[:, axis, k, None, None] for k in range(3))
-        centre, half = u * a + v * b + c, tile / 2 * (a.abs() + b.abs())  # ray per metre of z, over the tile
-        low, high = centre - half, centre + half
-        shift = translation[:, axis, None, None]
-        first.append(torch.floor((torch.minimum(low * near, low * far) + shift) / band[2]))
-        last.append(torch.floor((torch.maximum(high * near, high * far) + shift) / band[2]))
-    return first, last, deepest > 0
-
-
-def tile_box_codes(
-    depth: Tensor, pixel_to_grid: Tensor, translation: Tensor, band: Tensor, block_counts: Tensor, tile: int
-) -> Tensor:
-    """Each image tile's box (`tile_block_ranges`), clipped to the volume, as one integer. With a band
-    thinner than a block, the box of a tile without a depth edge meets one or two blocks per axis.
-
-    Args: as `tile_block_ranges`, and block_counts: Float[Tensor, "3"] blocks per axis.
-    Returns:
-        Int64[Tensor, "f h/tile w/tile"]: (frame * blocks + key) * 8 + bits, with key = (i * ny + j) * nz
-        + k the box's first block (clipped to the volume) and bits (4, 2, 1 for i, j, k) the axes on which
-        it meets two blocks; _WIDE where it meets more than two on an axis; _NO_BLOCK where the tile adds
-        no box (no valid depth, a piece outside the volume, or the box of its left or upper neighbour:
-        each box stays at its first tile, so a frame gives a few thousand boxes, not 300,000).
-    """
-    firsts, lasts, inside = tile_block_ranges(depth, pixel_to_grid, translation, band, tile)
-    wide = torch.zeros_like(inside)
-    key = bits = torch.zeros_like(inside, dtype=torch.int64)
-    for axis, (first, last) in enumerate(zip(firsts, lasts)):
-        inside = inside & (last >= 0) & (first < block_counts[axis])
-        first, last = first.clamp_min(0), torch.minimum(last, block_counts[axis] - 1)
-        wide = wide | (last - first > 1)
-        key = key * block_counts[axis].long() + first.long()
-        bits = bits * 2 + (last > first).long()
-    frame = torch.arange(len(depth), device=depth.device)[:, None, None]
-    code = torch.where(inside, torch.where(wide, _WIDE, (frame * block_counts.prod().long() + key) * 8 + bits), _NO_BLOCK)
-    # a box is kept at its first tile in raster order: neither its left nor its upper neighbour has it
-    left = torch.nn.functional.pad(code[:, :, :-1], (1, 0), value=_NO_BLOCK)
-    up = torch.nn.functional.pad(code[:, :-1], (0, 0, 1, 0), value=_NO_BLOCK)
-    return torch.where((code >= 0) & ((code == left) | (code == up)), _NO_BLOCK, code)
-
-
-def candidate_blocks(
-    depth: Tensor,
-    K: Tensor,
-    rotation: Tensor,
-    translation: Tensor,
-    truncation: float,
-    free_space: float,
-    block_size: int,
-    block_counts: Tensor,
-    box_codes=tile_box_codes,
-    tile: int = _TILE["eager"],
-) -> tuple[Tensor, Tensor | None]:
-    """The blocks that the bands of some frames touch: those meeting the segment z in
-    [d - truncation - free_space, d + truncation] of a valid pixel's footprint (depth d).
-
-    The boxes of image tiles of tile x tile pixels (`tile_box_codes`; `box_codes` is that function,
-    compiled or not) give their blocks; a tile whose box spans more than two blocks on an axis (a depth
-    edge, a grazing view, a long segment) gives the boxes of its pixels (`box_codes` again, then
-    `box_keys` over `tile_block_ranges` for those still wider). So the candidates hold every block that a pixel's segment meets,
-    and few more.
-
-    Args:
-        depth: Float[Tensor, "f h w"] z-depth (0 = invalid); K: Float[Tensor, "f 3 3"];
-        rotation, translation: camera -> grid, x_grid = rotation @ x_camera + translation, Float[Tensor,
-            "f 3 3"] and "f 3" (grid units = voxels);
-        truncation, free_space: metres; block_size: voxels per block side;
-        block_counts: Int[Tensor, "3"] blocks per axis; tile: see _TILE.
-    Returns:
-        keys: Int64[Tensor, "b"] sorted unique block keys, the union over the frames; and with more
-        than one frame, frame_keys: Int64[Tensor, "k"] sorted unique frame * blocks + key (which
-        frame touches which block), else None.
-    """
-    frames, height, width = depth.shape
-    total = int(block_counts.prod())
-    ny, nz = int(block_counts[1]), int(block_counts[2])
-    if width % tile or height % tile:
-        depth = torch.nn.functional.pad(depth, (0, -width % tile, 0, -height % tile))
-    pixel_to_grid = rotation @ torch.linalg.inv(K)
-    band = torch.tensor([truncation + free_space, truncation, block_size], dtype=depth.dtype, device=depth.device)
-    counts = block_counts.to(depth.device, depth.dtype)
-    codes = box_codes(depth, pixel_to_grid, translation, band, counts, tile).view(-1)
-    tiles = (codes != _NO_BLOCK).nonzero()[:, 0]
-    codes = codes[tiles]
-    boxes = [codes[codes >= 0]]  # with some repeats (boxes met again further on), as their blocks
-    wide = tiles[codes == _WIDE]
-    keys = []
-    if len(wide):  # the pixels of these tiles, as images of one-pixel tiles (pixel (u, v) is u + col, v + row)
-        rows, columns = depth.shape[1] // tile, depth.shape[2] // tile
-        frame, row, col = wide // (rows * columns), wide // columns % rows * tile, wide % columns * tile
-        step = torch.arange(tile, device=depth.device)
-        pixels = depth[frame[:, None, None], row[:, None, None] + step[:, None], col[:, None, None] + step]
-        shifted = pixel_to_grid[frame].clone()
-        shifted[:, :, 2] += shifted[:, :, 0] * col[:, None] + shifted[:, :, 1] * row[:, None]
-        if tile > 1:  # their own boxes, mostly narrower
-            codes = box_codes(pixels, shifted, translation[frame], band, counts, 1)
-            boxes.append((codes % (total * 8) + (frame * total * 8)[:, None, None])[codes >= 0])
-            pixels = torch.where(codes == _WIDE, pixels, 0.0)
-        first, last, seen = tile_block_ranges(pixels, shifted, translation[frame], band, 1)  # the widest
-        tags = (frame * total)[:, None, None].expand_as(seen)
-        keys.append(box_keys(torch.stack(first, -1)[seen], torch.stack(last, -1)[seen], block_counts, tags[seen]))
-    boxes = torch.cat(boxes)
-    corner = torch.arange(8, device=depth.device)  # bits of the second block taken on each axis
-    offset = (corner >> 2) * (ny * nz) + ((corner >> 1) & 1) * nz + (corner & 1)
-    first, bits = boxes[:, None] // 8, boxes[:, None] % 8
-    keys.append(torch.where((bits & corner) == corner, first + offset, first).view(-1))
-    frame_keys = _unique_keys(torch.cat(keys), frames * total)
-    if frames == 1:
-        return frame_keys, None
-    return _unique_keys(frame_keys % total, total), frame_keys
-
-
-def pad_image(image: Tensor) -> Tensor:
-    """Float[Tensor, "f h w ..."] -> Float[Tensor, "f h+2 w+2 ..."] with a border of zeros (invalid
-    depth): pixel lookups clamped into the border need no bounds test."""
-    border = [0, 0] * (image.ndim - 3) + [1, 1, 1, 1]
-    return torch.nn.functional.pad(image, border)
-
-
-def observe_blocks(
-    blocks: Tensor, local: Tensor, projection: Tensor, padded: Tensor, truncation: Tensor
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Projective signed distances of the voxels of some blocks, as each of some depth images sees them.
-
-    Args:
-        blocks: Int64[Tensor, "m 3"] grid index of each block's first voxel.
-        local: Float[Tensor, "v 3"] voxel offsets inside a block (v = block_size^3).
-        projection: Float[Tensor, "f 3 4"] per frame, grid index (homogeneous) -> (z u, z v, z) with
-            (u, v) pixel coordinates (K [R | t] composed with the grid's voxel size and origin).
-        padded: Float[Tensor, "f h+2 w+2"] z-depth (0 = invalid) with a border of zeros (`pad_image`).
-        truncation: Float[Tensor, ""] metres.
-    Returns, over the voxels (f, m, v):
-        seen Float[Tensor, "f m v"]: 1 where the voxel is in front of the camera and projects (nearest
-        pixel) onto a valid depth d with d - z >= -truncation (any distance in front: free space
-        too), else 0; sdf Float[Tensor, "f m v"] = min(d - z, truncation); pixel Int64[Tensor,
-        "f m v"] index into the padded images flattened together (frame-major).
-    """
-    frames, rows, cols = padded.shape
-    shifted = projection.clone()
-    shifted[:, :2] += 1.5 * shifted[:, 2:]  # (z (u + 1.5), z (v + 1.5), z): floor(u + 1.5) = padded column
-    linear = shifted[:, :, :3].transpose(1, 2)  # (f, 3, 3)
-    base = (blocks.to(linear.dtype) @ linear + shifted[:, None, :, 3])[..., None]  # (f, m, 3, 1)
-    offset = (local @ linear).transpose(1, 2)[:, None]  # (f, 1, 3, v)
-    z = base[:, :, 2] + offset[:, :, 2]  # (f, m, v)
-    # voxels at or behind the camera plane look up the zero border (an invalid depth)
-    inverse = torch.where(z > 0, z.reciprocal(), 0.0)
-    column = (base[:, :, 0] + offset[:, :, 0]).mul_(inverse).clamp_(0, cols - 1).floor_()
-    row = (base[:, :, 1] + offset[:, :, 1]).mul_(inverse).clamp_(0, rows - 1).floor_()
-    if rows * cols * frames < 2**24:  # whole numbers stay exact in float32
-        if frames > 1:
-            row += (torch.arange(frames, device=z.device) * rows)[:, None, None]
-        pixel = column.add_(row, alpha=cols).int()
-    else:
-        frame = torch.arange(frames, device=z.device)[:, None, None] * rows
-        pixel = column.long() + (row.long() + frame) * cols
-    observed = padded.view(-1).index_select(0, pixel.view(-1)).view(z.shape)
-    valid = observed > 0
-    sdf = observed.sub_(z)
-    # 1 where sdf >= -truncation and the depth is valid, else 0, in float arithmetic: on a CPU, eager
-    # bool tensors cost several float ops each; (sdf + truncation) * 1e30 + 1 is >= 1 or < 0
-    seen = (sdf * 1e30).add_(truncation * 1e30 + 1.0).clamp_(0.0, 1.0).mul_(valid)
-    return seen, torch.minimum(sdf, truncation), pixel
-
-
-def fuse_blocks(
-    tsdf: Tensor,
-    weight: Tensor,
-    color: Tensor | None,
-    slots: Tensor,
-    blocks: Tensor,
-    local: Tensor,
-    projection: Tensor,
-    padded: Tensor,
-    limits: Tensor,
-    frame_mask: Tensor | None,
-    weights: Tensor | None,
-    colors: Tensor | None,
-) -> None:
-    """Fuse the observations of f frames, in order, into some blocks of a volume, in place: running
-    weighted averages tsdf <- (W tsdf + w sdf) / (W + w), colour likewise, W <- min(W + w, cap); a
-    voxel a frame does not see gets w = 0 from it, so nothing changes.
-
-    Args:
-        tsdf, weight: Float[Tensor, "s v"] the volume's values; color: Float[Tensor, "s v 3"] | None.
-        slots: Int64[Tensor, "m"] the blocks' distinct slots in them; blocks, local, projection, padded:
-            as `observe_blocks`.
-        limits: Float[Tensor, "2"] truncation (metres) and the weight cap (inf: none).
-        frame_mask: Float[Tensor, "f m"] 1 where a frame's band touches a block (None: all do).
-        weights: Float[Tensor, "p"] per-pixel weights of the padded images, flattened (None = 1);
-        colors: Float[Tensor, "p 3"] | None their colours.
-    """
-    seen, sdf, pixel = observe_blocks(blocks, local, projection, padded, limits[0])
-    if frame_mask is not None:
-        seen = seen * frame_mask[..., None]
-    average, total = tsdf.index_select(0, slots), weight.index_select(0, slots)
-    average_color = None if color is None else color.index_select(0, slots)
-    for i in range(len(seen)):
-        new = seen[i] if weights is None else seen[i] * weights[pixel[i]]
-        share = new / (total + new).clamp_min(torch.finfo(total.dtype).tiny)  # of the new observation
-        average = torch.lerp(average, sdf[i], share)
-        total = torch.minimum(total + new, limits[1])
-        if color is not None:
-            average_color = torch.lerp(average_color, colors[pixel[i]], share[..., None])
-    tsdf.index_copy_(0, slots, average)
-    weight.index_copy_(0, slots, total)
-    if color is not None:
-        color.index_copy_(0, slots, average_color)
-
-
 class CompiledOnCPU:
     """`function` compiled by torch.compile (dynamic shapes) for CPU tensors: one fused loop over the
     voxels or pixels instead of a pass over memory per operation (measured on 7-Scenes at 1 cm: the
@@ -813,31 +465,7 @@ class TSDFVolume:
 
         Returns the Path written (`path` itself; an extension other than .npz is kept as given).
         """
-        path = Path(path)
-        if path.is_dir():
-            raise FileFormatError(f"cannot save the TSDF volume to {str(path)!r}: it is a folder; pass a file name")
-        used = self._used
-        arrays = {
-            "format": np.array(TSDF_FORMAT),
-            "bounds": self.bounds.cpu().numpy().astype(np.float64),
-            "voxel_size": np.float64(self.voxel_size),
-            "truncation": np.float64(self.truncation),
-            "free_space": np.float64(self.free_space),
-            "weighting": np.array(self.weighting),
-            "max_weight": np.float64(np.nan if self.max_weight is None else self.max_weight),
-            "sparse": np.bool_(self.sparse),
-            "block_size": np.int64(self.block_size),
-            "with_color": np.bool_(self.with_color),
-            "frames_integrated": np.int64(self.frames_integrated),
-            "tsdf": self._tsdf[:used].cpu().numpy(),
-            "weight": self._weight[:used].cpu().numpy(),
-        }
-        if self._color is not None:
-            arrays["color"] = self._color[:used].cpu().numpy()
-        if self.sparse:
-            arrays["keys"], arrays["slots"] = self._keys.cpu().numpy(), self._slots.cpu().numpy()
-        write_npz(path, arrays, compressed=True)
-        return path
+        return save_volume(self, path)
 
     @classmethod
     def load(cls, path, device="auto", frames_per_pass: int | None = None) -> TSDFVolume:
@@ -846,62 +474,7 @@ class TSDFVolume:
         Read with `numpy.load(allow_pickle=False)`: a file holding anything but plain arrays is refused.
         Raises FileFormatError for a missing, truncated or foreign file (naming it).
         """
-        path = Path(path)
-        if not path.is_file():
-            raise FileFormatError(f"TSDF volume file not found: {str(path)!r}; check the path (written by TSDFVolume.save)")
-        try:
-            data = np.load(path, allow_pickle=False)
-            if not hasattr(data, "files"):  # a single .npy array, not an .npz archive
-                raise ValueError("it holds one array, not an .npz archive")
-            with data:
-                arrays = {key: data[key] for key in data.files}
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:  # pickled data is a ValueError
-            raise FileFormatError(
-                f"cannot read the TSDF volume {str(path)!r}: {type(error).__name__}: {error}; it is truncated or "
-                f"not a file written by TSDFVolume.save"
-            ) from error
-        required = {"format", "bounds", "voxel_size", "truncation", "free_space", "weighting", "max_weight",
-                    "sparse", "block_size", "with_color", "frames_integrated", "tsdf", "weight"}
-        missing = sorted(required - arrays.keys())
-        if missing or str(arrays["format"]) != TSDF_FORMAT:
-            found = str(arrays.get("format", "(none)"))
-            raise FileFormatError(
-                f"{str(path)!r} is not a TSDF volume written by TSDFVolume.save (format {found!r}, expected "
-                f"{TSDF_FORMAT!r}; missing {missing})"
-            )
-        max_weight = float(arrays["max_weight"])
-        volume = cls(
-            arrays["bounds"], float(arrays["voxel_size"]), float(arrays["truncation"]), device=device,
-            weighting=str(arrays["weighting"]), max_weight=None if math.isnan(max_weight) else max_weight,
-            sparse=bool(arrays["sparse"]), block_size=int(arrays["block_size"]),
-            with_color=bool(arrays["with_color"]), free_space=float(arrays["free_space"]),
-            frames_per_pass=frames_per_pass,
-        )
-        voxels = volume.block_size**3
-        used = len(arrays["tsdf"])
-        expected = {"tsdf": (used, voxels), "weight": (used, voxels)}
-        if volume.with_color:
-            expected["color"] = (used, voxels, 3)
-        if volume.sparse:
-            expected["keys"] = expected["slots"] = (used,)
-        else:
-            expected["tsdf"] = expected["weight"] = (len(volume._tsdf), voxels)
-            if volume.with_color:
-                expected["color"] = (len(volume._tsdf), voxels, 3)
-        for key, shape in expected.items():
-            if key not in arrays or arrays[key].shape != shape:
-                raise FileFormatError(
-                    f"{str(path)!r}: {key} has shape {None if key not in arrays else arrays[key].shape}, expected "
-                    f"{shape} for its settings; the file is damaged"
-                )
-        to = lambda key, dtype: torch.from_numpy(np.ascontiguousarray(arrays[key])).to(volume.device, dtype)
-        volume._tsdf, volume._weight = to("tsdf", torch.float32), to("weight", torch.float32)
-        volume._color = to("color", torch.float32) if volume.with_color else None
-        volume._used = used
-        if volume.sparse:
-            volume._keys, volume._slots = to("keys", torch.int64), to("slots", torch.int64)
-        volume.frames_integrated = int(arrays["frames_integrated"])
-        return volume
+        return load_volume(cls, path, device, frames_per_pass)
 
     # ------------------------------------------------------------------------------- extraction
 
@@ -1043,49 +616,10 @@ class TSDFVolume:
                 "the fused TSDF has no zero crossing between observed voxels: the frames see no surface with "
                 "both sides inside the truncation band; check the truncation (a few voxels) and the poses"
             )
-        points, faces = _merge_by_edge(np.concatenate(points), np.concatenate(faces), self.grid_shape)
+        points, faces = merge_on_edges(np.concatenate(points), np.concatenate(faces), self.grid_shape)
         vertices = torch.from_numpy((self.origin + points * self.voxel_size).astype(np.float32))
         colors = self._color_at(points) if self.with_color else None
         return Mesh(vertices, torch.from_numpy(faces), colors)
 
 
-def _merge_by_edge(points: np.ndarray, faces: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
-    """Merge the vertices that lie on the same grid edge (or grid point).
-
-    A marching-cubes vertex lies on a grid edge, at least _OFF_POINT from its ends unless on a grid
-    point (`off_level` keeps values off the level by 1e-4 of their differences), so its edge is the
-    lower point of the one non-integral coordinate; a few lie inside a cell (Lewiner's ambiguous cases)
-    and stay apart.
-    Args: points Float64[ndarray, "v 3"] grid units; faces Int[ndarray, "f 3"]; shape: grid points per axis.
-    Returns: the merged points and renumbered faces, without faces that lost a corner."""
-    nearest = np.round(points)
-    off = np.abs(points - nearest)
-    axis = off.argmax(1)
-    on_point = off.max(1) < _OFF_POINT
-    lower = nearest.astype(np.int64)
-    rows = np.arange(len(points))
-    lower[rows, axis] = np.where(on_point, lower[rows, axis], np.floor(points[rows, axis]).astype(np.int64))
-    linear = np.ravel_multi_index(tuple(lower.T), tuple(int(n) for n in shape), mode="clip")
-    key = linear * 4 + np.where(on_point, 3, axis)
-    inner = (off >= _OFF_POINT).sum(1) > 1  # a vertex inside a cell (an ambiguous case's): never merged
-    key[inner] = -1 - rows[inner]
-    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
-    faces = inverse.reshape(-1)[faces]
-    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
-    return points[first], faces
-
-
-__all__ = [
-    "WEIGHTINGS",
-    "TSDFVolume",
-    "available_memory",
-    "box_keys",
-    "camera_to_grid",
-    "candidate_blocks",
-    "depth_bounds",
-    "grid_to_pixel",
-    "observe_blocks",
-    "pad_image",
-    "pixel_weights",
-    "world_to_camera",
-]
+__all__ = ["WEIGHTINGS", "TSDFVolume", "available_memory", "depth_bounds"]
