@@ -181,13 +181,6 @@ class Mesh:
         t = torch.as_tensor(transform, dtype=self.vertices.dtype, device=self.vertices.device)
         return replace(self, vertices=self.vertices @ t[:3, :3].T + t[:3, 3])
 
-    def save(self, path) -> None:
-        """Write the mesh by the extension of `path` (.ply .obj .off .stl .glb), with outward vertex
-        normals and vertex colours where the format stores them: `neuralsurf.io.write_mesh`."""
-        from neuralsurf.io.meshes import write_mesh
-
-        write_mesh(path, self)
-
     # conversions: exact in both directions (float64 vertices stay float64)
     def to_trimesh(self) -> trimesh.Trimesh:
         import trimesh

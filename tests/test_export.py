@@ -12,7 +12,7 @@ import trimesh
 
 from neuralsurf.errors import ConfigError
 from neuralsurf.extract import extract_mesh
-from neuralsurf.io import read_mesh
+from neuralsurf.io import read_mesh, write_mesh
 from neuralsurf.io.meshes import mesh_format, vertex_normals
 from neuralsurf.structures import Mesh
 
@@ -61,7 +61,7 @@ def test_vertex_normals_weight_faces_by_area_and_leave_unused_vertices_zero():
 def test_stored_normals_of_a_sphere_point_outward_and_colours_survive(tmp_path, ext):
     mesh = colored(sdf_sphere())
     path = tmp_path / f"sphere{ext}"
-    mesh.save(path)
+    write_mesh(path, mesh)
     normals = trimesh_normals(path)
     back = read_mesh(path)
     assert torch.equal(back.faces, mesh.faces)
@@ -75,7 +75,7 @@ def test_stored_normals_of_a_sphere_point_outward_and_colours_survive(tmp_path, 
 def test_ply_normals_are_vertex_properties(tmp_path):
     plyfile = pytest.importorskip("plyfile")
     mesh = sdf_sphere()
-    mesh.save(tmp_path / "m.ply")
+    write_mesh(tmp_path / "m.ply", mesh)
     vertex = plyfile.PlyData.read(str(tmp_path / "m.ply"))["vertex"]
     assert [p.name for p in vertex.properties] == ["x", "y", "z", "nx", "ny", "nz"]
     stored = np.stack([vertex[a] for a in ("nx", "ny", "nz")], 1)
@@ -87,7 +87,7 @@ def test_open3d_reads_the_same_vertices_faces_normals_and_colours(tmp_path, ext)
     o3d = pytest.importorskip("open3d")
     mesh = colored(sdf_sphere())
     path = tmp_path / f"m{ext}"
-    mesh.save(path)
+    write_mesh(path, mesh)
     back = o3d.io.read_triangle_mesh(str(path))
     vertices, faces = np.asarray(back.vertices), np.asarray(back.triangles)
     # the same triangles; Open3D may renumber vertices (it splits or merges at its own will)
@@ -103,21 +103,12 @@ def test_open3d_reads_the_same_vertices_faces_normals_and_colours(tmp_path, ext)
 def test_glb_read_by_open3d_tensor_io(tmp_path):
     o3d = pytest.importorskip("open3d")
     mesh = sdf_sphere()
-    mesh.save(tmp_path / "m.glb")
+    write_mesh(tmp_path / "m.glb", mesh)
     back = o3d.t.io.read_triangle_mesh(str(tmp_path / "m.glb"))
     vertices = back.vertex.positions.numpy().astype(np.float64)
     faces = back.triangle.indices.numpy()
     assert len(faces) == len(mesh.faces)
     assert np.allclose(vertices[faces], mesh.vertices.float().double().numpy()[mesh.faces.numpy()], rtol=0, atol=1e-7)
-
-
-def test_mesh_save_is_write_mesh(tmp_path):
-    from neuralsurf.io import write_mesh
-
-    mesh = colored(sdf_sphere())
-    mesh.save(tmp_path / "a.ply")
-    write_mesh(tmp_path / "b.ply", mesh)
-    assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
 
 
 def test_mesh_format_names_the_choices():
