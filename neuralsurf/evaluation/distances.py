@@ -21,8 +21,10 @@ from typing import Any
 
 import numpy as np
 
-from neuralsurf.evaluation.filenames import safe_name
-from neuralsurf.evaluation.store import row_stem
+from neuralsurf.evaluation.filenames import row_stem, safe_name
+from neuralsurf.evaluation.render import default_view, labelled_row, shade, viridis
+from neuralsurf.geometry import closest_on_mesh
+from neuralsurf.io import write_mesh
 from neuralsurf.locks import replaced, write_atomic
 from neuralsurf.structures import Mesh
 
@@ -37,8 +39,6 @@ PERCENTILE = 95.0
 def vertex_distances(mesh: Mesh, gt: Mesh) -> tuple[np.ndarray, np.ndarray]:
     """Exact point-to-mesh distances (`neuralsurf.geometry.closest_on_mesh`), in the meshes' units:
     (each vertex of `mesh` to `gt` (v,), each vertex of `gt` to `mesh` (g,)), float64."""
-    from neuralsurf.geometry import closest_on_mesh
-
     to_gt, _ = closest_on_mesh(mesh.vertices.detach().double().cpu(), gt)
     to_mesh, _ = closest_on_mesh(gt.vertices.detach().double().cpu(), mesh)
     return to_gt.numpy(), to_mesh.numpy()
@@ -56,8 +56,6 @@ def shared_scale(distances: list[np.ndarray], percentile: float = PERCENTILE) ->
 
 def distance_colors(distances: np.ndarray, top: float) -> np.ndarray:
     """Distances (n,) -> viridis RGB (n, 3) in [0, 1]: 0 dark purple, `top` and beyond yellow."""
-    from neuralsurf.evaluation.render import viridis
-
     return viridis(np.asarray(distances, dtype=np.float64) / top)
 
 
@@ -135,9 +133,6 @@ def write_error_views(rows: list[dict[str, Any]], run_dir: str | Path) -> dict[t
 
 def _write_view(run_dir: Path, arrays, view: dict[str, Any], method: str) -> None:
     """The coloured prediction and ground truth of one row: the render and the GLBs `view` names."""
-    from neuralsurf.evaluation.render import default_view, labelled_row, shade
-    from neuralsurf.io import write_mesh
-
     top = view["top"]
     prediction = Mesh(arrays["vertices"], arrays["faces"], distance_colors(arrays["to_gt"], top))
     gt = Mesh(arrays["gt_vertices"], arrays["gt_faces"], distance_colors(arrays["to_mesh"], top))

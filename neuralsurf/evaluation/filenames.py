@@ -20,3 +20,8 @@ def safe_name(name: str) -> str:
     if safe != name:
         safe = f"{safe}-{hashlib.sha1(name.encode()).hexdigest()[:8]}"
     return safe
+
+
+def row_stem(scene: str, method: str) -> str:
+    """The file stem of a row's files: "<scene>__<method>", each name made safe (`safe_name`)."""
+    return f"{safe_name(scene)}__{safe_name(method)}"

@@ -13,6 +13,8 @@ import math
 from pathlib import Path
 from typing import Any
 
+from neuralsurf.evaluation.distances import PERCENTILE, write_error_views
+from neuralsurf.evaluation.render import bar_chart, css_gradient, scatter_plot
 from neuralsurf.locks import replaced, write_atomic
 
 TABLE_COLUMNS = [("method", "method"), ("scene", "scene"), ("status", "status"),
@@ -77,8 +79,6 @@ def write_tables(rows: list[dict[str, Any]], run_dir: Path, extra: dict[str, Any
 
 def write_plots(rows: list[dict[str, Any]], run_dir: Path) -> list[str]:
     """Bar charts (Chamfer-L1, F@1%, time per scene and method) and a time vs. accuracy scatter."""
-    from neuralsurf.evaluation.render import bar_chart, scatter_plot
-
     ok = [r for r in rows if r["status"] == "ok"]
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     methods = list(dict.fromkeys(r["method"] for r in rows))
@@ -110,9 +110,6 @@ def _img(run_dir: Path, path: str, alt: str) -> str:
 def _error_view(run_dir: Path, row: dict[str, Any], view: dict[str, Any]) -> str:
     """The error-coloured render of a row (`distances.write_error_views`; none with render=false), its
     colour bar in the scene's units and links to its coloured GLBs."""
-    from neuralsurf.evaluation.distances import PERCENTILE
-    from neuralsurf.evaluation.render import css_gradient
-
     top, name = view["top"], f"{row['method']} on {row['scene']}"
     ticks = "".join(f"<span>{value:.3g}</span>" for value in (0.0, top / 2, top))
     links = " ".join(f"<a href='{html.escape(path)}'>{html.escape(what)} (GLB)</a>"
@@ -179,8 +176,6 @@ def write_html(rows: list[dict[str, Any]], run_dir: Path, plots: list[str], titl
 
 def write_report(rows: list[dict[str, Any]], run_dir: str | Path, extra: dict[str, Any] | None = None) -> str:
     """Everything above; returns the Markdown table."""
-    from neuralsurf.evaluation.distances import write_error_views
-
     run_dir = Path(run_dir)
     write_tables(rows, run_dir, extra)
     plots = write_plots(rows, run_dir)

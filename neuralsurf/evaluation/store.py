@@ -23,18 +23,14 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
-from neuralsurf.evaluation.filenames import safe_name
+from neuralsurf.evaluation.filenames import row_stem, safe_name
+from neuralsurf.evaluation.report import write_report
 from neuralsurf.locks import file_lock, replaced, write_atomic
 
 ROWS = "rows"
 """The folder of the row files inside a results folder."""
 
 log = logging.getLogger("neuralsurf")
-
-
-def row_stem(scene: str, method: str) -> str:
-    """The file stem of a row's files: "<scene>__<method>", each name made safe (`safe_name`)."""
-    return f"{safe_name(scene)}__{safe_name(method)}"
 
 
 def settings_key(settings: dict[str, Any]) -> str:
@@ -118,8 +114,6 @@ def rebuild_report(results_dir: str | Path, extra: dict[str, Any] | None = None,
     """Rewrite the report of a results folder from all its stored rows, under `<results_dir>/.report.lock`
     (jobs finishing together take turns; each file is replaced whole). `extra` goes to results.json and
     report.html, with "scenes" and "methods": those of the stored rows. Returns (rows, Markdown table)."""
-    from neuralsurf.evaluation.report import write_report
-
     results_dir = Path(results_dir)
     with file_lock(results_dir / ".report.lock"):
         rows = ordered(read_rows(results_dir), scenes, methods)
