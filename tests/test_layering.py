@@ -1,32 +1,53 @@
-"""Import direction: io/ and baselines/ read sensors and data, never the synthetic-data package."""
+"""The package's layers and its freedom from import circles, as pyproject.toml's import-linter
+contracts state them (docs/architecture.md): checked on the package, and shown to catch an import
+that runs up the layers."""
 
-import ast
+import os
+import shutil
+import subprocess
+import sys
 from pathlib import Path
+
+import pytest
 
 import neuralsurf
 
 PACKAGE = Path(neuralsurf.__file__).parent
+PYPROJECT = PACKAGE.parent / "pyproject.toml"
+
+pytest.importorskip("importlinter")
 
 
-def _imported_modules(path: Path) -> set[str]:
-    """Every module named by an import statement anywhere in the file (lazy imports included)."""
-    names = set()
-    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
-        if isinstance(node, ast.Import):
-            names.update(alias.name for alias in node.names)
-        elif isinstance(node, ast.ImportFrom) and node.module:
-            names.add(node.module)
-    return names
+def lint_imports(package_parent: Path) -> subprocess.CompletedProcess:
+    """import-linter's contracts of pyproject.toml, run on the neuralsurf package found in `package_parent`."""
+    script = "import sys; from importlinter.cli import lint_imports_command; sys.exit(lint_imports_command())"
+    return subprocess.run([sys.executable, "-c", script, str(PYPROJECT), "--no-cache"], cwd=package_parent,
+                          env={**os.environ, "PYTHONPATH": str(package_parent)}, capture_output=True, text=True,
+                          timeout=120, check=False)
 
 
-def test_io_and_baselines_do_not_import_scenes():
-    offenders = {
-        str(path.relative_to(PACKAGE)): sorted(m for m in _imported_modules(path) if m.startswith("neuralsurf.scenes"))
-        for folder in ("io", "baselines")
-        for path in sorted((PACKAGE / folder).glob("*.py"))
-    }
-    offenders = {k: v for k, v in offenders.items() if v}
-    assert offenders == {}, f"io/ and baselines/ must take sensor geometry from neuralsurf.geometry: {offenders}"
+@pytest.fixture(scope="module")
+def contracts() -> str:
+    if not PYPROJECT.is_file():
+        pytest.skip("pyproject.toml is not beside the package (an installed copy): the contracts live there")
+    return PYPROJECT.read_text()
+
+
+def test_the_package_keeps_its_layers_and_has_no_import_circles(contracts):
+    result = lint_imports(PACKAGE.parent)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "neuralsurf layers KEPT" in result.stdout and "no import circles KEPT" in result.stdout
+
+
+def test_an_import_up_the_layers_breaks_the_contract(contracts, tmp_path):
+    copy = tmp_path / "neuralsurf"
+    shutil.copytree(PACKAGE, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    geometry = copy / "geometry.py"  # geometry sits below training: importing it runs up the layers
+    geometry.write_text(geometry.read_text() + "\nfrom neuralsurf.training import fit  # noqa: E402\n")
+    result = lint_imports(tmp_path)
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert "neuralsurf layers BROKEN" in result.stdout
+    assert "neuralsurf.geometry -> neuralsurf.training" in result.stdout
 
 
 def test_sensor_geometry_lives_in_geometry_and_scanner_reexports_it():
