@@ -317,7 +317,7 @@ class Viewer:
         self.colours = gui.add_dropdown("colours", ["distance to ground truth", "grey"] if coloured else ["grey"])
         self.legend = gui.add_markdown("")
         self.boxes: list[list[Any]] = []
-        self._folders: list[Any] = []
+        self.folders: list[Any] = []
         for g, group in enumerate(groups):
             folder = gui.add_folder(group.name)
             with folder:
@@ -325,7 +325,7 @@ class Viewer:
             for box in boxes:
                 box.on_update(lambda _: self.refresh())
             self.boxes.append(boxes)
-            self._folders.append(folder)
+            self.folders.append(folder)
         for control in (self.scene, self.layout, self.colours):
             control.on_update(lambda _: self.refresh())
         self.refresh()
@@ -375,7 +375,7 @@ class Viewer:
         side, up, depth = screen_axes(self._up)
         slot = 0
         for g, handles in enumerate(self._handles):
-            self._folders[g].visible = g == chosen
+            self.folders[g].visible = g == chosen
             for i, (item, nodes) in enumerate(zip(self.groups[g].items, handles)):
                 shown = g == chosen and self.boxes[g][i].value
                 offset = side * 1.25 * size * slot if side_by_side and item.faces is not None else np.zeros(3)

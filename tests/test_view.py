@@ -128,6 +128,32 @@ def test_an_up_that_is_not_an_axis_is_named():
         Viewer([Group("a", [Item("m", np.zeros((1, 3)))])], up="y")
 
 
+def test_scenes_layouts_and_check_boxes_decide_what_is_shown_and_where(tmp_path):
+    pytest.importorskip("viser")
+    ball = sphere(1.0, 1)
+    mesh = (ball.vertices.numpy().astype(np.float32), ball.faces.numpy())
+    groups = [Group("one", [Item("a", *mesh), Item("b", *mesh), Item("points", mesh[0])]), Group("two", [Item("c", *mesh)])]
+    viewer = Viewer(groups, port=free_port())
+    try:
+        def shown():
+            return {viewer.nodes[name]: tuple(np.round(handle.position, 6))
+                    for name in viewer.nodes if (handle := viewer.server.scene.get_handle_by_name(name)).visible}
+
+        assert shown() == {"a": (0, 0, 0), "b": (2.5, 0, 0), "points": (0, 0, 0)}  # 1.25 x the scene's size apart
+        viewer.boxes[0][0].value = False  # what unticking "a" does
+        viewer.refresh()
+        assert shown() == {"b": (0, 0, 0), "points": (0, 0, 0)}
+        viewer.layout.value = "overlaid"
+        viewer.boxes[0][0].value = True
+        viewer.refresh()
+        assert shown() == {"a": (0, 0, 0), "b": (0, 0, 0), "points": (0, 0, 0)}
+        viewer.scene.value = "two"
+        viewer.refresh()
+        assert shown() == {"c": (0, 0, 0)} and [f.visible for f in viewer.folders] == [False, True]
+    finally:
+        viewer.stop()
+
+
 def _yellow_pixels(png: bytes) -> int:
     """Pixels of viridis' top (yellow) in a screenshot: the far sphere in error colours (a few dozen in the
     axes' gizmo)."""
