@@ -89,8 +89,8 @@ def observe_blocks(
     base = (blocks.to(linear.dtype) @ linear + shifted[:, None, :, 3])[..., None]  # (f, m, 3, 1)
     offset = (local @ linear).transpose(1, 2)[:, None]  # (f, 1, 3, v)
     z = base[:, :, 2] + offset[:, :, 2]  # (f, m, v)
-    # voxels at or behind the camera plane look up the zero border (an invalid depth)
-    inverse = torch.where(z > 0, z.reciprocal(), 0.0)
+    # voxels at or behind the camera plane get huge coordinates, clamped into the zero border (invalid depth)
+    inverse = z.clamp_min(1e-30).reciprocal_()
     column = (base[:, :, 0] + offset[:, :, 0]).mul_(inverse).clamp_(0, cols - 1).floor_()
     row = (base[:, :, 1] + offset[:, :, 1]).mul_(inverse).clamp_(0, rows - 1).floor_()
     if rows * cols * frames < 2**24:  # whole numbers stay exact in float32
@@ -143,9 +143,10 @@ def fuse_blocks(
     average_color = None if color is None else color.index_select(0, slots)
     for i in range(len(seen)):
         new = seen[i] if weights is None else seen[i] * weights[pixel[i]]
-        share = new / (total + new).clamp_min(torch.finfo(total.dtype).tiny)  # of the new observation
+        total = total + new
+        share = new / total.clamp_min(torch.finfo(total.dtype).tiny)  # of the new observation
         average = torch.lerp(average, sdf[i], share)
-        total = torch.minimum(total + new, limits[1])
+        total = total.clamp_max_(limits[1])
         if color is not None:
             average_color = torch.lerp(average_color, colors[pixel[i]], share[..., None])
     tsdf.index_copy_(0, slots, average)
