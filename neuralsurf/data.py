@@ -71,6 +71,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from neuralsurf.errors import ConfigError, DownloadError, FileFormatError, NeuralsurfError
+from neuralsurf.progress import progress_bar
 
 __all__ = ["DATASETS", "Dataset", "cache_dir", "check_manifest", "download", "fetch", "locate", "main",
            "manifest_lines", "read_manifest"]
@@ -416,8 +417,6 @@ def download(url: str, path, sha256: str | None = None, progress: bool = True, t
 
     Returns the Path of the complete file. Raises DownloadError naming the URL and what to do.
     """
-    from neuralsurf.progress import progress_bar
-
     path = Path(path)
     if path.is_file():
         _verify(path, url, sha256, warn_unverified)

@@ -29,7 +29,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import InputError
-from neuralsurf.geometry import closest_on_mesh, knn, mesh_contains, sample_mesh_surface
+from neuralsurf.geometry import closest_on_mesh, knn, mesh_contains, render_depth, sample_mesh_surface
 from neuralsurf.structures import Mesh, Normalization, PointCloud
 
 __all__ = [
@@ -390,8 +390,6 @@ def depth_metrics(mesh: Mesh, frames, threshold: float = 0.05) -> dict[str, floa
         valid pixels where the reconstruction is seen; depth_completeness: the fraction of held-out valid
         pixels whose rendered depth lies within `threshold` of the reading.
     """
-    from neuralsurf.geometry import render_depth
-
     measured = frames.depth.cpu()
     rendered, _ = render_depth(mesh, frames.K.cpu(), frames.cam_to_world.cpu(), frames.width, frames.height)
     valid = measured > 0

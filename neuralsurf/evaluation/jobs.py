@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 from typing import Any
 
+import neuralsurf
 from neuralsurf.errors import ConfigError
 
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
@@ -25,8 +26,6 @@ def row_settings(scene: dict[str, Any], method: dict[str, Any], common: dict[str
     """Everything that decides a row's result and files: the scene's and method's resolved configs
     (plain dicts) and the run-wide settings in `common` (seed, n_samples, render, ...). Its hash
     (`store.settings_key`) tells a rerun whether a stored row can be reused."""
-    import neuralsurf
-
     return {"scene": scene, "method": method, **common, "neuralsurf": neuralsurf.__version__}
 
 

@@ -32,6 +32,8 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError, FileFormatError, InputError
+from neuralsurf.geometry import render_depth
+from neuralsurf.io.meshes import read_mesh
 from neuralsurf.io.pointclouds import (
     PathLike,
     _ascii_rows,
@@ -41,6 +43,7 @@ from neuralsurf.io.pointclouds import (
     read_ply_binary,
     read_ply_vertices,
 )
+from neuralsurf.progress import progress_bar
 from neuralsurf.structures import DepthFrames, Mesh, PointCloud
 
 SCANNER_DIRECTION = (0.0, 0.0, 1.0)
@@ -155,8 +158,6 @@ def read_range_scan_meshes(conf_path: PathLike) -> list[Mesh]:
         FileFormatError as `read_range_scan_conf` for the `.conf` itself, or as `read_mesh` for a
         mesh file that exists but cannot be read.
     """
-    from neuralsurf.io.meshes import read_mesh
-
     conf_path = _existing_file(conf_path, "range-scan .conf")
     _, entries = _parse_conf(conf_path)
     _warn_absent_meshes(conf_path, entries)
@@ -185,8 +186,6 @@ def read_range_scans(conf_path: PathLike, with_normals: bool = True, progress: b
         one PointCloud per `bmesh` line, in file order: points (n_i, 3) in the file's dtype,
         normals (n_i, 3) unit, pointing towards the scanner, or None.
     """
-    from neuralsurf.progress import progress_bar
-
     conf_path = Path(conf_path)
     clouds = []
     scans = read_range_scan_conf(conf_path)
@@ -259,9 +258,6 @@ def read_range_scan_frames(
         FileFormatError for a scan without triangles (no `face` or `range_grid` element);
         ConfigError for a non-positive pixel_size or distance.
     """
-    from neuralsurf.geometry import render_depth
-    from neuralsurf.progress import progress_bar
-
     for name, value in (("pixel_size", pixel_size), ("distance", distance)):
         if not (np.isfinite(value) and value > 0):
             raise ConfigError(f"{name} must be a positive length in the scans' units, got {value}")

@@ -41,6 +41,7 @@ import torch
 from neuralsurf.errors import ConfigError, FileFormatError, InputError
 from neuralsurf.io.pointclouds import PathLike
 from neuralsurf.io.range_scans import quaternion_to_matrix
+from neuralsurf.progress import progress_bar
 from neuralsurf.structures import DepthFrames, check_intrinsics
 
 FORMATS = ("7scenes", "tum", "redwood")
@@ -421,8 +422,6 @@ def read_trajectory_log(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _load(listing: _Listing, keep: np.ndarray, with_color: bool, path: Path, progress: bool = False) -> DepthFrames:
-    from neuralsurf.progress import progress_bar
-
     with_color = with_color and listing.color_paths is not None
     bar = progress_bar(desc=f"RGB-D {path.name}", total=len(keep) * (2 if with_color else 1), unit="image",
                        enabled=progress)

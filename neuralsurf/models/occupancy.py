@@ -21,7 +21,9 @@ import torch
 from torch import Tensor, nn
 
 from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.models.field import NormalizedField
 from neuralsurf.models.spec import rebuildable
+from neuralsurf.structures import Normalization
 
 
 class ResnetBlockFC(nn.Module):
@@ -283,9 +285,6 @@ class OccupancyNetwork(nn.Module):
         noisy) surface points are `points` (Float[Tensor, "n 3"], in the frame the network was trained
         in unless `normalization` maps world to it). The model is put in eval mode. With feature planes,
         give as many points as the training clouds had: the planes' cells fill with the density."""
-        from neuralsurf.models.field import NormalizedField
-        from neuralsurf.structures import Normalization
-
         points = torch.as_tensor(points, dtype=torch.float64)
         if points.ndim != 2 or points.shape[-1] != 3 or len(points) == 0:
             raise InputError(f"field_from_cloud takes a cloud of shape (n >= 1, 3), got {tuple(points.shape)}")

@@ -7,6 +7,7 @@ from importlib.util import find_spec
 from pathlib import Path
 
 from neuralsurf.errors import MissingDependencyError
+from neuralsurf.io import read_mesh
 from neuralsurf.structures import Mesh
 
 
@@ -29,8 +30,6 @@ def bunny_path() -> Path:
 
 @lru_cache(maxsize=1)
 def _bunny() -> Mesh:
-    from neuralsurf.io import read_mesh
-
     return read_mesh(bunny_path())
 
 
