@@ -289,8 +289,10 @@ def coloured_glb(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray) -
 
 
 class Viewer:
-    """The viser server showing `groups`, with a scene picker, layout and colour choices and a check box
-    per item. `nodes` maps each scene-tree name added to its item's label (for tests and scripts)."""
+    """The viser server (`server`) showing `groups`: drop-downs `scene`, `layout` ("side by side" or
+    "overlaid") and `colours` ("coloured" or "grey"), a folder per scene (`folders`) with a check box per item
+    (`boxes[scene][item]`); `refresh()` applies them (the page's controls call it). `nodes` maps each
+    scene-tree name added to its item's label."""
 
     def __init__(self, groups: list[Group], host: str = "127.0.0.1", port: int = 8080, up: str = "+y"):
         viser = _import_viser()
@@ -305,16 +307,17 @@ class Viewer:
         # plain lights: image-based lighting takes seconds per frame in software WebGL (no GPU)
         self.server.scene.configure_environment_map(hdri=None)
         self.server.scene.configure_default_lights(cast_shadow=False)
-        self.server.scene.add_light_hemisphere("/lights/hemisphere", sky_color=(255, 255, 255), ground_color=(150, 150, 150), intensity=1.5)
+        self.server.scene.add_light_hemisphere("/lights/hemisphere", sky_color=(255, 255, 255),
+                                               ground_color=(150, 150, 150), intensity=1.5)
         self.nodes: dict[str, str] = {}
-        self._handles: list[list[dict[str, Any]]] = []
+        self._handles: list[list[dict[str, list[tuple[Any, np.ndarray]]]]] = []
         for g, group in enumerate(groups):
             self._handles.append([self._add(g, i, item) for i, item in enumerate(group.items)])
         gui = self.server.gui
         self.scene = gui.add_dropdown("scene", [g.name for g in groups], initial_value=groups[0].name)
         self.layout = gui.add_dropdown("layout", ["side by side", "overlaid"], initial_value="side by side")
         coloured = any(item.coloured is not None for group in groups for item in group.items)
-        self.colours = gui.add_dropdown("colours", ["distance to ground truth", "grey"] if coloured else ["grey"])
+        self.colours = gui.add_dropdown("colours", ["coloured", "grey"] if coloured else ["grey"])
         self.legend = gui.add_markdown("")
         self.boxes: list[list[Any]] = []
         self.folders: list[Any] = []
