@@ -163,6 +163,7 @@ def _yellow_pixels(png: bytes) -> int:
     return int(((image[..., 0] > 170) & (image[..., 1] > 150) & (image[..., 2] < 90)).sum())
 
 
+@pytest.mark.browser
 def test_the_page_loads_in_headless_chromium_with_the_run_s_meshes(run):
     pytest.importorskip("viser")
     from test_evaluation import chromium_driver
