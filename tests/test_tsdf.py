@@ -1,5 +1,5 @@
 """TSDF fusion: analytic oracles (sphere, planes), Open3D side by side, dense == sparse, one
-marching-cubes call as the reference of the chunked extraction, the bunny bar, 7-Scenes, bad input."""
+marching-cubes call as the reference of the block-wise extraction, the bunny bar, 7-Scenes, bad input."""
 
 from __future__ import annotations
 
@@ -158,11 +158,14 @@ def test_sparse_and_dense_give_the_same_mesh(sphere_frames, sphere_mesh):
     assert torch.equal(mesh.vertices, sphere_mesh.vertices) and torch.equal(mesh.faces, sphere_mesh.faces)
 
 
-def test_chunked_extraction_equals_one_marching_cubes_call(sphere_frames):
+def test_block_extraction_equals_one_marching_cubes_call(sphere_frames, monkeypatch):
     from skimage.measure import marching_cubes
 
+    from neuralsurf.baselines import tsdf
+
+    monkeypatch.setattr(tsdf, "_MESH_BLOCKS", 300)  # several marching-cubes calls, merged
     volume = TSDFVolume(BOX, 0.01, block_size=4, device="cpu", sparse=True).integrate(sphere_frames[:12])
-    mesh = volume.extract_mesh()  # 80^3 voxels in chunks of 32^3, some cells never observed
+    mesh = volume.extract_mesh()  # 80^3 voxels in blocks of 4^3, some cells never observed
     tsdf, weight = volume.to_dense()
     valid = (weight > 0).numpy()
     values = np.where(valid, tsdf.numpy(), 1.0).astype(np.float32)
@@ -179,7 +182,7 @@ def test_chunked_extraction_equals_one_marching_cubes_call(sphere_frames):
     reference = vertices[np.unique(faces)] * volume.voxel_size + volume.origin
     assert len(reference) == len(mesh.vertices)
     gap, _ = cKDTree(reference).query(mesh.vertices.double().numpy())
-    assert gap.max() < 1e-6  # the same vertices (float32 rounding apart), welded across chunks
+    assert gap.max() < 1e-6  # the same vertices (float32 rounding apart), merged across blocks and calls
     assert not mesh.is_watertight  # half the views leave holes: no faces were made up there
 
 
@@ -458,6 +461,26 @@ def test_threads_are_set_for_integration_and_restored(sphere_frames):
     assert seen == [1, 1] and torch.get_num_threads() == before
     with pytest.raises(ConfigError, match="threads"):
         TSDFVolume(BOX, VOXEL, threads=0)
+
+
+def test_chunks_on_worker_threads_give_the_same_volume(sphere_frames):
+    """Eager CPU fusion runs a pass's chunks of blocks side by side on `threads` worker threads (each torch
+    op on one thread) and finds the next pass's blocks meanwhile: the volume is the one a single thread
+    fuses, bit for bit."""
+    seen = []
+    make = lambda threads: TSDFVolume(BOX, VOXEL, device="cpu", sparse=True, weighting="depth", max_weight=5.0,
+                                      with_color=True, threads=threads)
+    single, pooled = make(1), make(2)
+    single._chunk_observations = pooled._chunk_observations = 4096  # many chunks a frame
+    original = pooled._integrate_frames
+    pooled._integrate_frames = lambda *args: (seen.append(torch.get_num_threads()), original(*args))
+    frames = sphere_frames[:6]
+    frames = DepthFrames(frames.depth, frames.K, frames.cam_to_world, backproject_depth(frames).clamp(0, 1))
+    single.integrate(frames), pooled.integrate(frames)
+    assert set(seen) == {1}
+    assert torch.equal(single._keys, pooled._keys) and torch.equal(single._slots, pooled._slots)
+    for name in ("_tsdf", "_weight", "_color"):
+        assert torch.equal(getattr(single, name), getattr(pooled, name)), name
 
 
 def analytic_sphere_frames(n_views: int, width: int, height: int) -> DepthFrames:
