@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
@@ -501,6 +502,34 @@ def test_the_tum_scene_holds_frames_out_and_names_its_fetch_command_when_absent(
         tar.extractall(tmp_path / "mine")  # the test's own archive
     scene = rgbd_capture("tum_fr1_desk", TUM, root=str(tmp_path / "mine"), hold_out_every=3, cloud_stride=8)
     assert len(scene.frames) == 2 and len(scene.held_out) == 1 and scene.depth_input and scene.ground_truth is None
+
+
+def test_sphere_normals_of_a_disc_and_least_squares_stereo_recovers_them():
+    """The grey sphere's ground truth: a disc mask's sphere, facing the camera (z < 0); Lambertian images of it
+    under lights in front (`render_lambertian`) give them back by least squares where every light reaches."""
+    from neuralsurf.photometric import photometric_stereo, render_lambertian
+    from neuralsurf.scenes.captures import sphere_normals
+    from neuralsurf.structures import PhotometricCapture
+
+    v, u = np.mgrid[0:90, 0:120]
+    mask = torch.from_numpy((u - 60.0) ** 2 + (v - 44.0) ** 2 <= 35.0**2)
+    normals = sphere_normals(mask)
+    assert torch.allclose(normals[mask].norm(dim=-1), torch.ones(int(mask.sum())), atol=1e-5)
+    assert torch.allclose(normals[44, 60], torch.tensor([0.0, 0.0, -1.0]), atol=1e-2)
+    assert normals[44, 60 + 17, 0] == pytest.approx(17 / 35, abs=0.02) and (normals[mask][:, 2] <= 0).all()
+    lights = torch.tensor([[0.3, -0.2, -1.0], [-0.4, 0.1, -1.0], [0.1, 0.4, -1.0], [0.0, 0.0, -1.0]])
+    lights = lights / lights.norm(dim=-1, keepdim=True)
+    images = render_lambertian(normals, torch.full(mask.shape, 0.7), lights)
+    lit = mask & ((normals @ lights.T) > 0.05).all(-1)
+    result = photometric_stereo(PhotometricCapture(images, lights, mask=mask, normals=normals), "least_squares")
+    assert (result.normals[lit] * normals[lit]).sum(-1).min() > 0.9999
+
+
+def test_the_uw_grey_sphere_names_where_it_looks_when_absent(tmp_path):
+    from neuralsurf.scenes.captures import uw_gray_sphere
+
+    with pytest.raises(recipes.SceneUnavailable, match="gray.txt not found: pass data_root=<folder holding uw_photometric/>"):
+        uw_gray_sphere.__wrapped__(root=str(tmp_path))
 
 
 def test_scenes_read_real_data_from_the_cache(tmp_path, monkeypatch, shared_data):
