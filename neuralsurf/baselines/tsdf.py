@@ -181,10 +181,11 @@ class TSDFVolume:
         frames_per_pass: frames fused together in one vectorised pass over the union of their
             candidate blocks (the result is the same as one at a time, in order); default 1 on a
             CPU and 32 on a GPU, where per-pass costs dominate.
-        threads: torch threads while `integrate` runs on a CPU (restored afterwards); "auto": 1 eager
-            (see the module docstring: measured faster on a 2-core machine, and it keeps its speed
-            when other processes are busy), torch's setting when compiled; None leaves torch's
-            setting. Compiled loops keep the thread count of the process's first compiled fusion.
+        threads: CPU threads of `integrate` and `extract_mesh`. Eager fusion: worker threads that fuse
+            chunks of blocks side by side, each torch op on one thread (torch's setting restored
+            afterwards); "auto" or None: as many as torch's threads. Compiled fusion: torch's threads
+            ("auto" or None: torch's setting; compiled loops keep the thread count of the process's
+            first compiled fusion). Extraction: torch's threads, "auto" 1, None torch's setting.
         compiled: on a CPU, compile the fusion with torch.compile (see the module docstring; needs a
             C++ compiler, else a warning and eager fusion); None: for `integrate` calls of at least
             _COMPILE_PIXELS depth pixels, where compilation pays for itself. No effect on a GPU.
