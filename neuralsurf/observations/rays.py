@@ -98,6 +98,17 @@ def depth_rays(frames: DepthFrames, sigma_of_depth=kinect_sigma, max_depth_jump:
     return Rays(*(torch.cat([getattr(p, name) for p in parts]) for name in Rays.__dataclass_fields__))
 
 
+def stride_frames(frames: DepthFrames, stride: int) -> DepthFrames:
+    """`frames` at every `stride`-th pixel along both axes: pixel (i, j) of the result is pixel
+    (stride i, stride j) of the frame, so the intrinsics' first two rows are divided by `stride`
+    (the same rays; `stride` 1 returns `frames`)."""
+    if stride == 1:
+        return frames
+    K = frames.K.clone()
+    K[:, :2] /= stride
+    return DepthFrames(frames.depth[:, ::stride, ::stride].contiguous(), K, frames.cam_to_world)
+
+
 def hit_bounds(rays: Rays) -> Tensor:
     """Float64[Tensor, "2 3"]: the box (min and max corner) of the rays' hit points."""
     points = (rays.origins + rays.hit[:, None] * rays.directions).double()
@@ -353,6 +364,10 @@ class DepthRays(Observation):
     """Half-width of the band around each hit, unit frame (at least 3 noise sigmas)."""
     max_rays: int = 4_000_000
     """Keep at most this many rays (a random subset, fixed by the seed) to bound memory."""
+    pixel_stride: int = 1
+    """Rays of every this-many-th pixel along both image axes only (`stride_frames`): a room's frames overlap,
+    so 1 / stride^2 of the pixels still cover it, and building, subsetting and denoising the rays costs that
+    much less time and memory."""
     noise_model: str = "kinect"
     """Noise sigma of a depth reading: "kinect" (Nguyen et al. 2012: 1.2 mm at 0.4 m, growing with
     the square of the depth) or "constant" (`sigma` metres)."""
@@ -375,10 +390,11 @@ class DepthRays(Observation):
         if not isinstance(self.frames, DepthFrames):
             raise InputError(f"DepthRays expects neuralsurf.DepthFrames, got {type(self.frames).__name__}")
         counts = {k: getattr(self, k) for k in ("n_rays", "max_hits", "n_free", "n_band", "n_uniform", "n_carve",
-                                                 "max_rays", "winding_points", "denoise_k")}
+                                                 "max_rays", "winding_points", "denoise_k", "pixel_stride")}
         if any(not isinstance(v, int) or v < 0 for v in counts.values()) or not all(
-                counts[k] for k in ("n_rays", "n_carve", "max_rays")) or 0 < self.denoise_k < 6:
-            raise ConfigError(f"DepthRays needs integer sample counts (n_rays, n_carve, max_rays >= 1, denoise_k 0 or "
+                counts[k] for k in ("n_rays", "n_carve", "max_rays", "pixel_stride")) or 0 < self.denoise_k < 6:
+            raise ConfigError(f"DepthRays needs integer sample counts (n_rays, n_carve, max_rays, pixel_stride >= 1, "
+                              f"denoise_k 0 or "
                               f">= 6, others >= 0), got {counts}")
         amounts = {k: getattr(self, k) for k in ("hit_fraction", "carve_margin", "truncation", "sigma")}
         if not (amounts["hit_fraction"] >= 0 and amounts["carve_margin"] >= 0 and amounts["truncation"] > 0
@@ -399,7 +415,7 @@ class DepthRays(Observation):
         return kinect_sigma if self.noise_model == "kinect" else (lambda z: torch.full_like(z, self.sigma))
 
     def _world_rays(self) -> Rays:
-        return depth_rays(self.frames.to("cpu"), self._sigma_of_depth())
+        return depth_rays(stride_frames(self.frames.to("cpu"), self.pixel_stride), self._sigma_of_depth())
 
     def bounds(self) -> Tensor:
         return hit_bounds(self._world_rays())

@@ -1,0 +1,110 @@
+"""Observed space of depth frames (neuralsurf.observations.observed) against analytic scenes: a plane seen
+by cameras facing it, a patch of readings that the other views see through, and a plane field whose mesh is
+kept only where the frames saw the plane."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from neuralsurf.observations.observed import ObservedSurface, extract_observed, strided_hits, view_votes
+from neuralsurf.observations.rays import depth_rays, stride_frames
+from neuralsurf.structures import DepthFrames, Mesh
+
+WIDTH, HEIGHT, F = 64, 48, 60.0
+PLANE_Z = 2.0
+
+
+def plane_frames(xs=(-0.2, 0.0, 0.2), width=WIDTH) -> DepthFrames:
+    """Cameras at (x, 0, 0) looking along +z (identity rotation) at the plane z = 2: depth 2 everywhere."""
+    n = len(xs)
+    K = torch.tensor([[F, 0, (width - 1) / 2], [0, F, (HEIGHT - 1) / 2], [0, 0, 1]]).expand(n, 3, 3).clone()
+    pose = torch.eye(4).repeat(n, 1, 1)
+    pose[:, 0, 3] = torch.tensor(xs)
+    return DepthFrames(torch.full((n, HEIGHT, width), PLANE_Z), K, pose)
+
+
+def test_stride_frames_keeps_the_rays_of_the_kept_pixels():
+    frames = plane_frames()
+    frames.depth[:, 10:20, 5:30] = 1.5  # a step, so the rays differ between pixels
+    full = depth_rays(frames)
+    strided = depth_rays(stride_frames(frames, 3))
+    keep = torch.zeros(frames.depth.shape, dtype=torch.bool)
+    keep[:, ::3, ::3] = True
+    index = keep.flatten().nonzero()[:, 0]
+    assert torch.allclose(strided.directions, full.directions[index], atol=1e-6)
+    assert torch.allclose(strided.hit, full.hit[index], atol=1e-6)
+    assert torch.equal(strided.origins, full.origins[index])
+
+
+def test_strided_hits_lie_on_the_plane_and_thin_out():
+    frames = plane_frames()
+    points = strided_hits(frames, 2)
+    assert len(points) == 3 * (HEIGHT // 2) * (WIDTH // 2)
+    assert torch.allclose(points[:, 2], torch.full((len(points),), PLANE_Z, dtype=torch.float64))
+
+
+def test_view_votes_near_free_and_unseen():
+    frames = plane_frames()
+    points = torch.tensor([[0.0, 0.0, PLANE_Z], [0.0, 0.0, 1.0], [0.0, 0.0, 3.0], [50.0, 0.0, 2.0]], dtype=torch.float64)
+    near, free = view_votes(points, frames, band=0.05)
+    assert near.tolist() == [3, 0, 0, 0]  # on the plane; in front; behind; outside every image
+    assert free.tolist() == [0, 3, 0, 0]
+
+
+def test_observed_voxels_are_the_plane_and_floaters_seen_through_are_not():
+    frames = plane_frames()
+    frames.depth[0, 20:28, 28:36] = 1.0  # one view reads a patch at z = 1 that the others see through
+    voxel = 0.05
+    observed = ObservedSurface.from_frames(frames, voxel, min_hits=1, pixel_stride=1)
+    hits = strided_hits(frames, 1)
+    patch = hits[hits[:, 2] < 1.5]
+    floater = patch[(patch - patch.mean(0)).norm(dim=-1).argmin()][None]  # the middle of the patch
+    plane_point = hits[hits[:, 2] > 1.5][:1]
+    in_front = torch.tensor([[0.0, 0.0, 1.5]], dtype=torch.float64)
+    assert observed.contains(plane_point).item() and not observed.contains(in_front).item()
+    assert not observed.contains(floater).item()
+    trusting = ObservedSurface.from_frames(frames, voxel, min_hits=1, pixel_stride=1, max_free_ratio=None)
+    assert trusting.contains(floater).item()  # without the views' votes every reading is observed
+    # the voxels of the plane and those behind it, none in the free space between the cameras and the plane
+    centres = observed.origin + (observed.mask.nonzero().double() + 0.5) * voxel
+    assert centres[:, 2].min() >= PLANE_Z - voxel and centres[:, 2].max() <= PLANE_Z + 2 * voxel
+
+
+def test_extraction_keeps_only_the_seen_part_of_a_plane():
+    frames = plane_frames()
+    observed = ObservedSurface.from_frames(frames, 0.05, pixel_stride=2)
+
+    def field(x):  # z = 2 plane, negative behind it, and a second plane z = 1.2 no frame saw
+        return torch.minimum(PLANE_Z - x[..., 2], (x[..., 2] - 1.2).abs() - 0.01 + 0 * x[..., 0])
+
+    mesh = extract_observed(field, observed, resolution=64)  # no vertex of the unseen plane z = 1.2
+    assert (mesh.vertices[:, 2] - PLANE_Z).abs().max() < 0.01
+    hits = strided_hits(frames, 2)
+    lo, hi = hits.min(0).values, hits.max(0).values
+    assert (mesh.vertices[:, :2].double() >= lo[:2] - 0.05).all() and (mesh.vertices[:, :2].double() <= hi[:2] + 0.05).all()
+    # the crop keeps the faces in observed voxels: the mesh covers the seen part of the plane
+    area = torch.linalg.cross(*(mesh.vertices[mesh.faces[:, i]] - mesh.vertices[mesh.faces[:, 0]] for i in (1, 2))).norm(dim=-1).sum() / 2
+    seen = float((hi[0] - lo[0]) * (hi[1] - lo[1]))
+    assert 0.8 * seen < area < 1.3 * seen
+
+
+def test_crop_removes_faces_outside_and_names_an_empty_result():
+    observed = ObservedSurface(torch.zeros(3, dtype=torch.float64), 1.0, torch.zeros(2, 2, 2, dtype=torch.bool))
+    observed.mask[0, 0, 0] = True
+    mesh = Mesh(torch.tensor([[0.1, 0.1, 0.5], [0.9, 0.1, 0.5], [0.1, 0.9, 0.5], [1.5, 1.5, 0.5], [1.9, 1.5, 0.5],
+                              [1.5, 1.9, 0.5]]), torch.tensor([[0, 1, 2], [3, 4, 5]]))
+    cropped = observed.crop(mesh)
+    assert cropped.faces.tolist() == [[0, 1, 2]] and len(cropped.vertices) == 3
+    empty = ObservedSurface(torch.zeros(3, dtype=torch.float64), 1.0, torch.zeros(2, 2, 2, dtype=torch.bool))
+    with pytest.raises(Exception, match="no face of the mesh lies in an observed voxel"):
+        empty.crop(mesh)
+
+
+def test_bad_settings_are_named():
+    with pytest.raises(Exception, match="voxel > 0"):
+        ObservedSurface.from_frames(plane_frames(), 0.0)
+    frames = plane_frames()
+    frames.depth.zero_()
+    with pytest.raises(Exception, match="missing"):
+        ObservedSurface.from_frames(frames, 0.05)
