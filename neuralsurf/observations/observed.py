@@ -1,11 +1,14 @@
 """Where depth frames observed a surface: a voxel grid of the frames' votes, which limits where a field
 fitted to them is meshed (as TSDF fusion meshes only voxels that frames observed).
 
-A voxel is *observed near the surface* when it holds at least `min_hits` back-projected readings and,
-projecting its centre into every frame, the views that read a depth within the band of that centre
-(`near`) are at least as many as those that saw through it (`free`: the reading lies beyond the centre by
-more than the band). Voxels every view saw as free space, space no view saw, and readings that most
-views contradict (flying pixels at depth edges, things that moved) are not observed. A field is then
+A voxel is *observed near the surface* when it holds at least `min_hits` back-projected readings; so is
+a neighbour of such a voxel unless, projecting its centre into every frame, more views saw through it
+(`free`: their reading lies beyond the centre by more than the band) than read a depth within the band of
+it (`near`): a surface measured near a voxel's side may be fitted just across it, but not into the free
+space in front of it. Voxels every view saw as free space and space no view saw near a reading are not
+observed. (Voting on the voxels that hold readings too, to drop readings the other views contradict,
+removed real surfaces seen at grazing angles on 7-Scenes redkitchen: a voxel's centre projects to a pixel
+that reads the surface far behind it.) A field is then
 evaluated only in the observed voxels and their neighbours and its mesh keeps the faces inside observed
 voxels (`extract_observed`): no surface is extrapolated into unseen space, and none is closed against the
 edge of what was seen.
@@ -79,11 +82,9 @@ class ObservedSurface:
                     pixel_stride: int = 2, max_free_ratio: float | None = 1.0,
                     sigma_of_depth=kinect_sigma) -> ObservedSurface:
         """The observed voxels of `frames` (world frame) on a grid of `voxel`-sized cubes over their
-        readings. A voxel is observed with `min_hits` readings of every `pixel_stride`-th pixel, a `near` vote
-        and at most `max_free_ratio` times as many `free` votes (`view_votes` of its centre, with `band`: by
-        default the voxel's half diagonal, so a view that read the surface anywhere in the voxel votes near;
-        None: no vote); its neighbours that views did not see through as often are kept too (a surface
-        measured near a voxel's side may be fitted just across it)."""
+        readings: those with `min_hits` readings of every `pixel_stride`-th pixel, and their neighbours with
+        at most `max_free_ratio` times as many `free` as `near` votes (`view_votes` of the centre, with
+        `band`: by default the voxel's half diagonal; None: every neighbour)."""
         if not (voxel > 0 and min_hits >= 1 and pixel_stride >= 1):
             raise ConfigError(f"ObservedSurface needs voxel > 0, min_hits >= 1 and pixel_stride >= 1, got "
                               f"voxel={voxel}, min_hits={min_hits}, pixel_stride={pixel_stride}")
@@ -93,8 +94,8 @@ class ObservedSurface:
                              f"no surface was observed: check the depth scale (metres) and the invalid-value code")
         band = 0.5 * 3**0.5 * voxel if band is None else band
         points = strided_hits(frames, pixel_stride)
-        origin = points.min(0).values - voxel
-        shape = tuple((((points.max(0).values - origin) / voxel).floor().long() + 2).tolist())
+        origin = points.min(0).values - 2 * voxel  # every neighbour of a reading's voxel inside the grid
+        shape = tuple((((points.max(0).values - origin) / voxel).floor().long() + 3).tolist())
         cells = ((points - origin) / voxel).floor().long()
         counts = torch.bincount((cells[:, 0] * shape[1] + cells[:, 1]) * shape[2] + cells[:, 2],
                                 minlength=shape[0] * shape[1] * shape[2]).reshape(shape)
@@ -106,7 +107,7 @@ class ObservedSurface:
         agreed = trusted | (free <= (max_free_ratio or 0.0) * near)
         has_hits = candidate[tuple(cells.T)]
         observed = torch.zeros(shape, dtype=torch.bool)
-        observed[tuple(cells[has_hits & (trusted | (near >= 1)) & agreed].T)] = True
+        observed[tuple(cells[has_hits].T)] = True
         mask = observed.clone()
         neighbours = cells[~has_hits & agreed]  # beside an observed voxel and not seen through
         mask[tuple(neighbours[_dilate(observed)[tuple(neighbours.T)]].T)] = True
