@@ -106,3 +106,14 @@ def test_bad_settings_are_named():
     frames.depth.zero_()
     with pytest.raises(Exception, match="missing"):
         ObservedSurface.from_frames(frames, 0.05)
+
+
+def test_depth_rays_pixel_stride_fits_the_strided_pixels_and_names_a_bad_stride():
+    from neuralsurf.errors import ConfigError
+    from neuralsurf.observations import DepthRays
+
+    frames = plane_frames()
+    rays = DepthRays(frames, pixel_stride=2)._world_rays()
+    assert len(rays.hit) == 3 * (HEIGHT // 2) * (WIDTH // 2)
+    with pytest.raises(ConfigError, match="pixel_stride"):
+        DepthRays(frames, pixel_stride=0)

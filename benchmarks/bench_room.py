@@ -1,0 +1,131 @@
+"""A real room from depth frames: the neural fit from rays (experiment redkitchen_depth), meshed only where the
+frames observed a surface (`neuralsurf.observations.observed`), against TSDF fusion of the same frames, in one
+run: time, peak memory, held-out depth error (mean, median) and completeness, side by side.
+
+    python benchmarks/bench_room.py [--frames 50] [--steps N] [--voxel 0.04] [--maps DIR]
+
+The 7-Scenes redkitchen frames come from $NEURALSURF_DATA (or the fetch cache); every 10th frame is held out
+and the meshes are rendered from those views. --frames takes the first N frames (a block of the sequence).
+--maps writes each method's per-pixel error maps of the held-out views as PNGs (measured | rendered | signed
+error: red where the mesh lies behind the reading, blue where it stands in front, black where it shows
+nothing) and prints where the error comes from (shares of the mean by signed error).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from bench_bunny import CONFIGS
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+import neuralsurf as ns
+from neuralsurf.evaluation.methods import tsdf
+from neuralsurf.evaluation.runner import peak_memory_mb, reset_peak_memory
+from neuralsurf.geometry import render_depth
+from neuralsurf.observations.observed import ObservedSurface, extract_observed
+
+BINS = (-np.inf, -0.5, -0.05, -0.02, 0.02, 0.05, 0.5, np.inf)
+"""Signed error bins (rendered - measured, metres) of the error breakdown."""
+
+
+def run(label: str, function, *args, **kwargs):
+    """(value, wall seconds, CPU seconds of this process, peak RSS MiB) of function(*args, **kwargs)."""
+    reset_peak_memory()
+    wall, cpu = time.perf_counter(), time.process_time()
+    value = function(*args, **kwargs)
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    print(f"  {label:<44} {wall:8.1f} s wall, {cpu:8.1f} s CPU", flush=True)
+    return value, wall, cpu, peak_memory_mb()[0]
+
+
+def error_breakdown(rendered: torch.Tensor, measured: torch.Tensor) -> str:
+    """Where the held-out mean error comes from: per signed-error bin, its share of the seen pixels and
+    its part of the mean |error| (metres)."""
+    seen = (measured > 0) & (rendered > 0)
+    error = (rendered - measured)[seen].double().numpy()
+    parts = []
+    for low, high in itertools.pairwise(BINS):
+        inside = (error >= low) & (error < high)
+        parts.append(f"[{low:g}, {high:g}) m: {inside.mean():.3f} of pixels, {np.abs(error[inside]).sum() / len(error):.4f} m")
+    return "; ".join(parts)
+
+
+def error_maps(rendered: torch.Tensor, measured: torch.Tensor, path: Path, top: float = 0.2) -> None:
+    """One PNG, a row per held-out view: measured depth | rendered depth (0-5 m grey) | signed error
+    (red behind, blue in front, green 0, saturated at `top` metres; black: the mesh shows nothing there;
+    grey: no reading)."""
+    from PIL import Image
+
+    def grey(depth):
+        return np.repeat((np.clip(depth / 5.0, 0, 1) * 255).astype(np.uint8)[..., None], 3, -1)
+
+    rows = []
+    for r, m in zip(rendered.numpy(), measured.numpy()):
+        e = np.clip(np.where((m > 0) & (r > 0), r - m, 0) / top, -1, 1)
+        colour = np.stack([np.clip(e, 0, 1), 1 - np.abs(e), np.clip(-e, 0, 1)], -1)
+        colour = (colour * 255).astype(np.uint8)
+        colour[(m > 0) & ~(r > 0)] = 0
+        colour[m <= 0] = 128
+        rows.append(np.concatenate([grey(m), grey(r), colour], 1))
+    Image.fromarray(np.concatenate(rows, 0)).save(path)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=None, help="the first N frames (default: all 100)")
+    parser.add_argument("--steps", type=int, default=None, help="fit steps (default: the experiment's)")
+    parser.add_argument("--voxel", type=float, default=0.04, help="observed-space voxel, metres")
+    parser.add_argument("--maps", type=Path, default=None, help="folder for the held-out error maps (PNG)")
+    args = parser.parse_args()
+
+    overrides = ["experiment=redkitchen_depth"] + ([f"data.max_frames={args.frames}"] if args.frames else [])
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        cfg = compose(config_name="train", overrides=overrides)
+    trainer = OmegaConf.to_container(cfg.trainer, resolve=True)
+    trainer.update(steps=args.steps or trainer["steps"], progress=False, image_every=0, mesh_every=0)
+    extract = OmegaConf.to_container(cfg.extract, resolve=True)
+    print(f"machine: {platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, "
+          f"torch {torch.__version__}, CPU")
+    scene = instantiate(cfg.data)
+    print(scene.description)
+
+    torch.manual_seed(0)
+    model = instantiate(cfg.model, _convert_="all")
+    observation = instantiate(cfg.observation.rays, _convert_="all")(scene)
+
+    def neural():
+        result = ns.fit(model, observation, optimizer=instantiate(cfg.optimizer), device="cpu", **trainer)
+        observed = ObservedSurface.from_frames(scene.frames, args.voxel)
+        return extract_observed(result.field, observed, resolution=extract["resolution"])
+
+    print(f"neural: {trainer['steps']} steps, observed voxels {args.voxel} m, extraction {extract['resolution']} cells")
+    rows = {"neural (rays)": run("neural fit + observed extraction", neural),
+            "TSDF": run("TSDF fusion, 1/256 voxels", tsdf, scene, device="cpu")}
+    held = scene.held_out
+    print(f"\n{'':<14} {'wall s':>8} {'CPU s':>8} {'peak MiB':>9} {'mean cm':>8} {'median mm':>10} {'compl.':>7}")
+    for name, (mesh, wall, cpu, memory) in rows.items():
+        metrics = ns.metrics.depth_metrics(mesh, held)
+        print(f"{name:<14} {wall:8.1f} {cpu:8.1f} {memory:9.0f} {100 * metrics['depth_error_mean']:8.2f} "
+              f"{1000 * metrics['depth_error_median']:10.2f} {metrics['depth_completeness']:7.3f}")
+    (_, neural_wall, neural_cpu, _), (_, tsdf_wall, tsdf_cpu, _) = rows.values()
+    print(f"time ratio neural / TSDF: {neural_wall / tsdf_wall:.1f}x wall, {neural_cpu / tsdf_cpu:.1f}x CPU")
+    for name, (mesh, *_) in rows.items():
+        rendered, _ = render_depth(mesh, held.K.cpu(), held.cam_to_world.cpu(), held.width, held.height)
+        print(f"{name} held-out error by sign: {error_breakdown(rendered, held.depth.cpu())}")
+        if args.maps is not None:
+            args.maps.mkdir(parents=True, exist_ok=True)
+            path = args.maps / f"{name.split()[0].lower()}_held_out_error.png"
+            error_maps(rendered, held.depth.cpu(), path)
+            print(f"  error maps: {path}")
+
+
+if __name__ == "__main__":
+    main()
