@@ -24,8 +24,8 @@ Integration, a pass of `frames_per_pass` frames at a time (one on a CPU, 32 on a
 
 Extraction
     Marching cubes through `neuralsurf.extract.level_set` on the blocks that may hold a sign change,
-    packed as cubes with a margin (`TSDFVolume._block_tiles`), cells with an unobserved corner
-    skipped; vertices merged by the grid edge they lie on (`neuralsurf.extract.merge_on_edges`), so
+    packed as cubes with a margin (`TSDFVolume._block_tiles`), groups of blocks on `threads` worker
+    threads, cells with an unobserved corner skipped; vertices merged by the grid edge they lie on (`neuralsurf.extract.merge_on_edges`), so
     the mesh has no seams between blocks.
 """
 
@@ -185,7 +185,8 @@ class TSDFVolume:
             chunks of blocks side by side, each torch op on one thread (torch's setting restored
             afterwards); "auto" or None: as many as torch's threads. Compiled fusion: torch's threads
             ("auto" or None: torch's setting; compiled loops keep the thread count of the process's
-            first compiled fusion). Extraction: torch's threads, "auto" 1, None torch's setting.
+            first compiled fusion). Extraction: worker threads that mesh groups of blocks side by side,
+            as many as eager fusion's.
         compiled: on a CPU, compile the fusion with torch.compile (see the module docstring; needs a
             C++ compiler, else a warning and eager fusion); None: for `integrate` calls of at least
             _COMPILE_PIXELS depth pixels, where compilation pays for itself. No effect on a GPU.
@@ -569,18 +570,19 @@ class TSDFVolume:
         (towards positive TSDF, i.e. the cameras), with vertex colours when `with_color`.
 
         The blocks that may own a cell with a sign change (an observed value <= 0 in them or in one of
-        the seven blocks after them), _MESH_BLOCKS at a time, are packed as cubes side by side
+        the seven blocks after them), at most _MESH_BLOCKS at a time (on `threads` worker threads), are packed as cubes side by side
         (`_block_tiles`) and meshed by `neuralsurf.extract.level_set`, each cube's own cells only and
         cells with an unobserved corner skipped. A vertex on a block's face is found from the same values
         in each block that shares it; vertices are merged by the grid edge they lie on, so the mesh has
         no seams between blocks."""
         if self.frames_integrated == 0:
             raise ExtractionError("the TSDF volume is empty: call integrate(frames) before extract_mesh()")
-        threads = (1 if self.threads == "auto" else self.threads) if self.device.type == "cpu" else None
-        with torch_threads(threads):
-            return self._extract_mesh()
+        cpu = self.device.type == "cpu"
+        workers = (torch.get_num_threads() if self.threads in (None, "auto") else self.threads) if cpu else 1
+        with torch_threads(1 if cpu else None), ThreadPoolExecutor(workers) as pool:
+            return self._extract_mesh(pool, workers)
 
-    def _extract_mesh(self) -> Mesh:
+    def _extract_mesh(self, pool: Executor, workers: int) -> Mesh:
         tsdf, weight = self._tsdf[: self._used], self._weight[: self._used]
         observed = weight > 0
         if not observed.any():
@@ -602,14 +604,20 @@ class TSDFVolume:
         own = torch.zeros(side, dtype=torch.bool)
         own[1 : size + 1] = True  # a cube's own cells: first corners at its block's voxels
         own = own[:, None, None] & own[None, :, None] & own[None, None, :]
-        points, faces, count = [], [], 0
-        for part in keys.split(_MESH_BLOCKS):
+
+        def mesh_part(part: Tensor) -> tuple[np.ndarray, np.ndarray]:  # grid positions, faces
             values, valid, (a, b, c) = self._block_tiles(part, tsdf, weight)
             cells = own.repeat(a, b, c)[:-1, :-1, :-1].numpy()
             vertices, triangles = level_set(values.cpu().numpy(), 0.0, valid.cpu().numpy(), cells)
             tile = np.floor(vertices / side).astype(np.int64)
             block = self._block_coords(part).cpu().numpy()[(tile[:, 0] * b + tile[:, 1]) * c + tile[:, 2]]
-            points.append(block * size - 1 + (vertices.astype(np.float64) - tile * side))
+            return block * size - 1 + (vertices.astype(np.float64) - tile * side), triangles
+
+        per_call = max(64, min(_MESH_BLOCKS, -(-len(keys) // (2 * workers))))  # a few calls a worker
+        pieces = list(pool.map(mesh_part, keys.split(per_call)))
+        points, faces, count = [], [], 0
+        for vertices, triangles in pieces:
+            points.append(vertices)
             faces.append(triangles + count)
             count += len(vertices)
         if not count:
