@@ -126,10 +126,10 @@ def depth_bounds(frames: DepthFrames, margin: float = 0.0) -> Tensor:
 
 
 _COMPILE_PIXELS = 300 * 640 * 480
-"""TSDFVolume(compiled=None) compiles an `integrate` call on a CPU from this many depth pixels on. Measured on
-7-Scenes at 1 cm, 2 cores, against the eager path of one thread: 56 ms a frame eager, 19 compiled after a
-compilation of 11 s (from torch's on-disk cache; 20-35 s without): compiling paid from about 300 frames of
-640 x 480. The eager path now takes about 18 ms of CPU a frame, on two worker threads: re-measure."""
+"""TSDFVolume(compiled=None) compiles an `integrate` call on a CPU from this many depth pixels on. Set on
+7-Scenes at 1 cm, 2 cores: 19 ms a frame compiled after a compilation of 11 s (from torch's on-disk cache;
+20-35 s without) against 56 ms for a one-thread eager path with 2 x 2 band tiles. The eager path with 4 x 4
+tiles and worker threads takes about 18 ms of CPU a frame there, so compiling may not pay at all."""
 
 
 class CompiledOnCPU:
