@@ -254,8 +254,9 @@ def level_set(values: np.ndarray, level: float = 0.0, valid: np.ndarray | None =
     corner gets no faces. cells: Bool[ndarray, "X-1 Y-1 Z-1"] the cells to mesh (default all), e.g. one
     piece of a larger grid. Returns vertices Float32[ndarray, "v 3"] and faces Int64[ndarray, "f 3"],
     oriented towards values above `level`; both empty when no cell holds a face. A vertex's position
-    depends only on its edge's two values, so two calls that share a plane of points give the same
-    vertices on it. On a CUDA `device` (all cells) the cubes are marched there (`neuralsurf.marching`:
+    depends only on its edge's two values after `off_level` (which reads each point's six neighbours),
+    so calls on pieces of a grid that overlap by those neighbours give the same vertices where their
+    cells meet (`merge_on_edges` joins them). On a CUDA `device` (all cells) the cubes are marched there (`neuralsurf.marching`:
     the same vertices as skimage's, ambiguous cells triangulated alike or otherwise); else by skimage's
     Lewiner marching cubes on the CPU, skipping masked cells.
     """
