@@ -9,26 +9,25 @@ from neuralsurf.sampling import draw_batch, make_sdf_samples
 from neuralsurf.scenes import Sphere
 
 
-class ExactSphere(torch.nn.Module):
-    def __init__(self, radius: float = 0.3):
-        super().__init__()
-        self.sphere = Sphere(radius=radius)
-
-    def forward(self, x):
-        return self.sphere.sdf(x)
-
-
-def sphere_batch(with_normals: bool = True):
-    cloud = Sphere(radius=0.3).sample_surface(5000, seed=1)
-    if not with_normals:
-        cloud = cloud.with_normals(None)
+def batch_of(cloud):
     samples = make_sdf_samples(cloud, n_near=20_000, n_free=5000, seed=0)
     return draw_batch(samples, 2048, 0.25, torch.Generator().manual_seed(0))
 
 
-def test_exact_sphere_sdf_scores_about_zero():
-    batch = sphere_batch()
-    terms = point_terms(evaluate_sdf_batch(ExactSphere(), batch), batch, DEFAULT_POINT_WEIGHTS)
+@pytest.fixture(scope="module")
+def batch(sphere_samples):
+    """A batch of SDF samples of the analytic sphere's surface samples, normals included."""
+    return batch_of(sphere_samples)
+
+
+@pytest.fixture(scope="module")
+def bare_batch(sphere_samples):
+    """The same without normals."""
+    return batch_of(sphere_samples.with_normals(None))
+
+
+def test_exact_sphere_sdf_scores_about_zero(batch, sphere_field):
+    terms = point_terms(evaluate_sdf_batch(sphere_field, batch), batch, DEFAULT_POINT_WEIGHTS)
     assert set(terms) == {"surface", "sdf", "normal", "eikonal"}
     assert terms["surface"] < 1e-6
     assert terms["normal"] < 1e-6
@@ -37,14 +36,12 @@ def test_exact_sphere_sdf_scores_about_zero():
     assert terms["sdf"] < 2e-3
 
 
-def test_wrong_sphere_scores_its_error():
-    batch = sphere_batch()
-    terms = point_terms(evaluate_sdf_batch(ExactSphere(radius=0.35), batch), batch, DEFAULT_POINT_WEIGHTS)
+def test_wrong_sphere_scores_its_error(batch, analytic_field):
+    terms = point_terms(evaluate_sdf_batch(analytic_field(Sphere(radius=0.35).sdf), batch), batch, DEFAULT_POINT_WEIGHTS)
     assert terms["surface"].item() == pytest.approx(0.05, abs=1e-5)
 
 
-def test_without_near_gradient_the_values_match_and_grad_f_covers_surface_and_free_points():
-    batch = sphere_batch()
+def test_without_near_gradient_the_values_match_and_grad_f_covers_surface_and_free_points(batch, sphere_field):
     torch.manual_seed(0)
     model = torch.nn.Sequential(torch.nn.Linear(3, 16), torch.nn.Softplus(beta=10), torch.nn.Linear(16, 1),
                                 torch.nn.Flatten(0))
@@ -53,17 +50,16 @@ def test_without_near_gradient_the_values_match_and_grad_f_covers_surface_and_fr
         assert torch.allclose(getattr(lean, name), getattr(full, name), atol=1e-6)
     n, m = len(batch.surface_points), len(batch.near_points)
     assert torch.allclose(lean.gradient, torch.cat([full.gradient[:n], full.gradient[n + m :]]), atol=1e-6)
-    exact = point_terms(evaluate_sdf_batch(ExactSphere(), batch, near_gradient=False), batch, DEFAULT_POINT_WEIGHTS)
+    exact = point_terms(evaluate_sdf_batch(sphere_field, batch, near_gradient=False), batch, DEFAULT_POINT_WEIGHTS)
     assert exact["eikonal"] < 1e-6 and exact["normal"] < 1e-6
     terms = point_terms(lean, batch, DEFAULT_POINT_WEIGHTS)
     sum(terms.values()).backward()  # the near samples' sdf term reaches the weights by a first-order pass
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.parameters())
 
 
-def test_terms_without_normals_and_weights_switch_terms_off():
-    batch = sphere_batch(with_normals=False)
+def test_terms_without_normals_and_weights_switch_terms_off(bare_batch, sphere_field):
     weights = {**DEFAULT_POINT_WEIGHTS, "normal": 0.5, "eikonal": 0.0, "off_surface": 1.0}
-    terms = point_terms(evaluate_sdf_batch(ExactSphere(), batch), batch, weights)
+    terms = point_terms(evaluate_sdf_batch(sphere_field, bare_batch), bare_batch, weights)
     assert set(terms) == {"surface", "off_surface"}  # no normals: no sdf and normal terms
 
 
@@ -73,20 +69,19 @@ def test_loss_primitives_on_hand_made_values():
     assert normal_loss(torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[0.0, 0.0, -1.0]])) == pytest.approx(2.0)
 
 
-def test_bad_weights_are_reported():
-    cloud = Sphere(radius=0.3).sample_surface(100, seed=1)
+def test_bad_weights_are_reported(sphere, bare_batch, sphere_field):
+    cloud = sphere.sample_surface(100, seed=1)
     with pytest.raises(ConfigError, match=">= 0"):
         PointSamples(cloud, weights={"surface": -1.0})
     with pytest.raises(ConfigError, match="no loss term"):
         PointSamples(cloud, weights={"surfce": 1.0})
     with pytest.raises(ConfigError, match="at least one"):
         PointSamples(cloud, weights={name: 0.0 for name in DEFAULT_POINT_WEIGHTS})
-    batch = sphere_batch(with_normals=False)
     with pytest.raises(ConfigError, match="lacks its data"):
-        point_terms(evaluate_sdf_batch(ExactSphere(), batch), batch, {"normal": 1.0})
+        point_terms(evaluate_sdf_batch(sphere_field, bare_batch), bare_batch, {"normal": 1.0})
 
 
-def test_the_point_loss_has_the_parameter_gradients_finite_differences_give_in_float64():
+def test_the_point_loss_has_the_parameter_gradients_finite_differences_give_in_float64(sphere):
     """gradcheck of the fit's weighted point loss (every term on, grad f inside the normal and eikonal
     terms, so the backward is a double backward) with respect to a small SDFMLP's weights, on an
     analytic sphere's samples."""
@@ -97,7 +92,6 @@ def test_the_point_loss_has_the_parameter_gradients_finite_differences_give_in_f
 
     torch.manual_seed(0)
     model = SDFMLP(width=8, depth=2, skip_layers=(), weight_norm=False, softplus_beta=10.0).double()
-    sphere = Sphere(radius=0.3)
     generator = torch.Generator().manual_seed(0)
     surface = sphere.sample_surface(6, seed=2)
     near = surface.points + 0.02 * torch.randn(6, 3, dtype=torch.float64, generator=generator)

@@ -23,12 +23,12 @@ def test_forward_shapes(encoding, latent_dim):
 
 
 @pytest.mark.parametrize("activation", ["relu", "softplus"])
-def test_geometric_init_is_close_to_a_sphere(activation):
+def test_geometric_init_is_close_to_a_sphere(activation, sphere):
     torch.manual_seed(0)
     model = SDFMLP(width=256, depth=4, skip_layers=(2,), activation=activation, init_radius=0.3)
     x = grid_points()
     f = model(x).detach()
-    truth = Sphere(radius=0.3).sdf(x)
+    truth = sphere.sdf(x)
     # sign agreement away from the sphere and a strong linear relation to |x|
     far = truth.abs() > 0.1
     assert ((f[far] < 0) == (truth[far] < 0)).float().mean() > 0.97
