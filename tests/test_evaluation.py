@@ -60,12 +60,16 @@ def test_every_scene_and_method_config_is_loaded():
     cfg = compose_evaluate([])
     assert set(SCENES) == set(cfg.scene) and set(METHODS) == set(cfg.method)
     for name in SCENES:
-        assert cfg.scene[name]._target_.startswith("neuralsurf.scenes.")
+        assert cfg.scene[name]._target_.startswith(("neuralsurf.scenes.", "neuralsurf.priors."))
     # the neural method reuses train.py's groups
     assert cfg.method.neural_sdf.model._target_ == "neuralsurf.models.SDFMLP"
-    assert cfg.method.neural_sdf.points._target_ == "neuralsurf.observations.PointSamples.from_scene"
-    assert cfg.method.neural_sdf.rays._target_ == "neuralsurf.observations.DepthRays.from_scene"
-    assert cfg.method.neural_sdf_points.rays is None
+    observations = cfg.method.neural_sdf.observations
+    assert list(observations) == ["rays", "points"] and cfg.method.neural_sdf.first_applicable
+    assert observations.points._target_ == "neuralsurf.observations.PointSamples.from_scene"
+    assert observations.rays._target_ == "neuralsurf.observations.DepthRays.from_scene"
+    assert cfg.method.neural_sdf_points.observations.rays is None
+    for name in ("neural_sdf", "neural_sdf_points", "neural_depth", "neural_depth_normals"):
+        assert cfg.method[name]._target_ == "neuralsurf.evaluation.methods.fit_and_extract"
     assert "steps" in cfg.method.neural_sdf.trainer and "resolution" in cfg.method.neural_sdf.extract
 
 
@@ -160,12 +164,13 @@ def test_neural_checkpoint_is_scored_again(tmp_path):
     assert again[0]["chamfer_l1"] == pytest.approx(first[0]["chamfer_l1"], abs=1e-6)
 
 
+@pytest.mark.subprocess
 def test_quick_suite_runs_as_a_user_runs_it(tmp_path):
     """`python evaluate.py suite=quick`, unchanged, in a subprocess: CI runs the quick suite itself (a few
     minutes on 2 cores), and its table lists every method x scene with sound numbers."""
     pytest.importorskip("pymeshlab", reason="the bunny scenes need neuralsurf[data]")
     out = subprocess.run([sys.executable, "evaluate.py", "suite=quick", f"hydra.run.dir={tmp_path}"],
-                         cwd=REPO, capture_output=True, text=True, timeout=1200)
+                         check=False, cwd=REPO, capture_output=True, text=True, timeout=1200)
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
     stored = json.loads((tmp_path / "results.json").read_text())
     rows = {(r["scene"], r["method"]): r for r in stored["rows"]}
@@ -211,6 +216,7 @@ def chromium_driver():
     return webdriver.Chrome(options=options, service=webdriver.ChromeService(executable_path=driver))
 
 
+@pytest.mark.browser
 def test_report_opens_in_headless_chromium_with_table_plots_and_every_render(tmp_path):
     """report.html as a user sees it: one table row per result (a failed one with its reason), and every
     plot and render decoded by the browser and laid out with a size."""

@@ -30,8 +30,9 @@ def test_photometric_suite_composes_with_the_issue_names():
     assert list(cfg.methods) == ["ps_least_squares", "ps_robust", "neural_depth", "neural_depth_normals",
                                  "nehab_tsdf", "tsdf"]
     OmegaConf.to_container(cfg, resolve=True)
-    assert cfg.method.neural_depth_normals.normals._target_ == "neuralsurf.observations.NormalMaps.from_scene"
-    assert "normals" not in cfg.method.neural_depth and cfg.method.neural_depth.rays is not None
+    observations = cfg.method.neural_depth_normals.observations
+    assert observations.normals._target_ == "neuralsurf.observations.NormalMaps.from_scene"
+    assert list(cfg.method.neural_depth.observations) == ["rays"] and list(observations) == ["rays", "normals"]
 
 
 def test_photometric_stereo_rows_on_a_small_rig(tmp_path):
@@ -57,10 +58,10 @@ def test_photometric_stereo_rows_on_a_small_rig(tmp_path):
 def test_fusion_methods_run_on_a_tiny_rig_fusion(tmp_path):
     pytest.importorskip("pymeshlab", reason="rig_fusion renders the bunny (neuralsurf[data])")
     tiny_fit = {"trainer.steps": 3, "trainer.log_every": 1, "extract.resolution": 32, "extract.coarse_to_fine": False,
-                "save_checkpoint": False, "rays.n_rays": 64, "rays.n_uniform": 64,
+                "save_checkpoint": False, "observations.rays.n_rays": 64, "observations.rays.n_uniform": 64,
                 "model.encoding.log2_table_size": 12, "model.encoding.levels": 4}
     overrides = [f"method.{m}.{k}={v}" for m in ("neural_depth", "neural_depth_normals") for k, v in tiny_fit.items()]
-    overrides += ["method.neural_depth_normals.normals.n_pixels=64"]
+    overrides += ["method.neural_depth_normals.observations.normals.n_pixels=64"]
     rows = run(tmp_path, ["scenes=[rig_fusion]", "methods=[neural_depth,neural_depth_normals,nehab_tsdf,ps_robust]",
                           "scene.rig_fusion.n_views=3", "scene.rig_fusion.width=64", "scene.rig_fusion.height=48",
                           "scene.rig_fusion.n_lights=8", "method.nehab_tsdf.voxel_fraction=0.02", *overrides])

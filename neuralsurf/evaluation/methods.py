@@ -10,7 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -41,25 +41,38 @@ def extract_scene_mesh(field: nn.Module, scene: Scene, extract: dict[str, Any] |
     return extract_mesh(field if near is None else NearPointsField(field, scene.cloud.points, near), **options)
 
 
-def neural_sdf(scene: Scene, *, model: nn.Module | None = None, points: Callable | None = None,
-               rays: Callable | None = None, optimizer: Callable | None = None, trainer: dict[str, Any] | None = None,
-               extract: dict[str, Any] | None = None, device: str = "auto", checkpoint: str | None = None,
-               save_checkpoint: bool = True, seed: int = 0, run_dir: str | Path | None = None,
-               config: dict | None = None) -> Mesh:
-    """Fit a neural SDF with `neuralsurf.fit` (as train.py does) and extract it: from the depth frames as
-    rays (`rays(scene)`) when the scene is a depth capture and `rays` is given, else from its point cloud
-    (`points(scene)`); or, with `checkpoint`, score an existing fit (`load_field`)."""
+def fit_and_extract(scene: Scene, model: nn.Module | None = None,
+                    observations: Sequence[Callable] | Mapping[str, Callable | None] | None = None, *,
+                    first_applicable: bool = False, optimizer: Callable | None = None,
+                    trainer: dict[str, Any] | None = None, extract: dict[str, Any] | None = None,
+                    device: str = "auto", checkpoint: str | None = None, save_checkpoint: bool = True, seed: int = 0,
+                    run_dir: str | Path | None = None, config: dict | None = None) -> Mesh:
+    """Fit a neural SDF to the scene with `neuralsurf.fit` (as train.py does) and extract it; or, with
+    `checkpoint`, score an existing fit (`load_field`).
+
+    `observations`: builders of the scene's Observations (`Observation.from_scene` partials: a
+    method config's `observations` group, name -> builder, None entries left out), fitted together
+    (a scene lacking one is NotApplicable); with `first_applicable`, only the first one the scene has
+    (depth rays for a depth capture, else its point cloud)."""
     if checkpoint is not None:
         return extract_scene_mesh(load_field(checkpoint, device=device), scene, extract)
-    if model is None or points is None:
-        raise NeuralsurfError("neural_sdf needs a model and a points observation (configs), or a checkpoint")
-    try:
-        observation = rays(scene) if (rays is not None and scene.depth_input) else points(scene)
-    except NotObserved as error:
-        raise NotApplicable(str(error)) from None
+    builders = [b for b in (observations.values() if isinstance(observations, Mapping) else observations or [])
+                if b is not None]
+    if model is None or not builders:
+        raise NeuralsurfError("fit_and_extract needs a model and at least one observation (configs), or a checkpoint")
+    fitted = []
+    for build in builders:
+        try:
+            fitted.append(build(scene))
+        except NotObserved as error:
+            if not first_applicable or build is builders[-1]:
+                raise NotApplicable(str(error)) from None
+            continue
+        if first_applicable:
+            break
     trainer = {**(trainer or {}), "resume": False}
     fit_dir = Path(run_dir) if (run_dir is not None and save_checkpoint) else None
-    result = fit(model, [observation], optimizer=optimizer or default_optimizer, device=device, seed=seed,
+    result = fit(model, fitted, optimizer=optimizer or default_optimizer, device=device, seed=seed,
                  run_dir=fit_dir, config=config or {}, **trainer)
     return extract_scene_mesh(result.field, scene, extract)
 

@@ -4,23 +4,22 @@
   a scene; it returns a `NormalMapResult`, not a mesh, which the runner scores by angular error
   against the ground-truth normals (`score_normal_maps`) and, with `integrate`, by the depth error
   of the integrated normal map against the rig's depth (scale-aligned, perspective).
-- `neural_fusion` (neural_depth, neural_depth_normals): a neural SDF fitted to the depth frames as
-  rays, optionally with the scene's photometric normal maps (`NormalMaps`), then extracted.
+- neural_depth, neural_depth_normals: `methods.fit_and_extract` of the depth frames as rays,
+  optionally with the scene's photometric normal maps (`NormalMaps`).
 - `nehab_tsdf`: each depth map fused with its normal map (Nehab et al. 2005), then TSDF fusion.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
-from neuralsurf.evaluation.methods import NotApplicable, extract_scene_mesh
+from neuralsurf.evaluation.methods import NotApplicable
 from neuralsurf.evaluation.store import row_stem
 from neuralsurf.scenes import Scene
 from neuralsurf.structures import Mesh
@@ -163,31 +162,6 @@ def normal_map_picture(result: NormalMapResult, scene_name: str, method: str, ru
     return str(path)
 
 
-def neural_fusion(scene: Scene, *, model: nn.Module | None = None, rays: Callable | None = None,
-                  normals: Callable | None = None, optimizer: Callable | None = None,
-                  trainer: dict[str, Any] | None = None, extract: dict[str, Any] | None = None, device: str = "auto",
-                  save_checkpoint: bool = True, seed: int = 0, run_dir: str | Path | None = None,
-                  config: dict | None = None) -> Mesh:
-    """A neural SDF fitted to the scene's depth frames as rays (`rays(scene)`, a DepthRays partial)
-    and, when `normals` is given, to its photometric normal maps (`normals(scene)`, a NormalMaps
-    partial), summed in one `fit`; then `extract_mesh`. Scenes without depth frames (or without
-    normal maps, when `normals` is given) are NotApplicable."""
-    from neuralsurf.observations import NotObserved
-    from neuralsurf.training import default_optimizer, fit
-
-    if model is None or rays is None:
-        raise NotApplicable("neural_fusion needs a model and a depth-rays observation (configs)")
-    try:
-        observations = [rays(scene)] + ([normals(scene)] if normals is not None else [])
-    except NotObserved as error:
-        raise NotApplicable(str(error)) from None
-    trainer = {**(trainer or {}), "resume": False}
-    fit_dir = Path(run_dir) if (run_dir is not None and save_checkpoint) else None
-    result = fit(model, observations, optimizer=optimizer or default_optimizer, device=device, seed=seed,
-                 run_dir=fit_dir, config=config or {}, **trainer)
-    return extract_scene_mesh(result.field, scene, extract)
-
-
 def nehab_tsdf(scene: Scene, *, position_weight: float = 0.1, max_depth_jump: float = 0.05,
                min_confidence: float = 0.0, voxel_fraction: float = 1 / 256, truncation_voxels: float = 4.0,
                margin_fraction: float = 0.05, device: str = "auto", weighting: str = "constant", seed: int = 0,
@@ -211,5 +185,5 @@ def nehab_tsdf(scene: Scene, *, position_weight: float = 0.1, max_depth_jump: fl
                 margin_fraction=margin_fraction, device=device, weighting=weighting)
 
 
-__all__ = ["NormalMapResult", "nehab_tsdf", "neural_fusion", "normal_map_picture", "photometric_normals",
+__all__ = ["NormalMapResult", "nehab_tsdf", "normal_map_picture", "photometric_normals",
            "score_normal_maps"]
