@@ -146,17 +146,19 @@ def test_open3d_engine_agrees_with_the_reference_steps(bunny, target, method, ke
 def test_open3d_tensor_pipeline_recovers_the_motion(bunny, target, pyramid):
     """The GPU path (Open3D's tensor ICP / multi-scale ICP), run on the CPU here, against the
     reference on an exact motion of the same sample."""
-    from neuralsurf.baselines.icp import _icp_open3d_tensor
+    from neuralsurf.baselines.icp import LEAST_SQUARES, ICPProblem, _icp_open3d_tensor
+    from neuralsurf.strategies import choose
 
     _, size = bunny
     truth = random_motion(8, 10.0, 0.03 * size, center=target.points.mean(0).numpy())
     source = moved(target, np.linalg.inv(truth))
     v = 0.01 * size
     levels = [4 * v, 2 * v, v] if pyramid else [None]
-    transform, fitness, rmse, iterations = _icp_open3d_tensor(
+    problem = ICPProblem(
         source.points.numpy(), target.points.double().numpy(), target.normals.double().numpy(), np.eye(4), levels,
-        0.1 * size, "point_to_plane", None, None, 100, 1e-10, 1e-10, True, device="CPU:0",
+        0.1 * size, choose("ICP method", "point_to_plane"), LEAST_SQUARES, None, 100, 1e-10, 1e-10, True, "cpu",
     )
+    transform, fitness, rmse, iterations = _icp_open3d_tensor(problem, device="CPU:0")
     angle, shift = errors(transform, truth)
     assert angle < 0.01 and shift < 1e-4 * size
     # exact on the full clouds; on the finest level's voxel centroids, which differ between the two clouds
@@ -164,7 +166,7 @@ def test_open3d_tensor_pipeline_recovers_the_motion(bunny, target, pyramid):
 
 
 def test_engine_and_device_are_checked(target):
-    with pytest.raises(ConfigError, match="unknown ICP engine"):
+    with pytest.raises(ConfigError, match="unknown ICP engine 'pcl'; choose one of 'reference', 'open3d'"):
         register_icp(target, target, 0.01, engine="pcl")
     with pytest.raises(ConfigError, match="device must be"):
         register_icp(target, target, 0.01, device="tpu")
@@ -422,6 +424,24 @@ def test_multiway_scans_without_overlap(target, bunny):
     apart = [target, PointCloud(target.points + 100 * size), target]
     with pytest.raises(InputError, match=r"split into 2 groups.*\[\[0, 2\], \[1\]\]"):
         register_multiway(apart, voxel_size=0.02 * size)
+
+
+def test_an_engine_of_ones_own_gets_the_checked_problem(target):
+    """The engine interface: engine(ICPProblem) -> (transform, fitness, rmse, iterations)."""
+    seen = []
+
+    def engine(problem):
+        seen.append(problem)
+        return problem.init, 0.5, 0.25, 7
+
+    init = np.eye(4)
+    init[:3, 3] = (0.01, 0.0, 0.0)
+    result = register_icp(target, target, 0.01, init=init, method="point_to_plane", kernel="huber", kernel_scale=0.1,
+                          engine=engine, device="cpu")
+    assert torch.equal(result.transform, torch.from_numpy(init)) and (result.fitness, result.inlier_rmse) == (0.5, 0.25)
+    problem = seen[0]
+    assert problem.method.needs_normals and problem.kernel.name == "huber" and problem.levels == [None]
+    assert problem.source.dtype == np.float64 and problem.device == "cpu" and result.iterations == 7
 
 
 @pytest.mark.parametrize(

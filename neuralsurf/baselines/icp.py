@@ -21,6 +21,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -30,6 +31,7 @@ from torch import Tensor
 from neuralsurf import geometry
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.progress import progress_bar
+from neuralsurf.strategies import choose, register
 from neuralsurf.structures import PointCloud
 
 __all__ = [
@@ -45,9 +47,6 @@ __all__ = [
     "voxel_downsample",
 ]
 
-METHODS = ("point_to_point", "point_to_plane")
-KERNELS = (None, "huber", "tukey")
-ENGINES = ("open3d", "reference")
 
 
 @dataclass(frozen=True)
@@ -121,15 +120,15 @@ def _check_transform(init, name: str = "init", tolerance: float = 1e-5) -> np.nd
 
 
 def _check_options(
-    method: str, kernel: str | None, kernel_scale: float | None, max_distance: float, max_iterations: int
-) -> None:
-    if method not in METHODS:
-        raise ConfigError(f"unknown ICP method {method!r}; choose 'point_to_point' or 'point_to_plane'")
-    if kernel not in KERNELS:
-        raise ConfigError(f"unknown robust kernel {kernel!r}; choose None, 'huber' or 'tukey'")
-    if kernel is not None and not (kernel_scale is not None and kernel_scale > 0):
+    method, kernel, kernel_scale: float | None, max_distance: float, max_iterations: int
+) -> tuple[Any, Any]:
+    """The ICP method and robust kernel strategies that `method` and `kernel` (None: least squares)
+    name, after checking the options; ConfigError naming what is wrong."""
+    method = choose("ICP method", method)
+    kernel = LEAST_SQUARES if kernel is None else choose("robust kernel", kernel)
+    if kernel is not LEAST_SQUARES and not (kernel_scale is not None and kernel_scale > 0):
         raise ConfigError(
-            f"kernel={kernel!r} needs kernel_scale > 0 (got {kernel_scale}): the residual, in the clouds' "
+            f"kernel={kernel.name!r} needs kernel_scale > 0 (got {kernel_scale}): the residual, in the clouds' "
             f"units, where down-weighting starts; about the noise standard deviation (Huber) or the "
             f"largest residual still trusted (Tukey)"
         )
@@ -139,6 +138,7 @@ def _check_options(
         )
     if max_iterations < 1:
         raise ConfigError(f"max_iterations must be >= 1, got {max_iterations}")
+    return method, kernel
 
 
 # ----------------------------------------------------------------------------- small pure pieces
@@ -185,13 +185,38 @@ def _axis_angle_to_matrix(omega: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
 
 
-def _kernel_weights(residuals: np.ndarray, kernel: str | None, scale: float | None) -> np.ndarray:
-    """IRLS weights rho'(r) / r (n,) of absolute residuals (n,) for the robust kernel."""
-    if kernel is None:
+class LeastSquares:
+    """No robust kernel: every correspondence weighs 1."""
+
+    name, open3d_name = None, "L2Loss"
+
+    def weights(self, residuals: np.ndarray, scale: float | None) -> np.ndarray:
+        """IRLS weights rho'(r) / r (n,) of absolute residuals (n,)."""
         return np.ones_like(residuals)
-    if kernel == "huber":
+
+
+class Huber(LeastSquares):
+    """Huber's kernel: weight 1 up to `scale`, then scale / r."""
+
+    name, open3d_name = "huber", "HuberLoss"
+
+    def weights(self, residuals: np.ndarray, scale: float | None) -> np.ndarray:
         return np.where(residuals <= scale, 1.0, scale / np.maximum(residuals, 1e-300))
-    return np.where(residuals <= scale, np.square(1 - np.square(residuals / scale)), 0.0)  # tukey
+
+
+class Tukey(LeastSquares):
+    """Tukey's biweight: (1 - (r / scale)^2)^2 up to `scale`, then 0."""
+
+    name, open3d_name = "tukey", "TukeyLoss"
+
+    def weights(self, residuals: np.ndarray, scale: float | None) -> np.ndarray:
+        return np.where(residuals <= scale, np.square(1 - np.square(residuals / scale)), 0.0)
+
+
+LEAST_SQUARES = LeastSquares()
+"""kernel=None: plain least squares."""
+register("robust kernel", "huber")(Huber())
+register("robust kernel", "tukey")(Tukey())
 
 
 def kabsch(source: np.ndarray, target: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -247,6 +272,64 @@ def point_to_plane_step(
     return matrix
 
 
+class PointToPoint:
+    """Point-to-point ICP: the residuals are the match distances, the update a weighted Kabsch."""
+
+    needs_normals = False
+
+    def residuals(self, p: np.ndarray, q: np.ndarray, normals: np.ndarray | None, distances: np.ndarray):
+        """Absolute residuals (n,) of matched source points p (n, 3) and target points q (n, 3)."""
+        return distances
+
+    def update(self, p: np.ndarray, q: np.ndarray, normals: np.ndarray | None, weights: np.ndarray):
+        """The rigid update (4, 4) from the matches, weighted (n,)."""
+        return kabsch(p, q, weights)
+
+    def open3d(self, kernel: LeastSquares, scale: float | None):
+        """Its estimation object for Open3D's legacy `registration_icp` (no robust kernel there)."""
+        import open3d as o3d
+
+        return o3d.pipelines.registration.TransformationEstimationPointToPoint()
+
+    def open3d_tensor(self, kernel: LeastSquares, scale: float | None):
+        """Its estimation object for Open3D's tensor pipeline."""
+        import open3d as o3d
+
+        return o3d.t.pipelines.registration.TransformationEstimationPointToPoint()
+
+
+class PointToPlane(PointToPoint):
+    """Point-to-plane ICP: residuals along the target normals, the update a linearised least-squares
+    step (`point_to_plane_step`)."""
+
+    needs_normals = True
+
+    def residuals(self, p, q, normals, distances):
+        return np.abs(((p - q) * normals).sum(1))
+
+    def update(self, p, q, normals, weights):
+        return point_to_plane_step(p, q, normals, weights)
+
+    def open3d(self, kernel: LeastSquares, scale: float | None):
+        import open3d as o3d
+
+        registration = o3d.pipelines.registration
+        robust = getattr(registration, kernel.open3d_name)(**({} if kernel.name is None else {"k": scale}))
+        return registration.TransformationEstimationPointToPlane(robust)
+
+    def open3d_tensor(self, kernel: LeastSquares, scale: float | None):
+        import open3d as o3d
+
+        robust_kernel = o3d.t.pipelines.registration.robust_kernel
+        robust = robust_kernel.RobustKernel(getattr(robust_kernel.RobustKernelMethod, kernel.open3d_name),
+                                            1.0 if scale is None else scale)
+        return o3d.t.pipelines.registration.TransformationEstimationPointToPlane(robust)
+
+
+register("ICP method", "point_to_point")(PointToPoint())
+register("ICP method", "point_to_plane")(PointToPlane())
+
+
 # ----------------------------------------------------------------------------- ICP
 
 
@@ -289,8 +372,8 @@ def _icp(
     target: _Target,
     init: np.ndarray,
     max_distance: float,
-    method: str,
-    kernel: str | None,
+    method: PointToPoint,
+    kernel: LeastSquares,
     kernel_scale: float | None,
     max_iterations: int,
     relative_fitness: float,
@@ -306,20 +389,14 @@ def _icp(
     iterations = 0
     for iterations in range(1, max_iterations + 1):
         p, q = moved[src], target.points[tgt]
-        if method == "point_to_point":
-            residual = dist
-        else:
-            residual = np.abs(((p - q) * target.normals[tgt]).sum(1))
-        weights = _kernel_weights(residual, kernel, kernel_scale)
+        normals = target.normals[tgt] if method.needs_normals else None
+        weights = kernel.weights(method.residuals(p, q, normals, dist), kernel_scale)
         if not weights.sum() > 0:
             raise InputError(
                 f"every correspondence has a residual above kernel_scale={kernel_scale:g}, so the "
-                f"{kernel} kernel gives them all zero weight; increase kernel_scale"
+                f"{kernel.name} kernel gives them all zero weight; increase kernel_scale"
             )
-        if method == "point_to_point":
-            update = kabsch(p, q, weights)
-        else:
-            update = point_to_plane_step(p, q, target.normals[tgt], weights)
+        update = method.update(p, q, normals, weights)
         transform = update @ transform
         moved = _transform(source, transform)
         src, tgt, dist = _match(target, moved, max_distance)
@@ -433,9 +510,8 @@ def register_icp(
         ConfigError: unknown method, kernel, engine or device, a kernel without kernel_scale, bad
             distances, device="cuda" without CUDA in Open3D.
     """
-    _check_options(method, kernel, kernel_scale, max_distance, max_iterations)
-    if engine not in ENGINES:
-        raise ConfigError(f"unknown ICP engine {engine!r}; choose 'open3d' (compiled) or 'reference' (numpy)")
+    method, kernel = _check_options(method, kernel, kernel_scale, max_distance, max_iterations)
+    run = choose("ICP engine", engine)
     source_points, _ = _cloud_arrays(source, "source")
     target_points, target_normals = _cloud_arrays(target, "target")
     transform = _check_transform(init)
@@ -444,16 +520,40 @@ def register_icp(
         raise ConfigError(
             f"voxel_sizes must be positive sizes, coarse to fine, e.g. (4v, 2v, v); got {voxel_sizes}"
         )
-    on_gpu = _open3d_device(device) == "cuda"
-    if engine == "reference" or (kernel is not None and method == "point_to_point"):
-        run = _icp_reference
-    else:
-        run = _icp_open3d_tensor if on_gpu else _icp_open3d
-    transform, fitness, rmse, iterations = run(
-        source_points, target_points, target_normals, transform, levels, max_distance, method, kernel,
-        kernel_scale, max_iterations, relative_fitness, relative_rmse, estimate_normals,
-    )
+    problem = ICPProblem(source_points, target_points, target_normals, transform, levels, max_distance, method,
+                         kernel, kernel_scale, max_iterations, relative_fitness, relative_rmse, estimate_normals,
+                         _open3d_device(device))
+    transform, fitness, rmse, iterations = run(problem)
     return Registration(torch.from_numpy(transform), fitness, rmse, iterations)
+
+
+@dataclass
+class ICPProblem:
+    """`register_icp`'s checked input, which every ICP engine takes: `engine(problem) -> (transform (4, 4),
+    fitness, inlier_rmse, iterations or None)`, the fitness and RMSE on the finest level's clouds."""
+
+    source: np.ndarray
+    """Float64[ndarray, "n 3"] source points."""
+    target: np.ndarray
+    """Float64[ndarray, "m 3"] target points."""
+    target_normals: np.ndarray | None
+    """Float64[ndarray, "m 3"] target normals, or None."""
+    init: np.ndarray
+    """Float64[ndarray, "4 4"] rigid initial transform."""
+    levels: list
+    """[None] (the full clouds) or voxel sizes, coarse to fine."""
+    max_distance: float
+    method: PointToPoint
+    """The ICP method strategy ("ICP method" family)."""
+    kernel: LeastSquares
+    """The robust kernel strategy (LEAST_SQUARES for none)."""
+    kernel_scale: float | None
+    max_iterations: int
+    relative_fitness: float
+    relative_rmse: float
+    estimate_normals: bool
+    device: str
+    """Open3D's device: "cpu" or "cuda"."""
 
 
 def _open3d_device(device: str) -> str:
@@ -473,11 +573,12 @@ def _open3d_device(device: str) -> str:
     return "cuda" if has_cuda else "cpu"
 
 
-def _icp_reference(
-    source_points, target_points, target_normals, transform, levels, max_distance, method, kernel,
-    kernel_scale, max_iterations, relative_fitness, relative_rmse, estimate_normals,
-) -> tuple[np.ndarray, float, float, int]:
-    """register_icp on our numpy loop (arguments as there, checked; levels: [None] or voxel sizes)."""
+@register("ICP engine", "reference")
+def _icp_reference(problem: ICPProblem) -> tuple[np.ndarray, float, float, int]:
+    """register_icp on our numpy loop."""
+    p = problem
+    source_points, target_points, target_normals, levels = p.source, p.target, p.target_normals, p.levels
+    transform, max_distance, method = p.init, p.max_distance, p.method
     iterations = 0
     for size in levels:
         if size is None:
@@ -486,13 +587,13 @@ def _icp_reference(
             src = voxel_downsample(source_points, None, size)[0]
             tgt = _Target.build(*voxel_downsample(target_points, target_normals, size))
             distance = max_distance * size / levels[-1]
-        if method == "point_to_plane":
+        if method.needs_normals:
             tgt.normals = _target_normals(
-                tgt.points, tgt.normals, estimate_normals, None if size is None else 2 * size
+                tgt.points, tgt.normals, p.estimate_normals, None if size is None else 2 * size
             )
         transform, _, _, done = _icp(
-            src, tgt, transform, distance, method, kernel, kernel_scale, max_iterations, relative_fitness,
-            relative_rmse,
+            src, tgt, transform, distance, method, p.kernel, p.kernel_scale, p.max_iterations, p.relative_fitness,
+            p.relative_rmse,
         )
         iterations += done
     fitness, rmse = _evaluate(src, tgt, transform, max_distance)  # the finest level
@@ -508,20 +609,16 @@ def _check_plane_system(points: np.ndarray, normals: np.ndarray) -> None:
         raise _degenerate()
 
 
-def _open3d_kernel(kernel: str | None, scale: float | None):
-    """Open3D's robust kernel object for our kernel name (None: plain least squares)."""
-    import open3d as o3d
+@register("ICP engine", "open3d")
+def _icp_open3d(problem: ICPProblem) -> tuple[np.ndarray, float, float, int | None]:
+    """register_icp on Open3D: its tensor pipeline on CUDA, its legacy ICP on the CPU; our reference
+    loop for robust point-to-point, which Open3D lacks."""
+    if not problem.method.needs_normals and problem.kernel is not LEAST_SQUARES:
+        return _icp_reference(problem)
+    return (_icp_open3d_tensor if problem.device == "cuda" else _icp_open3d_legacy)(problem)
 
-    losses = {None: lambda: o3d.pipelines.registration.L2Loss(),
-              "huber": lambda: o3d.pipelines.registration.HuberLoss(k=scale),
-              "tukey": lambda: o3d.pipelines.registration.TukeyLoss(k=scale)}
-    return losses[kernel]()
 
-
-def _icp_open3d(
-    source_points, target_points, target_normals, transform, levels, max_distance, method, kernel,
-    kernel_scale, max_iterations, relative_fitness, relative_rmse, estimate_normals,
-) -> tuple[np.ndarray, float, float, None]:
+def _icp_open3d_legacy(problem: ICPProblem) -> tuple[np.ndarray, float, float, None]:
     """register_icp on Open3D's legacy registration_icp (CPU), level by level on Open3D's voxel
     centroids (normals given and averaged per voxel, or estimated as the reference does); each level is
     downsampled from the next finer one, the finest from the full clouds (about a third of the time of
@@ -529,12 +626,12 @@ def _icp_open3d(
     its iterations: None."""
     import open3d as o3d
 
+    p = problem
+    source_points, target_points, target_normals, levels = p.source, p.target, p.target_normals, p.levels
+    transform, max_distance, method = p.init, p.max_distance, p.method
     registration = o3d.pipelines.registration
-    if method == "point_to_point":
-        estimation = registration.TransformationEstimationPointToPoint()
-    else:
-        estimation = registration.TransformationEstimationPointToPlane(_open3d_kernel(kernel, kernel_scale))
-    criteria = registration.ICPConvergenceCriteria(relative_fitness, relative_rmse, max_iterations)
+    estimation = method.open3d(p.kernel, p.kernel_scale)
+    criteria = registration.ICPConvergenceCriteria(p.relative_fitness, p.relative_rmse, p.max_iterations)
     clouds = {None: (_open3d_cloud(source_points), _open3d_cloud(target_points, target_normals))}
     finer = clouds[None]
     for size in sorted({size for size in levels if size is not None}):  # fine to coarse
@@ -542,11 +639,11 @@ def _icp_open3d(
     for level, size in enumerate(levels):
         src, tgt = clouds[size]
         distance = max_distance if size is None else max_distance * size / levels[-1]
-        if method == "point_to_plane":
+        if method.needs_normals:
             if tgt.has_normals():
                 tgt.normalize_normals()  # voxel averages
             else:
-                normals = _target_normals(np.asarray(tgt.points), None, estimate_normals, size and 2 * size)
+                normals = _target_normals(np.asarray(tgt.points), None, p.estimate_normals, size and 2 * size)
                 tgt.normals = o3d.utility.Vector3dVector(normals)
             if level == 0:  # the coarsest system: singular there, singular everywhere in practice
                 _check_plane_system(np.asarray(tgt.points), np.asarray(tgt.normals))
@@ -567,14 +664,16 @@ def _open3d_cloud(points: np.ndarray, normals: np.ndarray | None = None):
     return cloud
 
 
-def _icp_open3d_tensor(
-    source_points, target_points, target_normals, transform, levels, max_distance, method, kernel,
-    kernel_scale, max_iterations, relative_fitness, relative_rmse, estimate_normals, device: str = "CUDA:0",
-) -> tuple[np.ndarray, float, float, int]:
+def _icp_open3d_tensor(problem: ICPProblem, device: str = "CUDA:0") -> tuple[np.ndarray, float, float, int]:
     """register_icp on Open3D's tensor pipeline (multi_scale_icp with Open3D's own voxel pyramid and
     normals averaged per voxel; plain icp without a pyramid), on `device` (CUDA:0; CPU:0 works too)."""
     import open3d as o3d
     import open3d.core as o3c
+
+    p = problem
+    source_points, target_points, target_normals, levels = p.source, p.target, p.target_normals, p.levels
+    transform, max_distance, method = p.init, p.max_distance, p.method
+    relative_fitness, relative_rmse, max_iterations = p.relative_fitness, p.relative_rmse, p.max_iterations
 
     registration, where = o3d.t.pipelines.registration, o3c.Device(device)
 
@@ -584,18 +683,11 @@ def _icp_open3d_tensor(
             tensor.point.normals = o3c.Tensor(normals, device=where)
         return tensor
 
-    if method == "point_to_plane":
-        target_normals = _target_normals(target_points, target_normals, estimate_normals, None)
+    if method.needs_normals:
+        target_normals = _target_normals(target_points, target_normals, p.estimate_normals, None)
         _check_plane_system(target_points, target_normals)
     source, target = cloud(source_points), cloud(target_points, target_normals)
-    if method == "point_to_point":
-        estimation = registration.TransformationEstimationPointToPoint()
-    else:
-        loss = {None: "L2Loss", "huber": "HuberLoss", "tukey": "TukeyLoss"}[kernel]
-        robust = registration.robust_kernel.RobustKernel(
-            getattr(registration.robust_kernel.RobustKernelMethod, loss), 1.0 if kernel_scale is None else kernel_scale
-        )
-        estimation = registration.TransformationEstimationPointToPlane(robust)
+    estimation = method.open3d_tensor(p.kernel, p.kernel_scale)
     init = o3c.Tensor(transform)
     if levels[0] is None:
         criteria = registration.ICPConvergenceCriteria(relative_fitness, relative_rmse, max_iterations)
@@ -828,7 +920,7 @@ def register_multiway(
     if not (np.isfinite(voxel_size) and voxel_size > 0):
         raise ConfigError(f"voxel_size must be a positive length in the scans' units, got {voxel_size}")
     max_distance = 1.5 * voxel_size if max_distance is None else max_distance
-    _check_options(method, None, None, max_distance, max_iterations)
+    estimation, _ = _check_options(method, None, None, max_distance, max_iterations)
     if init_poses is not None and len(init_poses) != len(scans):
         raise InputError(f"init_poses has {len(init_poses)} poses for {len(scans)} scans; give one per scan")
     poses = [
@@ -838,7 +930,7 @@ def register_multiway(
     downsampled = []
     for i, scan in enumerate(scans):
         points, normals = voxel_downsample(*_cloud_arrays(scan, f"scans[{i}]"), voxel_size)
-        if method == "point_to_plane":
+        if estimation.needs_normals:
             normals = _target_normals(points, normals, True, 2 * voxel_size)
         downsampled.append(
             PointCloud(torch.from_numpy(points), None if normals is None else torch.from_numpy(normals))

@@ -4,7 +4,7 @@ samples with approximate signed distances (DeepSDF, IGR); the maths of `neuralsu
 from __future__ import annotations
 
 import warnings
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import torch
@@ -15,17 +15,17 @@ from neuralsurf.geometry import estimate_normals, orient_normals, project_to_qua
 from neuralsurf.losses import clamped_l1, eikonal_loss, normal_loss, off_surface_loss, surface_loss
 from neuralsurf.observations.base import Observation, Sampler, check_weights
 from neuralsurf.sampling import SDFBatch, SDFSamples, draw_batch, make_sdf_samples
+from neuralsurf.strategies import choose, register
 from neuralsurf.structures import Normalization, PointCloud
 
 POINT_TERMS = ("surface", "sdf", "normal", "eikonal", "off_surface")
 DEFAULT_POINT_WEIGHTS = {"surface": 3.0, "sdf": 1.0, "normal": 0.1, "eikonal": 0.1, "off_surface": 0.0}
 
 
-def prepare_cloud(cloud: PointCloud, normals: str, normal_k: int, denoise: bool = False) -> PointCloud:
-    """Check the input and supply normals: "given" (must be there), "estimate" (when absent:
-    PCA + MST orientation), "ignore" (drop them: fit with surface, eikonal and off-surface terms).
-    With `denoise`, a cloud whose normals are estimated here is also projected onto its local
-    quadrics (`geometry.project_to_quadrics`, the same k): unoriented scans are the noisy ones."""
+def prepare_cloud(cloud: PointCloud, normals: str | Callable, normal_k: int, denoise: bool = False) -> PointCloud:
+    """Check the input and supply its normals by the normal source `normals` (a name of the
+    "normal source" family: "given", "estimate", "ignore", or a function of the same signature as
+    `given_normals`), which is passed `normal_k` and `denoise`."""
     if not isinstance(cloud, PointCloud):
         raise InputError(f"PointSamples expects a neuralsurf.PointCloud, got {type(cloud).__name__}")
     if len(cloud) < 3:
@@ -37,39 +37,63 @@ def prepare_cloud(cloud: PointCloud, normals: str, normal_k: int, denoise: bool 
             f"the {len(cloud)} points are collinear (or all at one place): a surface cannot be fitted to them; "
             f"check the file or the scan"
         )
-    if normals == "ignore":
-        return cloud.with_normals(None)
-    if normals == "given" and cloud.normals is None:
+    return choose("normal source", normals)(cloud, normal_k, denoise)
+
+
+@register("normal source", "given")
+def given_normals(cloud: PointCloud, normal_k: int, denoise: bool) -> PointCloud:
+    """The cloud's own normals, made unit length; InputError when it has none or some have zero length."""
+    if cloud.normals is None:
         raise InputError("normals='given' but the cloud has no normals; use normals='estimate' or 'ignore'")
-    if normals not in ("given", "estimate"):
-        raise ConfigError(f"unknown normals={normals!r}; choose given, estimate or ignore")
+    zero = _zero_normals(cloud)
+    if zero.any():
+        raise InputError(
+            f"{int(zero.sum())} of {len(cloud)} normals have zero length; use normals='estimate' to "
+            f"replace them by estimated ones, or remove those points"
+        )
+    return cloud.with_normals(torch.nn.functional.normalize(cloud.normals, dim=-1))
+
+
+@register("normal source", "estimate")
+def estimated_normals(cloud: PointCloud, normal_k: int, denoise: bool) -> PointCloud:
+    """The cloud's own normals where it has them (zero-length ones replaced by estimates oriented like
+    their neighbours), else PCA estimates over `normal_k` neighbours oriented by an MST; with
+    `denoise`, a cloud without normals is first projected onto its local quadrics
+    (`geometry.project_to_quadrics`, the same k): unoriented scans are the noisy ones."""
     if cloud.normals is not None:
-        zero = cloud.normals.norm(dim=-1) < 1e-12
-        if zero.all():
-            raise InputError(
-                f"all {len(cloud)} normals of the cloud have zero length; drop them (cloud.with_normals(None)) "
-                f"or use normals='ignore' or 'estimate' on a cloud without normals"
-            )
-        if zero.any():
-            if normals == "given":
-                raise InputError(
-                    f"{int(zero.sum())} of {len(cloud)} normals have zero length; use normals='estimate' to "
-                    f"replace them by estimated ones, or remove those points"
-                )
-            warnings.warn(f"{int(zero.sum())} of {len(cloud)} normals have zero length: replaced by estimated "
-                          f"normals oriented like their neighbours", stacklevel=3)
-            given = torch.nn.functional.normalize(cloud.normals, dim=-1)
-            estimated = orient_normals(cloud.points, estimate_normals(cloud.points, normal_k), normal_k).to(given)
-            if (estimated * given)[~zero].sum() < 0:  # orient them like the given normals overall
-                estimated = -estimated
-            return cloud.with_normals(torch.where(zero[:, None], estimated, given))
-        return cloud.with_normals(torch.nn.functional.normalize(cloud.normals, dim=-1))
+        zero = _zero_normals(cloud)
+        if not zero.any():
+            return cloud.with_normals(torch.nn.functional.normalize(cloud.normals, dim=-1))
+        warnings.warn(f"{int(zero.sum())} of {len(cloud)} normals have zero length: replaced by estimated "
+                      f"normals oriented like their neighbours", stacklevel=4)
+        given = torch.nn.functional.normalize(cloud.normals, dim=-1)
+        estimated = orient_normals(cloud.points, estimate_normals(cloud.points, normal_k), normal_k).to(given)
+        if (estimated * given)[~zero].sum() < 0:  # orient them like the given normals overall
+            estimated = -estimated
+        return cloud.with_normals(torch.where(zero[:, None], estimated, given))
     estimated = estimate_normals(cloud.points, normal_k)
     if denoise and len(cloud) >= 6:  # a quadric has 6 unknowns
         k = min(max(normal_k, 6), len(cloud))
         cloud = PointCloud(project_to_quadrics(cloud.points, estimated, k), colors=cloud.colors)
         estimated = estimate_normals(cloud.points, normal_k)
     return cloud.with_normals(orient_normals(cloud.points, estimated, normal_k))
+
+
+@register("normal source", "ignore")
+def no_normals(cloud: PointCloud, normal_k: int, denoise: bool) -> PointCloud:
+    """The cloud without normals: fit with the surface, eikonal and off-surface terms."""
+    return cloud.with_normals(None)
+
+
+def _zero_normals(cloud: PointCloud) -> Tensor:
+    """Bool[Tensor, "n"]: the zero-length normals of a cloud with normals; InputError when all are."""
+    zero = cloud.normals.norm(dim=-1) < 1e-12
+    if zero.all():
+        raise InputError(
+            f"all {len(cloud)} normals of the cloud have zero length; drop them (cloud.with_normals(None)) "
+            f"or use normals='ignore' or 'estimate' on a cloud without normals"
+        )
+    return zero
 
 
 @dataclass(frozen=True)
@@ -151,8 +175,9 @@ class PointSamples(Observation):
     """The input cloud, world frame, with or without normals."""
     weights: Mapping[str, float] = field(default_factory=lambda: dict(DEFAULT_POINT_WEIGHTS))
     """Term weights: surface, sdf (clamped L1 of near and free samples), normal, eikonal, off_surface."""
-    normals: str = "estimate"
-    """"given" (must be there), "estimate" (PCA + MST orientation when absent), "ignore"."""
+    normals: str | Callable = "estimate"
+    """The normal source (`prepare_cloud`): "given" (must be there), "estimate" (PCA + MST orientation
+    when absent), "ignore"."""
     normal_k: int = 30
     """Neighbours for normal estimation."""
     denoise: bool = True

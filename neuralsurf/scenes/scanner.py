@@ -22,9 +22,8 @@ from torch import Tensor
 
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.geometry import kinect_sigma, render_depth  # sensor geometry; re-exported here
+from neuralsurf.strategies import choose, names, register
 from neuralsurf.structures import DepthFrames, Mesh, check_intrinsics
-
-NOISE_MODELS = ("none", "gaussian", "kinect")
 
 
 def fibonacci_sphere(n: int) -> Tensor:
@@ -114,6 +113,43 @@ def depth_edges(depth: Tensor, edge_jump: float) -> Tensor:
     return edge & (depth > 0)
 
 
+@register("depth noise", "none")
+def no_noise(depth: Tensor, cosine: Tensor, generator: torch.Generator, sigma: float, max_angle_deg: float,
+             edge_jump: float) -> Tensor:
+    """The exact depth Float[Tensor, "n h w"] (0: no reading), unchanged."""
+    return depth
+
+
+@register("depth noise", "gaussian")
+def gaussian_noise(depth: Tensor, cosine: Tensor, generator: torch.Generator, sigma: float, max_angle_deg: float,
+                   edge_jump: float) -> Tensor:
+    """Depth Float[Tensor, "n h w"] plus N(0, sigma^2) drawn from `generator` (readings pushed to or
+    below 0 are dropped)."""
+    if not sigma > 0:
+        return depth
+    noisy = depth + sigma * torch.randn(depth.shape, generator=generator)
+    return torch.where((depth > 0) & (noisy > 0), noisy, 0.0)
+
+
+@register("depth noise", "kinect")
+def kinect_noise(depth: Tensor, cosine: Tensor, generator: torch.Generator, sigma: float, max_angle_deg: float,
+                 edge_jump: float) -> Tensor:
+    """Kinect v1 (module docstring): depth Float[Tensor, "n h w"] dropped where the ray meets the
+    surface more obliquely than `max_angle_deg` (`cosine`: of that angle, per pixel) or next to a
+    jump of `edge_jump` * z, plus axial noise of `kinect_sigma(z)` drawn from `generator`."""
+    if not 0 < max_angle_deg <= 90:
+        raise ConfigError(f"max_angle_deg must lie in (0, 90], got {max_angle_deg}")
+    if not edge_jump > 0:
+        raise ConfigError(f"edge_jump must be a positive fraction of the depth, got {edge_jump}")
+    drop = depth_edges(depth, edge_jump) | (cosine < math.cos(math.radians(max_angle_deg)))
+    noisy = depth + kinect_sigma(depth) * torch.randn(depth.shape, generator=generator)
+    return torch.where((depth > 0) & ~drop & (noisy > 0), noisy, 0.0)
+
+
+NOISE_MODELS = names("depth noise")
+"""The depth noise models by name: `scan_depth(noise=...)` (or pass a function of the same signature)."""
+
+
 def scan_depth(
     mesh: Mesh,
     n_views: int = 24,
@@ -141,7 +177,8 @@ def scan_depth(
         distance: camera distance from the box centre; default: the sphere around the box centre
             through the farthest vertex just fits the narrower field of view, so the object fills
             the images as far as it can while staying whole from every direction.
-        noise: "none", "gaussian" or "kinect" (see the module docstring).
+        noise: "none", "gaussian" or "kinect" (see the module docstring), or a function with the
+            signature of `gaussian_noise`.
         sigma: standard deviation in metres of "gaussian" noise (default 1 mm); only for "gaussian".
         seed: seed of the noise (the same seed gives the same frames).
         cam_to_world: Float[Tensor, "n 4 4"] (or 4x4) OpenCV poses to use instead of the orbit.
@@ -156,9 +193,10 @@ def scan_depth(
             f"scan_depth needs a non-empty neuralsurf Mesh, got {type(mesh).__name__}"
             + (" without faces" if isinstance(mesh, Mesh) else "")
         )
-    if noise not in NOISE_MODELS:
+    if isinstance(noise, str) and noise not in NOISE_MODELS:
         raise ConfigError(f"noise must be one of {NOISE_MODELS}, got {noise!r}")
-    if sigma is not None and noise != "gaussian":
+    add_noise = choose("depth noise", noise)
+    if sigma is not None and add_noise in (no_noise, kinect_noise):
         raise ConfigError(
             f"sigma sets the 'gaussian' noise only; the {noise!r} model takes no sigma (pass sigma=None)"
         )
@@ -193,17 +231,7 @@ def scan_depth(
 
     depth, cosine = render_depth(mesh, K, pose, width, height)
     generator = torch.Generator().manual_seed(int(seed))
-    if noise == "gaussian" and sigma > 0:
-        noisy = depth + sigma * torch.randn(depth.shape, generator=generator)
-        depth = torch.where((depth > 0) & (noisy > 0), noisy, 0.0)
-    elif noise == "kinect":
-        if not 0 < max_angle_deg <= 90:
-            raise ConfigError(f"max_angle_deg must lie in (0, 90], got {max_angle_deg}")
-        if not edge_jump > 0:
-            raise ConfigError(f"edge_jump must be a positive fraction of the depth, got {edge_jump}")
-        drop = depth_edges(depth, edge_jump) | (cosine < math.cos(math.radians(max_angle_deg)))
-        noisy = depth + kinect_sigma(depth) * torch.randn(depth.shape, generator=generator)
-        depth = torch.where((depth > 0) & ~drop & (noisy > 0), noisy, 0.0)
+    depth = add_noise(depth, cosine, generator, sigma, max_angle_deg, edge_jump)
     return DepthFrames(depth.float(), K.float(), pose.float())
 
 
@@ -211,9 +239,12 @@ __all__ = [
     "NOISE_MODELS",
     "depth_edges",
     "fibonacci_sphere",
+    "gaussian_noise",
     "intrinsics_from_fov",
+    "kinect_noise",
     "kinect_sigma",
     "look_at",
+    "no_noise",
     "orbit_cameras",
     "render_depth",
     "scan_depth",
