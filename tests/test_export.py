@@ -125,6 +125,7 @@ def train(run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
                           check=False, capture_output=True, text=True, cwd=ROOT, timeout=600)
 
 
+@pytest.mark.subprocess
 def test_train_writes_the_extract_format(tmp_path):
     o3d = pytest.importorskip("open3d")
     done = train(tmp_path / "run", "extract.format=glb")
@@ -139,6 +140,7 @@ def test_train_writes_the_extract_format(tmp_path):
     assert (np.linalg.norm(trimesh_normals(path), axis=1) > 0.999).all()
 
 
+@pytest.mark.subprocess
 def test_train_refuses_an_unknown_format_before_fitting(tmp_path):
     done = train(tmp_path / "run", "extract.format=fbx")
     assert done.returncode != 0
