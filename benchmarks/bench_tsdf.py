@@ -18,9 +18,8 @@ then integrate, per frame; Open3D's own threads, all cores); ours runs TSDFVolum
 time includes every one-time cost (imports done, frames decoded and converted before): the fusion time
 runs from making the volume to the end of the last integrate call, compilation included for
 "compiled"; its peak RSS is its own ("fusion MB": peak RSS during fusion and extraction minus the RSS
-before), and its CPU time (all its threads) is printed too: on a machine that other processes load, a
-process gets more of the cores the more threads it runs, so there the times favour the side with more
-threads. Rows run round robin, best of --repeats, so that load from other processes hits them alike;
+before), and its CPU time (all its threads) is printed too: on a machine that other processes load,
+wall times swing by up to 2x from run to run and the CPU times are the steadier comparison. Rows run round robin, best of --repeats, so that load from other processes hits them alike;
 the load average is printed. The last lines compare each figure with its target.
 
 Bunny: 24 exact 320 x 240 views from `scan_depth`, voxel = longest side of the box / 256, best of
@@ -254,8 +253,8 @@ def bench_kitchen(threads: int | str, repeats: int, compiled: bool) -> None:
           f"fusion + extraction minus the RSS before; CPU: the process's CPU time, all its threads; our room mesh: "
           f"{MESH_OUT}")
     if os.getloadavg()[0] > (os.cpu_count() or 1):
-        print(f"load average {os.getloadavg()[0]:.1f} > {os.cpu_count()} cores: other processes share the cores, and a "
-              "process gets more of them the more threads it runs; times (not CPU times) are not representative")
+        print(f"load average {os.getloadavg()[0]:.1f} > {os.cpu_count()} cores: other processes share the cores, so "
+              "the times swing from run to run; the CPU times are steadier")
     block, room = rows[("block", "sparse")], rows[("room", "sparse")]
     checks = [
         ("block: fusion time vs VoxelBlockGrid, one-time costs included", block["speed"], "<= 1.0", block["speed"] <= 1.0),
