@@ -13,7 +13,8 @@ overlapping parts and coincident sheets as 2 (still inside at the threshold 1/2)
   turned to face where more random rays escape to infinity (visibility, as Takayama et al. 2014):
   repairs flipped faces and inward patches, which the winding number needs.
 - `signed_distance(points, mesh)` (unsigned distance to the triangles, sign from the winding number)
-  and `inside(points, mesh)`.
+  and `inside(points, mesh)`; `boundary_faces(mesh)`: the faces between inside and outside (inner
+  and stray sheets left out), the surface a shape's distances and samples should come from.
 - `damage_mesh(mesh, ...)`: the defects of CAD meshes applied to a clean mesh (holes, coincident
   duplicated sheets, inner sheets, flipped faces), with where they are, for testing the signs.
 """
@@ -114,21 +115,29 @@ def _clusters(triangles: Tensor, size: float, cells: int) -> _Clusters:
                      total(area_normal[:, :, None] * offset[:, None, :]), torch.nonzero(~small).squeeze(1))
 
 
-def _expansion(r: Tensor, normal: Tensor, moment: Tensor) -> Tensor:
-    """Second-order expansion of clusters' winding numbers at queries: r = centre - query
-    Float[Tensor, "m k 3"], normal Float[Tensor, "k 3"], moment Float[Tensor, "k 3 3"] -> Float[Tensor, "m k"].
+def _far_field(points: Tensor, clusters: _Clusters, far: Tensor) -> Tensor:
+    """Sum over the clusters marked `far` (Bool[Tensor, "m k"]) of their second-order expansion at
+    each of Float[Tensor, "m 3"] points -> Float[Tensor, "m"].
 
-    w = N . K(r) + sum(J(r) * M), K(r) = r / (4 pi |r|^3), J = dK/dr = (I / |r|^3 - 3 r r^T / |r|^5) / (4 pi).
+    With r = centre - q: w = (N . r + tr(M) - 3 r^T S r / |r|^2) / (4 pi |r|^3), S = (M + M^T) / 2, from
+    K(r) = r / (4 pi |r|^3) and its Jacobian (I / |r|^3 - 3 r r^T / |r|^5) / (4 pi). Every term
+    expanded in q is a matrix product (far clusters are a cell or more away, so float32 keeps its
+    relative precision); the near ones are computed too and masked out.
     """
-    x, y, z = r.unbind(-1)
-    s = (moment + moment.transpose(1, 2)) / 2
-    rmr = (s[:, 0, 0] * x * x + s[:, 1, 1] * y * y + s[:, 2, 2] * z * z
-           + 2 * (s[:, 0, 1] * x * y + s[:, 0, 2] * x * z + s[:, 1, 2] * y * z))
-    inv2 = (x * x + y * y + z * z).clamp_min(1e-12).reciprocal()
-    inv3 = inv2.sqrt() * inv2
-    trace = moment.diagonal(dim1=-2, dim2=-1).sum(-1)
-    dipole = normal[:, 0] * x + normal[:, 1] * y + normal[:, 2] * z
-    return (dipole + trace - 3 * rmr * inv2) * inv3 / (4 * math.pi)
+    c, n = clusters.centre, clusters.normal
+    s = (clusters.moment + clusters.moment.transpose(1, 2)) / 2
+    sc = (s @ c[:, :, None])[..., 0]  # k 3
+    upper = torch.stack([s[:, 0, 0], s[:, 1, 1], s[:, 2, 2], 2 * s[:, 0, 1], 2 * s[:, 0, 2], 2 * s[:, 1, 2]], -1)
+    q = points
+    quadratic = torch.stack([q[:, 0] ** 2, q[:, 1] ** 2, q[:, 2] ** 2, q[:, 0] * q[:, 1], q[:, 0] * q[:, 2],
+                             q[:, 1] * q[:, 2]], -1)
+    r2 = ((c * c).sum(-1) - 2 * q @ c.T + (q * q).sum(-1, keepdim=True)).clamp_min_(1e-12)
+    dipole = (n * c).sum(-1) - q @ n.T
+    rmr = (c * sc).sum(-1) - 2 * q @ sc.T + quadratic @ upper.T
+    trace = clusters.moment.diagonal(dim1=-2, dim2=-1).sum(-1)
+    inverse = r2.reciprocal_()
+    value = (dipole + trace - 3 * rmr * inverse) * inverse * inverse.sqrt()
+    return torch.where(far, value, 0.0).sum(-1) / (4 * math.pi)
 
 
 def _clustered(points: Tensor, triangles: Tensor, cells: int, near: int, elements: int) -> Tensor:
@@ -137,30 +146,26 @@ def _clustered(points: Tensor, triangles: Tensor, cells: int, near: int, element
     point's cell and over the large triangles, the expansion of every other cluster."""
     size = 1.0 / cells
     clusters = _clusters(triangles, size, cells)
-    cluster_cell = torch.stack([clusters.key // (cells * cells), (clusters.key // cells) % cells,
-                                clusters.key % cells], -1)
-    cell = ((points + 0.5) / size).floor().long()  # outside the box: no cluster is near
-    out = _exact(points, triangles[clusters.large], elements)
-    rows = max(1, elements // (4 * len(clusters.key) + 1))
-    for start in range(0, len(points), rows):
-        part = slice(start, start + rows)
-        far = (cell[part, None] - cluster_cell).abs().amax(-1) > near
-        r = clusters.centre - points[part, None]
-        out[part] += torch.where(far, _expansion(r, clusters.normal, clusters.moment), 0.0).sum(-1)
     lengths = clusters.first[1:] - clusters.first[:-1]
     steps = torch.arange(-near, near + 1)
     offsets = torch.cartesian_prod(steps, steps, steps)  # o 3
-    rows = max(1, elements // 64)
+    cell = ((points + 0.5) / size).floor().long()  # outside the box: no cluster is near
+    out = _exact(points, triangles[clusters.large], elements)
+    rows = max(1, min(elements // (8 * len(clusters.key) + 1), elements // 64))
     for start in range(0, len(points), rows):
-        neighbour = cell[start:start + rows, None] + offsets  # q o 3
+        part = slice(start, start + rows)
+        neighbour = cell[part, None] + offsets  # q o 3
         valid = ((neighbour >= 0) & (neighbour < cells)).all(-1)
         key = (neighbour[..., 0] * cells + neighbour[..., 1]) * cells + neighbour[..., 2]
         found = torch.searchsorted(clusters.key, key).clamp_max(len(clusters.key) - 1)
         valid &= clusters.key[found] == key
         local, slot = torch.nonzero(valid, as_tuple=True)
-        query, cluster = local + start, found[local, slot]
+        cluster = found[local, slot]
+        far = torch.ones(len(key), len(clusters.key), dtype=torch.bool)
+        far[local, cluster] = False
+        out[part] += _far_field(points[part], clusters, far)
         count = lengths[cluster]
-        pair_query = torch.repeat_interleave(query, count)
+        pair_query = torch.repeat_interleave(local + start, count)
         base = torch.repeat_interleave(clusters.first[cluster] - (count.cumsum(0) - count), count)
         pair_triangle = clusters.order[base + torch.arange(len(base))]
         for chunk in range(0, len(pair_query), elements):
@@ -217,6 +222,23 @@ def signed_distance(points: Tensor, mesh: Mesh, **options) -> Tensor:
     _check(points, mesh, "signed_distance")
     distance = point_to_mesh_distance(points, mesh)
     return torch.where(inside(points, mesh, **options).to(distance.device), -distance, distance)
+
+
+def boundary_faces(mesh: Mesh, offset: float = 1e-3, **options) -> Tensor:
+    """Bool[Tensor, "f"]: faces between inside and outside: the winding number is at least 1/2 on
+    exactly one side of the face's centroid, `offset` (a fraction of the longest side) along its
+    normal. Inner sheets (inside on both sides) and stray sheets (outside on both) are not; keep
+    `offset` below half the thinnest wall. Faces should face outward (`orient_outward`)."""
+    if mesh.is_empty:
+        raise InputError("boundary_faces needs a mesh with faces, got an empty mesh")
+    vertices = mesh.vertices.detach().cpu().double()
+    extent = float((vertices.max(0).values - vertices.min(0).values).max().clamp_min(1e-12))
+    centroid = vertices[mesh.faces.cpu()].mean(1)
+    normal = Mesh(vertices, mesh.faces.cpu()).face_normals()
+    step = offset * extent * normal
+    sides = inside(torch.cat([centroid + step, centroid - step]), Mesh(vertices, mesh.faces.cpu()), **options)
+    front, back = sides.chunk(2)
+    return (front != back).to(mesh.faces.device)
 
 
 # ----------------------------------------------------------------------------- orientation

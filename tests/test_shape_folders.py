@@ -125,3 +125,94 @@ def test_occupancy_files_that_do_not_fit_are_named(tmp_path):
     with pytest.raises(InputError, match="not Occupancy Networks' layout"), pytest.warns(UserWarning):
         list_occupancy_folder(tmp_path / "c" / "s" / "..")
     assert unpack_occupancies(np.packbits([1, 0, 1]), 3).tolist() == [True, False, True]
+
+
+# ----------------------------------------------------------------------------- priors from folders
+
+
+def write_spheres(root, damaged=False):
+    """Two classes of three spheres each (radius 0.5 in the unit frame once normalised), as files."""
+    from neuralsurf.io import write_mesh
+    from neuralsurf.structures import Mesh
+    from neuralsurf.winding import damage_mesh
+
+    ball = trimesh.creation.icosphere(2)
+    for category, scale in (("small", 0.2), ("large", 30.0)):
+        for i in range(3):
+            mesh = Mesh(torch.tensor(ball.vertices) * scale + i, torch.tensor(ball.faces))
+            if damaged:
+                mesh = damage_mesh(mesh, holes=2, duplicated=1, inner=1, flipped=0.3, radius=0.05, inset=0.02,
+                                   seed=i).mesh
+            write_mesh(root / category / f"s{i}.obj", mesh)
+
+
+def sphere_collection(root, source):
+    from neuralsurf.priors.folders import FolderCollection
+
+    return FolderCollection(str(source), n_sdf=1000, n_occ=300, n_surface=300, root=str(root), test_fraction=0.34)
+
+
+@pytest.mark.parametrize("damaged", [False, pytest.param(True, marks=pytest.mark.slow)])
+def test_folder_collection_signs_match_the_sphere(tmp_path, damaged):
+    from neuralsurf.priors import CollectionSDF
+    from neuralsurf.priors.cache import read_manifest
+
+    write_spheres(tmp_path / "meshes", damaged)
+    collection = sphere_collection(tmp_path / "cache", tmp_path / "meshes")
+    assert (collection.count("train"), collection.count("test")) == (4, 2)
+    collection.build(progress=False)
+    records, _ = read_manifest(collection.folder)
+    assert [r.kind for r in records] == ["large", "large", "small", "small", "large", "small"]
+    for path in CollectionSDF(collection.folder).paths:
+        with np.load(path) as data:
+            points, values = torch.from_numpy(data["sdf_points"]).double(), torch.from_numpy(data["sdf_values"]).double()
+            truth = points.norm(dim=1) - 0.5  # every sphere normalised to radius 0.5 at the origin
+            clear = truth.abs() > 0.03  # beyond the icosphere's chord error (and the holes' reach in damaged ones)
+            assert (torch.sign(values[clear]) == torch.sign(truth[clear])).double().mean() > (0.97 if damaged else 0.9999)
+            assert (values - truth).abs().median() < 0.02
+            radius = np.linalg.norm(data["occ_uniform_points"], axis=1)
+            clear = np.abs(radius - 0.5) > 0.03
+            assert (data["occ_uniform_inside"][clear] == (radius[clear] < 0.5)).mean() > (0.97 if damaged else 0.9999)
+    shapes = collection.test_shapes()  # same-sized, y-up spheres: no frame warning
+    assert len(shapes) == 2 and all(abs(float(s.surface.norm(dim=1).mean()) - 0.5) < 0.02 for s in shapes)
+
+
+def test_frame_check_warns_about_turned_and_oversized_shapes():
+    from neuralsurf.priors.folders import FrameStats, check_frame
+
+    generator = torch.Generator().manual_seed(0)
+
+    def box(extents):  # surface-like points of a box, more of them low down (a chair's legs)
+        points = (torch.rand(2000, 3, dtype=torch.float64, generator=generator) - 0.5) * torch.tensor(extents)
+        low = points[:, 1] < 0
+        return torch.cat([points, points[low]])
+
+    training = [box((0.5 + 0.05 * i, 1.0, 0.4 + 0.03 * i)) for i in range(6)]
+    stats = FrameStats.from_shapes(training, [1.0 + 0.1 * i for i in range(6)])
+    assert check_frame(box((0.52, 1.0, 0.42)), stats, "upright", size=1.1) is None
+    turned = box((0.52, 1.0, 0.42))[:, [0, 2, 1]]  # z up in its file
+    with pytest.warns(UserWarning, match=r"up axis looks like \+z"):
+        check_frame(turned, stats, "turned", size=1.1)
+    with pytest.warns(UserWarning, match="other units"):
+        check_frame(box((0.52, 1.0, 0.42)), stats, "millimetres", size=1100.0)
+    with pytest.warns(UserWarning, match="outside the unit frame"):
+        check_frame(2 * box((0.52, 1.0, 0.42)), stats, "unnormalised")
+
+
+def test_occupancy_layout_becomes_a_collection(tmp_path):
+    from neuralsurf.errors import ConfigError
+
+    for i in range(3):
+        write_occupancy_shape(tmp_path / "occ" / "c" / f"s{i}", n=4001, seed=i)
+    collection = sphere_collection(tmp_path / "cache", tmp_path / "occ")
+    collection = type(collection)(collection.source, n_sdf=2000, n_occ=500, n_surface=400, root=collection.root,
+                                  normalize=False, test_fraction=0.0)
+    assert collection.layout == "occupancy" and collection.count("train") == 3
+    collection.build(progress=False)
+    with np.load(collection.folder / "train" / "c_train_0000.npz") as data:
+        truth = np.linalg.norm(data["sdf_points"], axis=1) - 0.4
+        clear = np.abs(truth) > 0.02
+        assert (np.sign(data["sdf_values"][clear]) == np.sign(truth[clear])).mean() > 0.99
+        assert np.array_equal(data["occ_uniform_inside"], np.linalg.norm(data["occ_uniform_points"], axis=1) < 0.4)
+    with pytest.raises(ConfigError, match="no meshes to score"):
+        collection.test_shapes()

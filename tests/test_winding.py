@@ -11,6 +11,7 @@ import trimesh
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.structures import Mesh
 from neuralsurf.winding import (
+    boundary_faces,
     consistent_patches,
     damage_mesh,
     inside,
@@ -124,8 +125,17 @@ def test_damaged_mesh_keeps_the_clean_inside_away_from_the_damage(ring_mesh):
     query = query[damaged.away(query) & (ring_and_post(query).abs() > 0.01)]
     clean = inside(query, ring_mesh)
     assert torch.equal(clean, ring_and_post(query) < 0)
-    repaired = inside(query, orient_outward(damaged.mesh))
-    assert torch.equal(repaired, clean)
+    oriented = orient_outward(damaged.mesh)
+    assert torch.equal(inside(query, oriented), clean)
+    # inner sheets are not boundary: with them left out the surface is the clean one away from holes
+    boundary = Mesh(oriented.vertices, oriented.faces[boundary_faces(oriented)])
+    assert len(boundary.faces) < len(oriented.faces)
+    from neuralsurf.geometry import point_to_mesh_distance
+
+    on_sheets = damaged.mesh.vertices[len(ring_mesh.vertices):]  # the vertices of the added sheets
+    assert point_to_mesh_distance(on_sheets, boundary).max() < 0.02  # coincident copies stay, inner ones go
+    assert (point_to_mesh_distance(on_sheets, boundary) > 0.01).any()
+    assert torch.equal(inside(query, boundary), clean)
     # without the orientation repair 40% reversed faces pull the inside below one half
     assert inside(query, damaged.mesh)[clean].double().mean() < 0.5
     assert len(query) > 300
