@@ -138,8 +138,7 @@ def test_output_in_world_frame():
     assert mesh.is_watertight and signed_volume(mesh) > 0
 
 
-def test_level_selects_an_offset_surface():
-    sphere = Sphere(radius=0.3)
+def test_level_selects_an_offset_surface(sphere):
     mesh = extract_mesh(sphere.sdf, 96, UNIT_BOX, level=0.05)
     radii = mesh.vertices.double().norm(dim=1)
     assert radii.mean() == pytest.approx(0.35, abs=1e-3)

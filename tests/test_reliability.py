@@ -86,11 +86,11 @@ def test_a_run_directory_under_a_file_is_a_clear_error(tmp_path):
     check_run_dir_argument([f"hydra.run.dir={tmp_path / 'free' / 'run'}"])  # a new folder is fine
 
 
-def test_a_capture_shorter_than_the_hold_out_period_holds_none_out_with_a_warning():
-    from neuralsurf.scenes import Sphere, scan_depth
+def test_a_capture_shorter_than_the_hold_out_period_holds_none_out_with_a_warning(sphere):
+    from neuralsurf.scenes import scan_depth
     from neuralsurf.scenes.recipes import depth_scene
 
-    frames = scan_depth(Sphere(radius=0.3).mesh(), n_views=4, width=32, height=24)
+    frames = scan_depth(sphere.mesh(), n_views=4, width=32, height=24)
     with pytest.warns(UserWarning, match="4 frames, fewer than hold_out_every=10: none held out"):
         scene = depth_scene("short", frames, hold_out_every=10)
     assert scene.held_out is None and len(scene.frames) == 4

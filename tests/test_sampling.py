@@ -64,8 +64,7 @@ def test_bad_sampling_parameters_are_reported():
         make_sdf_samples(Sphere().sample_surface(100), near_sigmas=(0.0,))
 
 
-def test_winding_number_is_one_inside_and_zero_outside_a_sampled_sphere():
-    sphere = Sphere(radius=0.3)
+def test_winding_number_is_one_inside_and_zero_outside_a_sampled_sphere(sphere):
     cloud = sphere.sample_surface(5000, seed=0)
     points, normals = cloud.points.float(), cloud.normals.float()
     query = (torch.rand(4000, 3, generator=torch.Generator().manual_seed(1)) - 0.5) * 1.2
@@ -76,10 +75,9 @@ def test_winding_number_is_one_inside_and_zero_outside_a_sampled_sphere():
     assert point_areas(points).sum() == pytest.approx(4 * torch.pi * 0.3**2, rel=0.1)  # the sphere's area
 
 
-def test_free_space_signs_survive_a_patch_of_flipped_normals():
+def test_free_space_signs_survive_a_patch_of_flipped_normals(sphere):
     """A cap of inward normals (as orientation produces on thin or noisy parts) makes the nearest-normal
     sign call the whole region above the cap 'inside'; the winding number keeps it outside."""
-    sphere = Sphere(radius=0.3)
     cloud = sphere.sample_surface(5000, seed=0)
     cap = cloud.points[:, 2] > 0.27  # 5 % of the surface
     flipped = type(cloud)(cloud.points, torch.where(cap[:, None], -cloud.normals, cloud.normals))
