@@ -43,6 +43,7 @@ from neuralsurf.io.meshes import mesh_format
 from neuralsurf.metrics import depth_metrics, evaluate_mesh
 from neuralsurf.models import AutoDecoder
 from neuralsurf.priors import ShapeCollection, score_completions, train_prior
+from neuralsurf.priors.folders import FolderCollection
 from neuralsurf.runlock import busy_message, run_lock
 from neuralsurf.training import CHECKPOINT_NAME, fit, load_checkpoint
 
@@ -161,7 +162,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
         seed_everything(cfg.seed)
         scene = instantiate(cfg.data)
         log.info("scene %s: %s", scene.name, scene.description)
-        if isinstance(scene, ShapeCollection):
+        if isinstance(scene, (ShapeCollection, FolderCollection)):
             return train_collection(cfg, scene, run_dir, config, device, extension)
         model = instantiate(cfg.model, _convert_="all")
         result = fit(model, build_observations(cfg, scene), optimizer=instantiate(cfg.optimizer), device=device,
@@ -194,8 +195,8 @@ def shared_run_directory(cfg: DictConfig) -> Path:
     return shared
 
 
-def train_collection(cfg: DictConfig, collection: ShapeCollection, run_dir: Path, config: dict, device: str,
-                     extension: str = ".ply") -> dict[str, float]:
+def train_collection(cfg: DictConfig, collection: ShapeCollection | FolderCollection, run_dir: Path, config: dict,
+                     device: str, extension: str = ".ply") -> dict[str, float]:
     """Train a learned prior (cfg.model: a builder called with the collection's number of training
     shapes) over `collection` (built here, or found cached) with `neuralsurf.priors.train_prior`, then
     complete its test shapes from noisy clouds (cfg.score) and write mesh<extension> (the first test
