@@ -21,6 +21,7 @@ from neuralsurf.photometric.integration import (
     NormalIntegration,
     continuous_pieces,
     depth_error,
+    discontinuities,
     integrate_bilateral,
     integrate_least_squares,
 )
@@ -48,6 +49,7 @@ __all__ = [
     "calibrate_chrome_ball",
     "continuous_pieces",
     "depth_error",
+    "discontinuities",
     "integrate_bilateral",
     "integrate_least_squares",
     "least_squares_stereo",

@@ -318,3 +318,159 @@ __all__ = [
     "ring_lights",
     "vertex_normals",
 ]
+
+
+# ----------------------------------------------------------------------------------------------
+# analytic views with depth discontinuities (normal-integration oracles)
+
+
+@dataclass(frozen=True)
+class Primitive:
+    """A convex solid or a plane for `raycast_primitives`, in the camera frame.
+
+    kind "box": centre, `half` (3 half-extents along the box axes) and `rotation` (3x3, columns the box
+    axes); "ball": centre and radius `half[0]`; "plane": the plane through `centre` with normal `half`."""
+
+    kind: str
+    centre: tuple[float, float, float]
+    half: tuple[float, float, float]
+    rotation: tuple[tuple[float, ...], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+
+
+def _hits(primitive: Primitive, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ray parameter t [m] (inf for a miss) and outward unit normal [m, 3] of rays [m, 3] from the origin."""
+    c = np.asarray(primitive.centre, dtype=np.float64)
+    if primitive.kind == "ball":
+        r = primitive.half[0]
+        b = rays @ c
+        a = (rays * rays).sum(-1)
+        disc = b**2 - a * (c @ c - r * r)
+        t = np.where(disc >= 0, (b - np.sqrt(np.clip(disc, 0, None))) / a, np.inf)
+        t = np.where(t > 0, t, np.inf)
+        normal = (np.where(np.isfinite(t), t, 0.0)[:, None] * rays - c) / r
+        return t, normal
+    if primitive.kind == "plane":
+        n = np.asarray(primitive.half, dtype=np.float64)
+        n = n / np.linalg.norm(n)
+        along = rays @ n
+        with np.errstate(divide="ignore"):
+            t = np.where(np.abs(along) > 1e-12, (c @ n) / along, np.inf)
+        t = np.where(t > 0, t, np.inf)
+        return t, np.where(along[:, None] < 0, n, -n) * np.ones_like(rays)
+    if primitive.kind == "box":
+        R = np.asarray(primitive.rotation, dtype=np.float64)
+        half = np.asarray(primitive.half, dtype=np.float64)
+        o, d = R.T @ -c, rays @ R  # ray origin and directions in the box frame
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (-half - o) / d, (half - o) / d
+        near = np.where(np.isnan(t1), -np.inf, np.minimum(t1, t2))
+        far = np.where(np.isnan(t1), np.inf, np.maximum(t1, t2))
+        entry, axis = near.max(-1), near.argmax(-1)
+        hit = (entry <= far.min(-1)) & (entry > 0)
+        local = np.zeros_like(rays)
+        local[np.arange(len(rays)), axis] = -np.sign(d[np.arange(len(rays)), axis])
+        return np.where(hit, entry, np.inf), local @ R.T
+    raise ConfigError(f"unknown primitive kind {primitive.kind!r}; use 'box', 'ball' or 'plane'")
+
+
+def raycast_primitives(primitives: list[Primitive], K: Tensor, width: int, height: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Exact z-depth [h, w], unit normals [h, w, 3] (facing the camera, z < 0 when seen head-on) and mask
+    [h, w] of the nearest of `primitives` along each pixel's ray (pixel (u, v) at integer coordinates)
+    of a pinhole camera at the origin with intrinsics K [3, 3]."""
+    K = np.asarray(torch.as_tensor(K, dtype=torch.float64))
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1).reshape(-1, 3)
+    depth = np.full(len(rays), np.inf)
+    normals = np.zeros_like(rays)
+    for primitive in primitives:
+        t, n = _hits(primitive, rays)
+        nearer = t < depth
+        depth[nearer], normals[nearer] = t[nearer], n[nearer]
+    mask = np.isfinite(depth)
+    normals /= np.clip(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12, None)
+    return (
+        torch.from_numpy(np.where(mask, depth, 0.0).reshape(height, width)),
+        torch.from_numpy(normals.reshape(height, width, 3)),
+        torch.from_numpy(mask.reshape(height, width)),
+    )
+
+
+def _rotation(yaw_deg: float, pitch_deg: float) -> tuple[tuple[float, ...], ...]:
+    """Rotation about the camera's y axis by yaw, then about x by pitch (rows of the 3x3 matrix)."""
+    a, b = math.radians(yaw_deg), math.radians(pitch_deg)
+    yaw = np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+    pitch = np.array([[1, 0, 0], [0, math.cos(b), -math.sin(b)], [0, math.sin(b), math.cos(b)]])
+    return tuple(map(tuple, (pitch @ yaw).tolist()))
+
+
+def _turn_down(primitive: Primitive, degrees: float, pivot: tuple[float, float, float] = (0.0, 0.0, 3.0)) -> Primitive:
+    """`primitive` turned about the camera's x axis through `pivot` so that its up side (-y) tilts
+    towards the camera by `degrees` (a view from above)."""
+    P = np.asarray(_rotation(0.0, degrees))
+    c = np.asarray(pivot)
+    centre = tuple((P @ (np.asarray(primitive.centre) - c) + c).tolist())
+    if primitive.kind == "plane":
+        return Primitive("plane", centre, tuple((P @ np.asarray(primitive.half)).tolist()))
+    return Primitive(primitive.kind, centre, primitive.half, tuple(map(tuple, (P @ np.asarray(primitive.rotation)).tolist())))
+
+
+DISCONTINUITY_SCENES = ("step", "sphere_on_plane", "stacked_boxes", "box_on_ground")
+"""Names of `discontinuity_scene`'s views."""
+
+
+def discontinuity_scene(name: str, size: int = 128, fov_deg: float = 40.0) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """A perspective view (size x size, vertical field of view `fov_deg`) of analytic solids with depth
+    discontinuities where one occludes another, for normal-integration tests:
+
+    - "step": a tilted plane behind a tilted slab that covers the left of the view (the slab's side
+      face is hidden: a pure step);
+    - "sphere_on_plane": a sphere in front of a tilted plane (an occluding contour with grazing normals);
+    - "stacked_boxes": a box on a box on a ground plane before a wall, turned and seen from above
+      (creases; the boxes' far edges occlude what lies behind);
+    - "box_on_ground": one turned box on a ground plane before a wall, seen obliquely.
+
+    Returns:
+        depth Float64[h, w], normals Float64[h, w, 3], mask Bool[h, w] (every pixel sees a surface) and K [3, 3].
+    """
+    K = intrinsics_from_fov(size, size, fov_deg).double()
+    tilted = Primitive("plane", (0.0, 0.0, 4.0), (0.25, -0.15, -1.0))
+    if name == "step":
+        slab = Primitive("box", (-1.6, 0.0, 2.4), (1.5, 3.0, 0.2), _rotation(-12.0, 8.0))
+        primitives = [tilted, slab]
+    elif name == "sphere_on_plane":
+        primitives = [tilted, Primitive("ball", (0.15, 0.1, 2.5), (0.6, 0.0, 0.0))]
+    elif name == "stacked_boxes":
+        ground = Primitive("plane", (0.0, 0.6, 0.0), (0.0, -1.0, 0.0))
+        lower = Primitive("box", (0.0, 0.3, 3.0), (0.6, 0.3, 0.45), _rotation(25.0, 0.0))
+        upper = Primitive("box", (0.1, -0.15, 3.0), (0.3, 0.15, 0.3), _rotation(-20.0, 0.0))
+        wall = Primitive("plane", (0.0, 0.0, 5.0), (0.1, 0.0, -1.0))
+        primitives = [_turn_down(p, 25.0) for p in (ground, wall, lower, upper)]
+    elif name == "box_on_ground":
+        ground = Primitive("plane", (0.0, 0.4, 0.0), (0.0, -1.0, 0.0))
+        box = Primitive("box", (0.0, 0.1, 3.0), (0.5, 0.3, 0.4), _rotation(35.0, 0.0))
+        wall = Primitive("plane", (0.0, 0.0, 4.5), (-0.2, 0.0, -1.0))
+        primitives = [_turn_down(p, 20.0) for p in (ground, wall, box)]
+    else:
+        raise ConfigError(f"unknown discontinuity scene {name!r}; choose one of {DISCONTINUITY_SCENES}")
+    depth, normals, mask = raycast_primitives(primitives, K, size, size)
+    return depth, normals, mask, K
+
+
+def degrade_normals(normals: Tensor, mask: Tensor, sigma: float = 0.01, bits: int | None = 8, seed: int = 0) -> Tensor:
+    """A measured-like normal map: Gaussian noise of `sigma` on each component, renormalised, then stored
+    as `bits`-bit RGB ((n + 1) / 2 rounded to 2^bits - 1 levels, as normal-map images are) and read back.
+
+    Args:
+        normals: Float[Tensor, "h w 3"] unit normals; mask: Bool[Tensor, "h w"] (0 outside).
+    Returns:
+        Float[Tensor, "h w 3"] unit normals, 0 outside the mask.
+    """
+    if sigma < 0:
+        raise ConfigError(f"sigma must be non-negative, got {sigma}")
+    generator = torch.Generator().manual_seed(seed)
+    noisy = normals + sigma * torch.randn(normals.shape, generator=generator, dtype=normals.dtype)
+    noisy = torch.nn.functional.normalize(noisy, dim=-1)
+    if bits is not None:
+        levels = 2**bits - 1
+        noisy = torch.nn.functional.normalize(torch.round((noisy + 1) / 2 * levels) / levels * 2 - 1, dim=-1)
+    return torch.where(mask[..., None], noisy, 0.0)
