@@ -216,3 +216,23 @@ def test_occupancy_layout_becomes_a_collection(tmp_path):
         assert np.array_equal(data["occ_uniform_inside"], np.linalg.norm(data["occ_uniform_points"], axis=1) < 0.4)
     with pytest.raises(ConfigError, match="no meshes to score"):
         collection.test_shapes()
+
+
+def test_suite_priors_folder_sets_one_collection_for_scenes_and_priors(tmp_path):
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    from neuralsurf.priors.folders import FolderCollection
+
+    configs = Path(__file__).resolve().parents[1] / "configs"
+    with initialize_config_dir(config_dir=str(configs), version_base="1.3"):
+        cfg = compose(config_name="evaluate", overrides=["suite=priors_folder", f"folder.source={tmp_path}",
+                                                          "folder.n_train=5"])
+    nodes = [cfg.scene.shapes_cloud.collection, cfg.scene.shapes_one_view.collection,
+             cfg.method.deepsdf.collection, cfg.method.occupancy_network.collection]
+    collections = [instantiate(node) for node in nodes]
+    assert all(isinstance(c, FolderCollection) for c in collections)
+    assert len({c.folder for c in collections}) == 1 and collections[0].source == str(tmp_path)
+    assert collections[0].n_train == 5 and list(cfg.scenes) == ["shapes_cloud", "shapes_one_view"]
