@@ -398,3 +398,12 @@ def test_load_prior_rebuilds_a_trained_prior_and_refuses_other_checkpoints(tmp_p
     FitResult(single, Normalization(), auto_decoder.field).save(tmp_path / "single.pt")
     with pytest.raises(CheckpointError, match="not a learned prior"):
         load_prior(tmp_path / "single.pt")
+
+
+def test_the_unit_frame_and_the_extraction_box_of_a_prior():
+    from neuralsurf.priors import EXTRACTION_BOUNDS, UNIT_BOUNDS, CacheRecipe
+
+    assert UNIT_BOUNDS.tolist() == [[-0.5] * 3, [0.5] * 3]
+    padding = CacheRecipe().padding  # the caches' padding: ground-truth meshes and samples reach that far
+    assert np.array_equal(EXTRACTION_BOUNDS, np.array([[-0.5 - padding] * 3, [0.5 + padding] * 3]))
+    assert EXTRACTION_BOUNDS.tolist() == [[-0.55] * 3, [0.55] * 3]
