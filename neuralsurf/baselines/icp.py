@@ -488,15 +488,18 @@ def register_icp(
             matter), estimated from 30 neighbours when absent and `estimate_normals`.
         max_distance: largest correspondence distance, in the clouds' units (at the finest level).
         init: 4x4 rigid initial guess of the source-to-target transform; identity by default.
-        method: "point_to_point" or "point_to_plane".
-        kernel: None (least squares), "huber" or "tukey"; `kernel_scale` is its threshold.
+        method: "point_to_point" or "point_to_plane" (the "ICP method" strategies of `neuralsurf.strategies`:
+            PointToPoint, PointToPlane), or an object of one's own with their methods.
+        kernel: None (least squares), "huber" or "tukey" (LeastSquares, Huber, Tukey); `kernel_scale` is its
+            threshold.
         voxel_sizes: optional coarse-to-fine pyramid, e.g. (4v, 2v, v): level s runs on both clouds
             downsampled to voxels of size s (centroids) with max_distance * s / voxel_sizes[-1],
             and `max_iterations` per level. Normals are then re-estimated per level within 2 s
             (or the given ones averaged per voxel).
         estimate_normals: estimate missing target normals for point-to-plane, else raise.
         engine: "open3d" (default): Open3D's ICP, the same loop compiled (robust point-to-point,
-            which Open3D lacks, runs on the reference); "reference": our numpy loop.
+            which Open3D lacks, runs on the reference); "reference": our numpy loop; or a function
+            engine(ICPProblem) -> (transform, fitness, inlier_rmse, iterations), the engines' interface.
         device: "auto", "cpu" or "cuda", for engine="open3d": "cuda" runs Open3D's tensor pipeline
             (multi-scale ICP) on the GPU and needs an Open3D built with CUDA; "auto" takes it when
             there is one, else the CPU (Open3D's legacy ICP, the fastest there).
