@@ -4,7 +4,8 @@
 `integrate_bilateral` (bilateral normal integration, Cao et al., ECCV 2022: one-sided differences
 reweighted so that the surface may break at depth discontinuities). Orthographic (no K: depth in units
 of `pixel_size`, up to an offset) or perspective (K: log-depth, depth up to a scale). Both are sparse
-linear least squares, solved directly (SciPy's SuperLU). Camera frame: x right, y down, z forward;
+linear least squares: solved directly (SciPy's SuperLU), and for the bilateral method's reweighted
+systems by conjugate gradients preconditioned with an earlier factorisation. Camera frame: x right, y down, z forward;
 normals facing the camera have z < 0.
 """
 
@@ -109,6 +110,11 @@ def _solve(matrix, rhs: np.ndarray, refinements: int = 3) -> np.ndarray:
     connected region's depth is free up to a constant) by a sparse LU factorisation after a tiny
     Tikhonov term (1e-9 of the mean diagonal) that fixes those constants, then remove the term's bias by
     iterative refinement against the unregularised system."""
+    return _solve_factored(matrix, rhs, refinements)[0]
+
+
+def _solve_factored(matrix, rhs: np.ndarray, refinements: int = 3):
+    """`_solve`, also returning the sparse LU factorisation (SciPy's SuperLU object) it used."""
     from scipy.sparse import identity
     from scipy.sparse.linalg import splu
 
@@ -119,7 +125,7 @@ def _solve(matrix, rhs: np.ndarray, refinements: int = 3) -> np.ndarray:
     solution = factor.solve(rhs)
     for _ in range(refinements):
         solution = solution + factor.solve(rhs - matrix @ solution)
-    return solution
+    return solution, factor
 
 
 def _finish(t: np.ndarray, mask: Tensor, K, iterations: int, dtype) -> NormalIntegration:
@@ -175,24 +181,18 @@ def integrate_least_squares(
 
 
 def _solve_reweighted(matrix, rhs: np.ndarray, start: np.ndarray, factor, steps: int = 25):
-    """Solve one reweighted system (`_solve`'s normal equations) by conjugate gradients from the previous
-    solution `start`, preconditioned by the sparse LU `factor` of an earlier system, with `_solve`'s
-    Tikhonov term: weights change little between iterations, so a few steps reach 1e-10. A new
-    factorisation when there is none yet or `steps` do not suffice. Returns (solution, factor)."""
-    from scipy.sparse import identity
-    from scipy.sparse.linalg import LinearOperator, cg, splu
+    """Solve one reweighted system by conjugate gradients from the previous solution `start`,
+    preconditioned by the factorisation `factor` of an earlier system (weights change little between
+    iterations, so a few steps reach 1e-10); by `_solve` when there is no factorisation yet or `steps`
+    do not suffice. Returns (solution, the factorisation to precondition the next system with)."""
+    from scipy.sparse.linalg import LinearOperator, cg
 
-    regularised = (matrix + 1e-9 * float(matrix.diagonal().mean()) * identity(matrix.shape[0], format="csr")).tocsr()
     if factor is not None:
         preconditioner = LinearOperator(matrix.shape, matvec=factor.solve)
         solution, info = cg(matrix, rhs, x0=start, M=preconditioner, rtol=1e-10, maxiter=steps)
         if info == 0:
             return solution, factor
-    factor = splu(regularised.tocsc(), permc_spec="MMD_AT_PLUS_A")
-    solution = factor.solve(rhs)
-    for _ in range(3):  # iterative refinement against the unregularised system removes the term's bias
-        solution = solution + factor.solve(rhs - matrix @ solution)
-    return solution, factor
+    return _solve_factored(matrix, rhs)
 
 
 def _weighted_normals(normals: Tensor, mask: Tensor, K: Tensor | None, pixel_size: float):
