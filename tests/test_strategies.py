@@ -62,3 +62,17 @@ def test_a_normal_source_of_ones_own_supplies_the_fits_normals():
     estimated = prepare_cloud(cloud, "estimate", normal_k=10)
     assert estimated_normals is choose("normal source", "estimate")
     assert (estimated.normals.double() * prepared.normals.double()).sum(-1).min() > 0.9  # PCA + MST: outward too
+
+
+def test_depth_rays_take_their_noise_sigma_from_the_registry():
+    from neuralsurf.geometry import kinect_sigma
+    from neuralsurf.observations import DepthRays
+
+    z = torch.linspace(0.5, 4.0, 8)
+    assert names("depth sigma") == ("kinect", "constant")
+    assert torch.equal(choose("depth sigma", "kinect")(z, 0.002), kinect_sigma(z))
+    assert torch.equal(choose("depth sigma", "constant")(z, 0.002), torch.full_like(z, 0.002))
+    frames = scan_depth(wall(1.0), cam_to_world=torch.eye(4), K=K, width=16, height=12)
+    DepthRays(frames, noise_model=lambda z, sigma: 2 * torch.full_like(z, sigma))  # one's own is accepted
+    with pytest.raises(ConfigError, match="noise_model kinect or constant"):
+        DepthRays(frames, noise_model="speckle")

@@ -23,7 +23,7 @@ onto the quadric of its nearest hits (`denoise_hits`): the sensor noise is avera
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 
 import torch
@@ -40,9 +40,22 @@ from neuralsurf.geometry import (
 from neuralsurf.losses import eikonal_loss
 from neuralsurf.observations.base import NotObserved, Observation, Sampler, check_weights
 from neuralsurf.sampling import cloud_spacing, point_areas, winding_number
+from neuralsurf.strategies import choose, names, register
 from neuralsurf.structures import DepthFrames, Normalization
 
 RAY_TERMS = ("surface", "band", "free", "carve", "normal", "eikonal")
+
+
+@register("depth sigma", "kinect")
+def kinect_depth_sigma(z: Tensor, sigma: float) -> Tensor:
+    """Kinect v1's axial noise sigma at depths z [...] metres (`geometry.kinect_sigma`; `sigma` unused)."""
+    return kinect_sigma(z)
+
+
+@register("depth sigma", "constant")
+def constant_depth_sigma(z: Tensor, sigma: float) -> Tensor:
+    """`sigma` metres at every depth z [...]."""
+    return torch.full_like(z, sigma)
 DEFAULT_RAY_WEIGHTS = {"surface": 3.0, "band": 1.0, "free": 100.0, "carve": 1.0, "normal": 0.5, "eikonal": 0.03}
 
 
@@ -364,13 +377,17 @@ class DepthRays(Observation):
     """Half-width of the band around each hit, unit frame (at least 3 noise sigmas)."""
     max_rays: int = 4_000_000
     """Keep at most this many rays (a random subset, fixed by the seed) to bound memory."""
+    carve_voxel: float = 0.0
+    """World units: draw half of the carve pool inside the voxels of this size where the frames observed a
+    surface, and their neighbours (`observed.ObservedSurface`; thin gaps and silhouettes get labelled points,
+    not only the empty box); 0: the whole pool uniform in the box."""
     pixel_stride: int = 1
     """Rays of every this-many-th pixel along both image axes only (`stride_frames`): a room's frames overlap,
     so 1 / stride^2 of the pixels still cover it, and building, subsetting and denoising the rays costs that
     much less time and memory."""
-    noise_model: str = "kinect"
-    """Noise sigma of a depth reading: "kinect" (Nguyen et al. 2012: 1.2 mm at 0.4 m, growing with
-    the square of the depth) or "constant" (`sigma` metres)."""
+    noise_model: str | Callable = "kinect"
+    """Noise sigma of a depth reading, a "depth sigma" strategy: "kinect" (Nguyen et al. 2012: 1.2 mm at
+    0.4 m, growing with the square of the depth), "constant" (`sigma` metres), or a function (z, sigma) -> sigma."""
     sigma: float = 0.001
     """Noise sigma of the "constant" model, metres."""
     carve_margin: float = 1.0
@@ -398,7 +415,8 @@ class DepthRays(Observation):
                               f">= 6, others >= 0), got {counts}")
         amounts = {k: getattr(self, k) for k in ("hit_fraction", "carve_margin", "truncation", "sigma")}
         if not (amounts["hit_fraction"] >= 0 and amounts["carve_margin"] >= 0 and amounts["truncation"] > 0
-                and amounts["sigma"] > 0 and self.noise_model in ("kinect", "constant")):
+                and amounts["sigma"] > 0
+                and (not isinstance(self.noise_model, str) or self.noise_model in names("depth sigma"))):
             raise ConfigError(f"DepthRays needs hit_fraction >= 0, carve_margin >= 0, truncation > 0, sigma > 0 and "
                               f"noise_model kinect or constant, got {amounts}, noise_model={self.noise_model!r}")
 
@@ -412,7 +430,8 @@ class DepthRays(Observation):
         return cls(scene.frames, **options)
 
     def _sigma_of_depth(self):
-        return kinect_sigma if self.noise_model == "kinect" else (lambda z: torch.full_like(z, self.sigma))
+        model = choose("depth sigma", self.noise_model)
+        return lambda z: model(z, self.sigma)
 
     def _world_rays(self) -> Rays:
         return depth_rays(stride_frames(self.frames.to("cpu"), self.pixel_stride), self._sigma_of_depth())
@@ -436,6 +455,12 @@ class DepthRays(Observation):
         band = torch.clamp(3 * unit.sigma, min=self.truncation)
         generator = torch.Generator().manual_seed(seed)
         pool = (2 * torch.rand(self.n_carve, 3, generator=generator, dtype=torch.float64) - 1) * box
+        if self.carve_voxel:  # half of the pool where surfaces were observed: carving sharpens edges and gaps
+            from neuralsurf.observations.observed import ObservedSurface, observed_points
+
+            observed = ObservedSurface.from_frames(self.frames, self.carve_voxel, max_free_ratio=None)
+            near = observed_points(observed, self.n_carve // 2, generator)
+            pool[: len(near)] = normalization.to_unit(near).clamp(-box, box)
         labels = carve_labels(normalization.to_world(pool), self.frames, self.truncation * scale, self._sigma_of_depth(),
                               bounds)
         if self.winding_points:
