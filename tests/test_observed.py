@@ -117,3 +117,20 @@ def test_depth_rays_pixel_stride_fits_the_strided_pixels_and_names_a_bad_stride(
     assert len(rays.hit) == 3 * (HEIGHT // 2) * (WIDTH // 2)
     with pytest.raises(ConfigError, match="pixel_stride"):
         DepthRays(frames, pixel_stride=0)
+
+
+def test_observed_points_lie_in_observed_voxels_and_feed_the_carve_pool():
+    from neuralsurf.observations import DepthRays
+    from neuralsurf.observations.observed import observed_points
+    from neuralsurf.structures import Normalization
+
+    frames = plane_frames()
+    observed = ObservedSurface.from_frames(frames, 0.05, max_free_ratio=None)
+    points = observed_points(observed, 500, torch.Generator().manual_seed(0))
+    assert observed.contains(points, grown=True).all()
+    observation = DepthRays(frames, carve_voxel=0.05, n_carve=400, winding_points=0, denoise_k=0)
+    normalization = Normalization.from_points(observation.bounds())
+    sampler = observation.prepare(normalization, 0.55, torch.device("cpu"), 0)
+    pool = normalization.to_world(sampler.carved[0].double())
+    near_plane = (pool[:, 2] - PLANE_Z).abs() < 0.15
+    assert near_plane[:200].all() and near_plane.float().mean() < 0.9  # half near the surface, half in the box

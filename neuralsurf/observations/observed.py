@@ -145,6 +145,14 @@ class ObservedSurface:
         return Mesh(mesh.vertices[used], faces.reshape(-1, 3), colors)
 
 
+def observed_points(observed: ObservedSurface, n: int, generator: torch.Generator) -> Tensor:
+    """Float64[Tensor, "n 3"]: world points drawn uniformly in the observed voxels of `observed` and their
+    neighbours (each voxel equally likely)."""
+    cells = _dilate(observed.mask).nonzero()
+    pick = cells[torch.randint(len(cells), (n,), generator=generator)]
+    return observed.origin + (pick.double() + torch.rand(n, 3, generator=generator, dtype=torch.float64)) * observed.voxel
+
+
 def extract_observed(field, observed: ObservedSurface, resolution: int = 512, chunk_size: int = 65_536,
                      level: float = 0.0, progress: bool = False) -> Mesh:
     """Marching cubes of the `level` set of `field` (world x[..., 3] -> f[...]) evaluated only at the grid
