@@ -134,3 +134,16 @@ def test_observed_points_lie_in_observed_voxels_and_feed_the_carve_pool():
     pool = normalization.to_world(sampler.carved[0].double())
     near_plane = (pool[:, 2] - PLANE_Z).abs() < 0.15
     assert near_plane[:200].all() and near_plane.float().mean() < 0.9  # half near the surface, half in the box
+
+
+def test_extract_scene_mesh_meshes_a_room_where_its_frames_saw_a_surface():
+    from neuralsurf.evaluation.methods import extract_scene_mesh
+    from neuralsurf.scenes.recipes import depth_scene
+
+    scene = depth_scene("plane", plane_frames(), cloud_stride=4, near_distance=0.05)
+
+    def field(x):  # the seen plane z = 2 and an unseen one at z = 1.2
+        return torch.minimum(PLANE_Z - x[..., 2], (x[..., 2] - 1.2).abs() - 0.01)
+
+    mesh = extract_scene_mesh(field, scene, {"resolution": 64, "observed_voxel": 0.05, "format": "ply"})
+    assert (mesh.vertices[:, 2] - PLANE_Z).abs().max() < 0.01
