@@ -27,10 +27,9 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 import neuralsurf as ns
-from neuralsurf.evaluation.methods import tsdf
+from neuralsurf.evaluation.methods import extract_scene_mesh, tsdf
 from neuralsurf.evaluation.runner import peak_memory_mb, reset_peak_memory
 from neuralsurf.geometry import render_depth
-from neuralsurf.observations.observed import ObservedSurface, extract_observed
 
 BINS = (-np.inf, -0.5, -0.05, -0.02, 0.02, 0.05, 0.5, np.inf)
 """Signed error bins (rendered - measured, metres) of the error breakdown."""
@@ -82,7 +81,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=None, help="the first N frames (default: all 100)")
     parser.add_argument("--steps", type=int, default=None, help="fit steps (default: the experiment's)")
-    parser.add_argument("--voxel", type=float, default=0.04, help="observed-space voxel, metres")
+    parser.add_argument("--voxel", type=float, default=None,
+                        help="observed-space voxel, metres (default: the experiment's extract.observed_voxel)")
     parser.add_argument("--maps", type=Path, default=None, help="folder for the held-out error maps (PNG)")
     args = parser.parse_args()
 
@@ -92,6 +92,7 @@ def main() -> None:
     trainer = OmegaConf.to_container(cfg.trainer, resolve=True)
     trainer.update(steps=args.steps or trainer["steps"], progress=False, image_every=0, mesh_every=0)
     extract = OmegaConf.to_container(cfg.extract, resolve=True)
+    extract["observed_voxel"] = args.voxel or extract.get("observed_voxel")
     print(f"machine: {platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, "
           f"torch {torch.__version__}, CPU")
     scene = instantiate(cfg.data)
@@ -103,10 +104,10 @@ def main() -> None:
 
     def neural():
         result = ns.fit(model, observation, optimizer=instantiate(cfg.optimizer), device="cpu", **trainer)
-        observed = ObservedSurface.from_frames(scene.frames, args.voxel)
-        return extract_observed(result.field, observed, resolution=extract["resolution"])
+        return extract_scene_mesh(result.field, scene, extract)
 
-    print(f"neural: {trainer['steps']} steps, observed voxels {args.voxel} m, extraction {extract['resolution']} cells")
+    print(f"neural: {trainer['steps']} steps, observed voxels {extract['observed_voxel']} m, extraction "
+          f"{extract['resolution']} cells")
     rows = {"neural (rays)": run("neural fit + observed extraction", neural),
             "TSDF": run("TSDF fusion, 1/256 voxels", tsdf, scene, device="cpu")}
     held = scene.held_out
