@@ -27,6 +27,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 import neuralsurf as ns
+from neuralsurf.evaluation.distances import held_out_error_image
 from neuralsurf.evaluation.methods import extract_scene_mesh, tsdf
 from neuralsurf.evaluation.runner import peak_memory_mb, reset_peak_memory
 from neuralsurf.geometry import render_depth
@@ -55,26 +56,6 @@ def error_breakdown(rendered: torch.Tensor, measured: torch.Tensor) -> str:
         inside = (error >= low) & (error < high)
         parts.append(f"[{low:g}, {high:g}) m: {inside.mean():.3f} of pixels, {np.abs(error[inside]).sum() / len(error):.4f} m")
     return "; ".join(parts)
-
-
-def error_maps(rendered: torch.Tensor, measured: torch.Tensor, path: Path, top: float = 0.2) -> None:
-    """One PNG, a row per held-out view: measured depth | rendered depth (0-5 m grey) | signed error
-    (red behind, blue in front, green 0, saturated at `top` metres; black: the mesh shows nothing there;
-    grey: no reading)."""
-    from PIL import Image
-
-    def grey(depth):
-        return np.repeat((np.clip(depth / 5.0, 0, 1) * 255).astype(np.uint8)[..., None], 3, -1)
-
-    rows = []
-    for r, m in zip(rendered.numpy(), measured.numpy()):
-        e = np.clip(np.where((m > 0) & (r > 0), r - m, 0) / top, -1, 1)
-        colour = np.stack([np.clip(e, 0, 1), 1 - np.abs(e), np.clip(-e, 0, 1)], -1)
-        colour = (colour * 255).astype(np.uint8)
-        colour[(m > 0) & ~(r > 0)] = 0
-        colour[m <= 0] = 128
-        rows.append(np.concatenate([grey(m), grey(r), colour], 1))
-    Image.fromarray(np.concatenate(rows, 0)).save(path)
 
 
 def main() -> None:
@@ -124,7 +105,7 @@ def main() -> None:
         if args.maps is not None:
             args.maps.mkdir(parents=True, exist_ok=True)
             path = args.maps / f"{name.split()[0].lower()}_held_out_error.png"
-            error_maps(rendered, held.depth.cpu(), path)
+            held_out_error_image(rendered.numpy(), held.depth.cpu().numpy()).save(path)
             print(f"  error maps: {path}")
 
 

@@ -147,3 +147,38 @@ def _write_view(run_dir: Path, arrays, view: dict[str, Any], method: str) -> Non
         labels = [f"{method}: distance to ground truth", f"ground truth: distance to {method}"]
         with replaced(run_dir / view["render"]) as temporary:
             labelled_row(images, labels).save(temporary)
+
+
+def held_out_error_image(rendered: np.ndarray, measured: np.ndarray, top: float = 0.2):
+    """Per-pixel error maps of held-out depth views as one PIL image, a row per view: measured depth |
+    rendered depth (grey, 0 to 5 m) | signed error rendered - measured (green 0, red where the mesh lies
+    behind the reading, blue where it stands in front, saturated at `top` metres; black: the mesh shows
+    nothing there; grey: no reading). rendered, measured: Float[ndarray, "n h w"] z-depth, 0 = none."""
+    from PIL import Image
+
+    def grey(depth):
+        return np.repeat((np.clip(depth / 5.0, 0, 1) * 255).astype(np.uint8)[..., None], 3, -1)
+
+    rows = []
+    for r, m in zip(rendered, measured):
+        e = np.clip(np.where((m > 0) & (r > 0), r - m, 0) / top, -1, 1)
+        colour = (np.stack([np.clip(e, 0, 1), 1 - np.abs(e), np.clip(-e, 0, 1)], -1) * 255).astype(np.uint8)
+        colour[(m > 0) & ~(r > 0)] = 0
+        colour[m <= 0] = 128
+        rows.append(np.concatenate([grey(m), grey(r), colour], 1))
+    return Image.fromarray(np.concatenate(rows, 0))
+
+
+def save_held_out_errors(run_dir: Path, scene: str, method: str, mesh: Mesh, frames, width: int = 960) -> str:
+    """`held_out_error_image` of `mesh` ray-cast from the held-out `frames` (DepthFrames), scaled to `width`
+    pixels, as renders/<scene>__<method>__held_out.png; returns that path relative to `run_dir`."""
+    from neuralsurf.geometry import render_depth
+
+    rendered, _ = render_depth(mesh, frames.K.cpu(), frames.cam_to_world.cpu(), frames.width, frames.height)
+    image = held_out_error_image(rendered.numpy(), frames.depth.cpu().numpy())
+    image = image.resize((width, round(image.height * width / image.width)))
+    path = Path("renders") / f"{row_stem(scene, method)}__held_out.png"
+    with replaced(Path(run_dir) / path) as temporary:
+        image.save(temporary, format="PNG")
+    return str(path)
+

@@ -167,6 +167,13 @@ def write_html(rows: list[dict[str, Any]], run_dir: Path, plots: list[str], titl
             parts.append(f"<h3>{html.escape(row['method'])} on {html.escape(row['scene'])}</h3>")
             grey = _img(run_dir, row["render"], f"{row['method']} on {row['scene']}") if row.get("render") else ""
             parts.append(f"<div class='views'>{grey}{error}</div>")
+        if row.get("held_out_render"):
+            name = f"{row['method']} on {row['scene']}"
+            parts.append(f"<h3>{html.escape(name)}: held-out views</h3><figure>"
+                         f"{_img(run_dir, row['held_out_render'], name + ': held-out depth error')}<figcaption>"
+                         "each held-out view: measured depth | the mesh's depth | rendered - measured (green 0, red: "
+                         "the mesh lies behind the reading, blue: in front, saturated at 20 cm; black: nothing "
+                         "rendered; grey: no reading)</figcaption></figure>")
     if extra:
         parts.append("<h2>Environment and config</h2><pre>" + html.escape(json.dumps(extra, indent=2, default=str))
                      + "</pre>")

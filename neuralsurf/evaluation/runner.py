@@ -23,7 +23,7 @@ import torch
 
 import neuralsurf
 from neuralsurf.errors import ConfigError
-from neuralsurf.evaluation.distances import save_distances
+from neuralsurf.evaluation.distances import save_distances, save_held_out_errors
 from neuralsurf.evaluation.methods import NotApplicable
 from neuralsurf.evaluation.photometric import NormalMapResult, normal_map_picture, score_normal_maps
 from neuralsurf.evaluation.render import default_view, distance_image, labelled_row, shade
@@ -260,6 +260,11 @@ def run_row(row: dict[str, Any], built: dict[str, Any], make_method: MethodFacto
             if built["gt_image"] is None:
                 built["gt_image"] = _gt_render(shown, run_dir, render_size)
             row["render"] = _render_row(shown, mesh, method_name, built["gt_image"], run_dir, render_size)
+        except Exception as error:  # noqa: BLE001 - a render problem must not lose the numbers
+            row["render_error"] = f"{type(error).__name__}: {error}"
+    if render and getattr(scene, "held_out", None) is not None:
+        try:
+            row["held_out_render"] = save_held_out_errors(run_dir, scene_name, method_name, mesh, scene.held_out)
         except Exception as error:  # noqa: BLE001 - a render problem must not lose the numbers
             row["render_error"] = f"{type(error).__name__}: {error}"
     log(f"  {method_name:>12} on {scene_name}: chamfer_l1 {row.get('chamfer_l1', math.nan):.5f}  "
