@@ -121,7 +121,7 @@ def test_damaged_mesh_keeps_the_clean_inside_away_from_the_damage(ring_mesh):
     assert not damaged.mesh.is_watertight
     assert len(damaged.mesh.faces) != len(ring_mesh.faces)
     generator = torch.Generator().manual_seed(4)
-    query = torch.rand(1500, 3, dtype=torch.float64, generator=generator) * 1.2 - 0.55
+    query = torch.rand(800, 3, dtype=torch.float64, generator=generator) * 1.2 - 0.55
     query = query[damaged.away(query) & (ring_and_post(query).abs() > 0.01)]
     clean = inside(query, ring_mesh)
     assert torch.equal(clean, ring_and_post(query) < 0)
@@ -138,7 +138,7 @@ def test_damaged_mesh_keeps_the_clean_inside_away_from_the_damage(ring_mesh):
     assert torch.equal(inside(query, boundary), clean)
     # without the orientation repair 40% reversed faces pull the inside below one half
     assert inside(query, damaged.mesh)[clean].double().mean() < 0.5
-    assert len(query) > 300
+    assert len(query) > 200
 
 
 def test_bad_input_is_named():
