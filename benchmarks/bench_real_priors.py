@@ -35,13 +35,13 @@ from neuralsurf.training import default_optimizer, fit
 from neuralsurf.winding import damage_mesh
 
 
-def write_folders(out: Path, classes: list[str], n_train: int, n_test: int, resolution: int, seed: int) -> dict:
+def write_folders(out: Path, classes: list[str], n_train: int, n_test: int, resolution: int, seed: int,
+                  damage: dict) -> dict:
     """clean/<class>/<name>.ply and damaged/<class>/<name>.ply with train.lst / test.lst; returns counts."""
     watertight = {"clean": 0, "damaged": 0}
     for record in collection_records(tuple(classes), n_train, 0, n_test, seed):
         mesh = Shape.from_record(record).mesh(resolution)
-        damaged = damage_mesh(mesh, holes=3, duplicated=2, inner=2, flipped=0.3, radius=0.04, inset=0.01,
-                              seed=record.index).mesh if record.split == "train" else mesh
+        damaged = damage_mesh(mesh, **damage, seed=record.index).mesh if record.split == "train" else mesh
         for kind, version in (("clean", mesh), ("damaged", damaged)):
             folder = out / kind / record.kind
             write_mesh(folder / f"{record.name}.ply", version)
@@ -67,6 +67,9 @@ def main() -> None:
     parser.add_argument("--latent-steps", type=int, default=150)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--holes", type=int, default=3, help="holes cut into each damaged training mesh")
+    parser.add_argument("--hole-radius", type=float, default=0.04, help="their radius (the longest side is 1)")
+    parser.add_argument("--flipped", type=float, default=0.3, help="share of reversed faces")
     parser.add_argument("--rows", default="clean,damaged",
                         help="priors to train: clean, damaged, parity (the damaged meshes with ray-parity signs)")
     args = parser.parse_args()
@@ -75,7 +78,9 @@ def main() -> None:
     out = Path(args.out)
     classes = args.classes.split(",")
     if not (out / "clean").is_dir():
-        watertight = write_folders(out, classes, args.n_train, args.n_test, args.mesh_resolution, args.seed)
+        damage = {"holes": args.holes, "radius": args.hole_radius, "duplicated": 2, "inner": 2, "inset": 0.01,
+                  "flipped": args.flipped}
+        watertight = write_folders(out, classes, args.n_train, args.n_test, args.mesh_resolution, args.seed, damage)
         print(f"training meshes watertight: clean {watertight['clean']}, damaged {watertight['damaged']} of "
               f"{args.n_train * len(classes)}", flush=True)
     results = {}
