@@ -2,21 +2,18 @@
 
 import sys
 
+from neuralsurf import data, view
 from neuralsurf.cli import evaluate_main, score_main, train_main
 
 
 def data_main() -> int:
     """``python -m neuralsurf data {list,fetch}``: `neuralsurf.data.main`'s exit status."""
-    from neuralsurf.data import main
-
-    return main(sys.argv[1:])
+    return data.main(sys.argv[1:])
 
 
 def view_main() -> int:
     """``python -m neuralsurf view PATH ...``: `neuralsurf.view.main`'s exit status."""
-    from neuralsurf.view import main
-
-    return main(sys.argv[1:])
+    return view.main(sys.argv[1:])
 
 
 COMMANDS = {"train": train_main, "evaluate": evaluate_main, "score": score_main, "data": data_main, "view": view_main}

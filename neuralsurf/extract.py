@@ -22,6 +22,9 @@ import torch
 from torch import Tensor, nn
 
 from neuralsurf.errors import ConfigError, ExtractionError, InputError
+from neuralsurf.io.npz import write_npz
+from neuralsurf.marching import marching_cubes_torch
+from neuralsurf.progress import progress_bar
 from neuralsurf.structures import Mesh
 
 Field = Callable[[Tensor], Tensor]
@@ -118,7 +121,6 @@ def evaluate_grid_points(field: Field, grid: Grid, index: np.ndarray, chunk_size
 
     Raises ExtractionError on NaN, naming a point where it happened.
     """
-    from neuralsurf.progress import progress_bar
 
     values = np.empty(len(index), dtype=np.float32)
     starts = range(0, len(index), chunk_size)
@@ -269,8 +271,6 @@ def level_set(values: np.ndarray, level: float = 0.0, valid: np.ndarray | None =
     on_gpu = torch.device(device).type == "cuda" and valid is None and cells is None
     finite = off_level(torch.from_numpy(finite).to(device if on_gpu else "cpu"), level)
     if on_gpu:
-        from neuralsurf.marching import marching_cubes_torch
-
         vertices, faces = (t.cpu().numpy() for t in marching_cubes_torch(finite, level))
         return vertices.astype(np.float32), faces.astype(np.int64)
     mask = None
@@ -465,8 +465,6 @@ def sample_grid(
     corners = np.stack([grid.origin, grid.origin + np.array(grid.cells) * grid.spacing])
     samples = GridSamples(torch.from_numpy(values), torch.from_numpy(corners), float(grid.spacing))
     if path is not None:
-        from neuralsurf.io.npz import write_npz
-
         write_npz(path, {"values": values, "bounds": corners, "spacing": np.float64(grid.spacing)})
     return samples
 

@@ -26,7 +26,11 @@ from typing import Any
 
 import numpy as np
 
-from neuralsurf.errors import InputError, MissingDependencyError
+from neuralsurf.errors import InputError, MissingDependencyError, NeuralsurfError
+from neuralsurf.evaluation.distances import FOLDER
+from neuralsurf.evaluation.filenames import safe_name
+from neuralsurf.evaluation.store import _scene_classes, read_rows, row_stem
+from neuralsurf.io import read_mesh
 
 MESH_SUFFIXES = (".ply", ".obj", ".off", ".stl", ".glb")
 """Files read as meshes (`neuralsurf.io.read_mesh`)."""
@@ -81,7 +85,6 @@ class Group:
 
 def _mesh_arrays(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """(vertices float32 (v, 3), faces int64 (f, 3), colours uint8 (v, 3) or None) of a mesh file."""
-    from neuralsurf.io import read_mesh
 
     mesh = read_mesh(path)
     colours = None
@@ -110,7 +113,6 @@ def is_run(folder: Path) -> bool:
 
 def run_rows(folder: Path) -> list[dict[str, Any]]:
     """The rows of a results folder: results.json's, else rows/*.json (`neuralsurf.evaluation.store`)."""
-    from neuralsurf.evaluation.store import read_rows
 
     if (folder / "results.json").is_file():  # the suite's order, rewritten after every row
         try:
@@ -126,8 +128,6 @@ def _scene_input(folder: Path, scene: str) -> list[Item]:
     the newest), or [] when the run kept none or it cannot be read."""
     import torch
 
-    from neuralsurf.evaluation.filenames import safe_name
-    from neuralsurf.evaluation.store import _scene_classes
 
     files = sorted((folder / "scenes").glob(f"{safe_name(scene)}-*.pt"), key=lambda p: p.stat().st_mtime)
     if not files:
@@ -161,7 +161,6 @@ def run_groups(folder: Path) -> list[Group]:
     """One Group per scene of the run in `folder` with at least one mesh: each method's mesh (error-coloured
     when the run wrote meshes/<scene>__<method>__error.glb), the ground truth (from the stored distances),
     what each method missed (__gt_error.glb, hidden at first), the input points and cameras (hidden at first)."""
-    from neuralsurf.evaluation.store import row_stem
 
     groups: dict[str, Group] = {}
     for row in run_rows(folder):
@@ -190,8 +189,6 @@ def run_groups(folder: Path) -> list[Group]:
 
 def _scene_scale(folder: Path, scene: str) -> float | None:
     """The top of a scene's error colours, as recorded with its error-coloured meshes (colours.json)."""
-    from neuralsurf.evaluation.distances import FOLDER
-    from neuralsurf.evaluation.filenames import safe_name
 
     try:
         made = json.loads((folder / FOLDER / safe_name(scene) / "colours.json").read_text())
@@ -413,7 +410,6 @@ class Viewer:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``neuralsurf-view PATH [PATH ...] [--host H] [--port P] [--up +y]``: serve until Ctrl+C."""
-    from neuralsurf.errors import NeuralsurfError
 
     parser = argparse.ArgumentParser(prog="neuralsurf-view", description=__doc__.split("\n\n")[0])
     parser.add_argument("paths", nargs="+", help="a run folder of evaluate.py, folders of meshes or mesh files")

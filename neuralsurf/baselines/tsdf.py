@@ -55,6 +55,8 @@ from neuralsurf.baselines.tsdf_voxels import (
 from neuralsurf.devices import resolve_device
 from neuralsurf.errors import ConfigError, ExtractionError, InputError
 from neuralsurf.extract import as_bounds, level_set, merge_on_edges
+from neuralsurf.geometry import backproject_depth
+from neuralsurf.progress import progress_bar
 from neuralsurf.structures import DepthFrames, Mesh
 
 WEIGHTINGS = ("constant", "depth")
@@ -109,7 +111,6 @@ def _positive(value, name: str, what: str) -> float:
 
 def depth_bounds(frames: DepthFrames, margin: float = 0.0) -> Tensor:
     """Float64[Tensor, "2 3"]: world bounding box of every valid depth pixel, grown by `margin`."""
-    from neuralsurf.geometry import backproject_depth
 
     if not isinstance(frames, DepthFrames):
         raise InputError(f"depth_bounds needs DepthFrames, got {type(frames).__name__}")
@@ -348,7 +349,6 @@ class TSDFVolume:
     def integrate(self, frames: DepthFrames, progress: bool = True) -> TSDFVolume:
         """Fuse every frame of `frames` (any number, one after the other); returns the volume.
         `progress`: a bar over the frames when fusion lasts more than a few seconds (False: none)."""
-        from neuralsurf.progress import progress_bar
 
         if not isinstance(frames, DepthFrames):
             raise InputError(

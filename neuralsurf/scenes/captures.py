@@ -9,6 +9,8 @@ from pathlib import Path
 
 import torch
 
+from neuralsurf.io import read_image_list
+from neuralsurf.photometric import calibrate_chrome_ball, sphere_from_mask
 from neuralsurf.scenes.recipes import Scene, SceneUnavailable, _unavailable, data_path, rgbd_scene
 from neuralsurf.structures import PhotometricCapture, PointCloud
 
@@ -29,7 +31,6 @@ def sphere_normals(mask) -> torch.Tensor:
     (`sphere_from_mask`: centroid and the radius of a disc of its area), seen orthographically, in the camera
     frame (towards the viewer: z < 0); 0 outside the mask. Pixels of the mask beyond the disc get the
     silhouette's normal (z = 0)."""
-    from neuralsurf.photometric import sphere_from_mask
 
     mask = torch.as_tensor(mask).bool()
     centre, radius = sphere_from_mask(mask)
@@ -49,8 +50,6 @@ def uw_gray_sphere(name: str = "uw_gray_sphere", root: str | None = None, folder
     the set's chrome ball (`calibrate_chrome_ball`); ground truth: the normals of the sphere its mask outlines
     (`sphere_normals`), so photometric stereo on a real capture is scored by angular error. Like
     `bunny_specular_ps` it has no camera: its cloud is the sphere's front in pixel units (orthographic)."""
-    from neuralsurf.io import read_image_list
-    from neuralsurf.photometric import calibrate_chrome_ball, sphere_from_mask
 
     path = data_path(root, folder)
     lists = [path / f"{sphere}.txt", path / f"{chrome}.txt"]
