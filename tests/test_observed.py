@@ -7,8 +7,14 @@ from __future__ import annotations
 import pytest
 import torch
 
-from neuralsurf.observations.observed import ObservedSurface, extract_observed, strided_hits, view_votes
-from neuralsurf.observations.rays import depth_rays, stride_frames
+from neuralsurf.observations.observed import (
+    ObservedSurface,
+    extract_observed,
+    stride_frames,
+    strided_hits,
+    view_votes,
+)
+from neuralsurf.observations.rays import depth_rays
 from neuralsurf.structures import DepthFrames, Mesh
 
 WIDTH, HEIGHT, F = 64, 48, 60.0

@@ -31,11 +31,20 @@ def _dilate(mask: Tensor) -> Tensor:
     return torch.nn.functional.max_pool3d(mask[None, None].float(), 3, 1, 1)[0, 0] > 0
 
 
+def stride_frames(frames: DepthFrames, stride: int) -> DepthFrames:
+    """`frames` at every `stride`-th pixel along both axes: pixel (i, j) of the result is pixel
+    (stride i, stride j) of the frame, so the intrinsics' first two rows are divided by `stride`
+    (the same rays; `stride` 1 returns `frames`)."""
+    if stride == 1:
+        return frames
+    K = frames.K.clone()
+    K[:, :2] /= stride
+    return DepthFrames(frames.depth[:, ::stride, ::stride].contiguous(), K, frames.cam_to_world)
+
+
 def strided_hits(frames: DepthFrames, pixel_stride: int = 1) -> Tensor:
     """Float64[Tensor, "n 3"]: world points of the valid readings of every `pixel_stride`-th pixel (both
     directions) of every frame."""
-    from neuralsurf.observations.rays import stride_frames
-
     parts = []
     for index in range(len(frames)):
         frame = stride_frames(frames[index : index + 1].to("cpu"), pixel_stride)

@@ -39,6 +39,7 @@ from neuralsurf.geometry import (
 )
 from neuralsurf.losses import eikonal_loss
 from neuralsurf.observations.base import NotObserved, Observation, Sampler, check_weights
+from neuralsurf.observations.observed import ObservedSurface, observed_points, stride_frames
 from neuralsurf.sampling import cloud_spacing, point_areas, winding_number
 from neuralsurf.strategies import choose, names, register
 from neuralsurf.structures import DepthFrames, Normalization
@@ -109,17 +110,6 @@ def depth_rays(frames: DepthFrames, sigma_of_depth=kinect_sigma, max_depth_jump:
         parts.append(Rays(origins[valid], world[valid], (depth * length)[valid],
                           (sigma * length)[valid], cosine[valid], world_normals[valid]))
     return Rays(*(torch.cat([getattr(p, name) for p in parts]) for name in Rays.__dataclass_fields__))
-
-
-def stride_frames(frames: DepthFrames, stride: int) -> DepthFrames:
-    """`frames` at every `stride`-th pixel along both axes: pixel (i, j) of the result is pixel
-    (stride i, stride j) of the frame, so the intrinsics' first two rows are divided by `stride`
-    (the same rays; `stride` 1 returns `frames`)."""
-    if stride == 1:
-        return frames
-    K = frames.K.clone()
-    K[:, :2] /= stride
-    return DepthFrames(frames.depth[:, ::stride, ::stride].contiguous(), K, frames.cam_to_world)
 
 
 def hit_bounds(rays: Rays) -> Tensor:
@@ -456,8 +446,6 @@ class DepthRays(Observation):
         generator = torch.Generator().manual_seed(seed)
         pool = (2 * torch.rand(self.n_carve, 3, generator=generator, dtype=torch.float64) - 1) * box
         if self.carve_voxel:  # half of the pool where surfaces were observed: carving sharpens edges and gaps
-            from neuralsurf.observations.observed import ObservedSurface, observed_points
-
             observed = ObservedSurface.from_frames(self.frames, self.carve_voxel, max_free_ratio=None)
             near = observed_points(observed, self.n_carve // 2, generator)
             pool[: len(near)] = normalization.to_unit(near).clamp(-box, box)
