@@ -19,7 +19,8 @@ from torch import nn
 
 from neuralsurf.devices import resolve_device
 from neuralsurf.distributed import mean_over_ranks, rank_and_world
-from neuralsurf.errors import CheckpointError, ConfigError, InputError, NeuralsurfError
+from neuralsurf.errors import CheckpointError, ConfigError, ExtractionError, InputError, NeuralsurfError
+from neuralsurf.extract import extract_mesh, field_slice, slice_image
 from neuralsurf.graphs import GraphedStep, graphable
 from neuralsurf.models.field import NormalizedField
 from neuralsurf.models.spec import REBUILDABLE, build_checked, check_weights, model_spec
@@ -574,7 +575,6 @@ def _summary_writer(run_dir: Path | None):
 
 def _log_slices(writer, world_field: NormalizedField, step: int) -> None:
     """SDF on the three mid-planes of the box, as images."""
-    from neuralsurf.extract import field_slice, slice_image
 
     was_training = world_field.model.training
     world_field.model.eval()
@@ -587,8 +587,6 @@ def _log_slices(writer, world_field: NormalizedField, step: int) -> None:
 def _log_mesh(writer, world_field: NormalizedField, step: int, resolution: int = 128, chunk_size: int = 32_768) -> None:
     """A coarse mesh of the current field for TensorBoard's mesh plugin (skipped if empty); `chunk_size`
     points per field call (extract_mesh's larger default made this preview the peak of a bunny run: +0.8 GB)."""
-    from neuralsurf.errors import ExtractionError
-    from neuralsurf.extract import extract_mesh
 
     was_training = world_field.model.training
     world_field.model.eval()

@@ -19,8 +19,18 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from neuralsurf.evaluation.methods import NotApplicable
+from neuralsurf.baselines.nehab import fuse_frames, pixel_rays
+from neuralsurf.errors import InputError
+from neuralsurf.evaluation.methods import NotApplicable, tsdf
+from neuralsurf.evaluation.render import colormap, labelled_row
 from neuralsurf.evaluation.store import row_stem
+from neuralsurf.photometric import (
+    INTEGRATORS,
+    angular_error,
+    continuous_pieces,
+    depth_error,
+    photometric_stereo,
+)
 from neuralsurf.scenes import Scene
 from neuralsurf.structures import Mesh
 
@@ -56,10 +66,8 @@ def photometric_normals(scene: Scene, *, method: str = "robust", integrate: str 
     """Photometric stereo (`neuralsurf.photometric.photometric_stereo`, `method` least_squares, trimmed
     or robust) on every capture of the scene; with `integrate` (least_squares or bilateral) and a
     capture with K and depth, the estimated normals are also integrated to depth."""
-    from neuralsurf.photometric import INTEGRATORS, continuous_pieces, photometric_stereo
 
     _check_photometric(scene)
-    from neuralsurf.baselines.nehab import pixel_rays
 
     normals, truth, masks, depth, true_depth, sizes, pieces = [], [], [], [], [], [], []
     for capture in scene.photometric:
@@ -90,8 +98,6 @@ def score_normal_maps(result: NormalMapResult) -> dict[str, float]:
     size, `NormalMapResult.sizes`) and its median; with ground-truth normals too,
     integration_depth_error_pieces (each `continuous_pieces` piece aligned on its own: what normals can
     determine) and integration_piece_coverage (the share of the scored pixels in a kept piece)."""
-    from neuralsurf.errors import InputError
-    from neuralsurf.photometric import angular_error, depth_error
 
     errors, solved = [], []
     for estimate, truth, mask in zip(result.normals, result.truth, result.mask):
@@ -138,8 +144,6 @@ def normal_map_picture(result: NormalMapResult, scene_name: str, method: str, ru
                        max_views: int = 3, max_error_deg: float = 20.0) -> str:
     """renders/<scene>__<method>.png: per view (up to `max_views`), ground truth | estimate | angular
     error (blue 0 .. red >= `max_error_deg`); returns the path relative to `run_dir`."""
-    from neuralsurf.evaluation.render import colormap, labelled_row
-    from neuralsurf.photometric import angular_error
 
     images, labels = [], []
     for i, (estimate, truth, mask) in enumerate(zip(result.normals, result.truth, result.mask)):
@@ -169,8 +173,6 @@ def nehab_tsdf(scene: Scene, *, position_weight: float = 0.1, max_depth_jump: fl
     """Each depth frame fused with its photometric normal map at the normal map's resolution (Nehab et
     al. 2005, `fuse_frames`, lambda = `position_weight`), then TSDF fusion of the fused frames with
     the settings of the `tsdf` method (box and voxel from the scene's back-projected input)."""
-    from neuralsurf.baselines.nehab import fuse_frames
-    from neuralsurf.evaluation.methods import tsdf
 
     if scene.frames is None or not scene.depth_input:
         raise NotApplicable(f"scene {scene.name!r} has no depth frames to fuse")
