@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.geometry import point_to_mesh_distance
 from neuralsurf.structures import Mesh
 
 INSIDE_THRESHOLD = 0.5
@@ -217,7 +218,6 @@ def signed_distance(points: Tensor, mesh: Mesh, **options) -> Tensor:
     """Float[Tensor, "n"]: the exact distance to the mesh's triangles, negative where the winding
     number says inside (`inside`). Right for open, multi-sheet meshes whose faces face outward (run
     `orient_outward` first when they may not)."""
-    from neuralsurf.geometry import point_to_mesh_distance
 
     _check(points, mesh, "signed_distance")
     distance = point_to_mesh_distance(points, mesh)
