@@ -23,7 +23,7 @@ import numpy as np
 
 from neuralsurf.evaluation.filenames import row_stem, safe_name
 from neuralsurf.evaluation.render import default_view, labelled_row, shade, viridis
-from neuralsurf.geometry import closest_on_mesh
+from neuralsurf.geometry import closest_on_mesh, render_depth
 from neuralsurf.io import write_mesh
 from neuralsurf.locks import replaced, write_atomic
 from neuralsurf.structures import Mesh
@@ -172,7 +172,6 @@ def held_out_error_image(rendered: np.ndarray, measured: np.ndarray, top: float 
 def save_held_out_errors(run_dir: Path, scene: str, method: str, mesh: Mesh, frames, width: int = 960) -> str:
     """`held_out_error_image` of `mesh` ray-cast from the held-out `frames` (DepthFrames), scaled to `width`
     pixels, as renders/<scene>__<method>__held_out.png; returns that path relative to `run_dir`."""
-    from neuralsurf.geometry import render_depth
 
     rendered, _ = render_depth(mesh, frames.K.cpu(), frames.cam_to_world.cpu(), frames.width, frames.height)
     image = held_out_error_image(rendered.numpy(), frames.depth.cpu().numpy())

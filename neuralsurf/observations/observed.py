@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.extract import evaluate_grid_points, make_grid, marching_cubes
 from neuralsurf.geometry import backproject_depth, kinect_sigma, project_points
 from neuralsurf.structures import DepthFrames, Mesh
 
@@ -171,7 +172,6 @@ def extract_observed(field, observed: ObservedSurface, resolution: int = 512, ch
     `chunk_size`: points per field call. Raises ExtractionError when the field has no surface there."""
     import numpy as np
 
-    from neuralsurf.extract import evaluate_grid_points, make_grid, marching_cubes
 
     grid = make_grid(observed.bounds.numpy(), resolution)
     grown = _dilate(observed.mask).numpy()

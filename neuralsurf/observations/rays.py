@@ -35,6 +35,7 @@ from neuralsurf.geometry import (
     backproject_depth_to_camera,
     kinect_sigma,
     knn,
+    project_points,
     quadric_heights,
 )
 from neuralsurf.losses import eikonal_loss
@@ -144,7 +145,6 @@ def carve_labels(points: Tensor, frames: DepthFrames, band: float, sigma_of_dept
     Returns:
         Int8[Tensor, "n"]: +1 free (some view saw through it), -1 inside, 0 unknown.
     """
-    from neuralsurf.geometry import project_points
 
     free = torch.zeros(len(points), dtype=torch.bool)
     near = torch.zeros(len(points), dtype=torch.bool)
