@@ -16,7 +16,7 @@ from neuralsurf.extract import GridSamples, extract_mesh, sample_grid
 from neuralsurf.structures import DepthFrames, Mesh, Normalization, PointCloud
 from neuralsurf.training import FitResult, fit, load_field
 
-__version__ = "0.2.0"  # the one version source: pyproject.toml reads it
+__version__ = "0.3.0"  # the one version source: pyproject.toml reads it
 
 __all__ = [
     # subpackages of the public API
