@@ -324,17 +324,17 @@ def marching_cubes(values: np.ndarray, grid: Grid, level: float = 0.0, valid: np
     faces oriented towards values above `level`), by `level_set`: cells with a corner where `valid`
     (Bool[ndarray, "X Y Z"]) is False produce no faces (e.g. unobserved TSDF voxels). Raises
     ExtractionError if no face remains."""
-    finite = values if valid is None else np.where(valid, values, level + 1.0).astype(values.dtype)
-    low, high = float(finite.min()), float(finite.max())
-    if not low < level < high:
-        constant = ("; the field is constant there, as a diverged fit leaves it: lower the learning rate and fit "
-                    "again" if high - low <= 1e-6 * max(1.0, abs(low), abs(high)) else "")
-        raise ExtractionError(
-            f"the field has no {level:g}-level set in the box: its values there lie in [{low:.4g}, {high:.4g}]; "
-            f"pass bounds that contain the surface, or a level between those values{constant}"
-        )
     vertices, faces = level_set(values, level, valid, device=device)
-    if len(faces) == 0:
+    if len(faces) == 0:  # say why: no value on both sides of the level, or none in a valid cell
+        finite = values if valid is None else np.where(valid, values, level + 1.0).astype(values.dtype)
+        low, high = float(finite.min()), float(finite.max())
+        if not low < level < high:
+            constant = ("; the field is constant there, as a diverged fit leaves it: lower the learning rate and fit "
+                        "again" if high - low <= 1e-6 * max(1.0, abs(low), abs(high)) else "")
+            raise ExtractionError(
+                f"the field has no {level:g}-level set in the box: its values there lie in [{low:.4g}, {high:.4g}]; "
+                f"pass bounds that contain the surface, or a level between those values{constant}"
+            )
         raise ExtractionError("marching cubes found no faces in the valid part of the grid")
     world = grid.origin + vertices.astype(np.float64) * grid.spacing
     return Mesh(torch.from_numpy(world.astype(np.float32)), torch.from_numpy(faces))

@@ -18,11 +18,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.extract import evaluate_grid_points, make_grid, marching_cubes
+from neuralsurf.extract import _field_device, evaluate_grid_points, make_grid, marching_cubes
 from neuralsurf.geometry import backproject_depth, kinect_sigma, project_points
 from neuralsurf.structures import DepthFrames, Mesh
 
@@ -170,9 +171,6 @@ def extract_observed(field, observed: ObservedSurface, resolution: int = 512, ch
     observed voxels (`ObservedSurface.crop`): the surface only where the frames saw one, never closed
     against the edge of what they saw. `resolution`: cells along the longest side of the observed box;
     `chunk_size`: points per field call. Raises ExtractionError when the field has no surface there."""
-    import numpy as np
-
-
     grid = make_grid(observed.bounds.numpy(), resolution)
     grown = _dilate(observed.mask).numpy()
     axes = [np.floor((grid.origin[a] + np.arange(n) * grid.spacing - float(observed.origin[a])) / observed.voxel)
@@ -182,12 +180,6 @@ def extract_observed(field, observed: ObservedSurface, resolution: int = 512, ch
     evaluated = grown[np.ix_(*axes)] & inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
     values = np.full(grid.shape, level + 1.0, dtype=np.float32)
     index = np.argwhere(evaluated)
-    values[evaluated] = evaluate_grid_points(field, grid, index, chunk_size, _device_of(field), progress, "extract")
+    values[evaluated] = evaluate_grid_points(field, grid, index, chunk_size, _field_device(field, None), progress, "extract")
     return observed.crop(marching_cubes(values, grid, level, valid=evaluated))
 
-
-def _device_of(field) -> torch.device:
-    if isinstance(field, torch.nn.Module):
-        for tensor in field.parameters():
-            return tensor.device
-    return torch.device("cpu")
