@@ -29,6 +29,12 @@ class TestShape:
     surface: Tensor
     """Float[Tensor, "n 3"]: points on the analytic surface."""
 
+    @classmethod
+    def from_cache(cls, name: str, arrays: dict) -> TestShape:
+        """The shape from the arrays of its cache (`priors.cache.load_cache`)."""
+        mesh = Mesh(torch.from_numpy(arrays["mesh_vertices"]).double(), torch.from_numpy(arrays["mesh_faces"]))
+        return cls(name, mesh, torch.from_numpy(arrays["surface_points"]).double())
+
 
 @dataclass(frozen=True)
 class ShapeCollection:
@@ -99,9 +105,7 @@ class ShapeCollection:
         """The first `limit` test shapes (all when None), read from the built caches."""
         shapes = []
         for record in self.records("test")[:limit]:
-            arrays = load_cache(cache_path(self.folder, record))
-            mesh = Mesh(torch.from_numpy(arrays["mesh_vertices"]).double(), torch.from_numpy(arrays["mesh_faces"]))
-            shapes.append(TestShape(record.name, mesh, torch.from_numpy(arrays["surface_points"]).double()))
+            shapes.append(TestShape.from_cache(record.name, load_cache(cache_path(self.folder, record))))
         if not shapes:
             raise ConfigError(f"{self.description}: no test shapes; set n_test >= 1")
         return shapes

@@ -39,7 +39,7 @@ from torch import Tensor
 
 from neuralsurf.data import cache_dir
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.geometry import knn, point_to_mesh_distance, sample_mesh_surface
+from neuralsurf.geometry import knn, sample_mesh_surface
 from neuralsurf.io.meshes import read_mesh
 from neuralsurf.io.npz import write_npz
 from neuralsurf.io.shape_folders import (
@@ -51,11 +51,11 @@ from neuralsurf.io.shape_folders import (
     read_occupancy_shape,
 )
 from neuralsurf.locks import file_lock
-from neuralsurf.priors.cache import CacheRecipe, load_cache
+from neuralsurf.priors.cache import CacheRecipe, _cached_recipe, cache_path, load_cache
 from neuralsurf.priors.collection import TestShape
 from neuralsurf.priors.procedural import ShapeRecord
 from neuralsurf.structures import Mesh, Normalization
-from neuralsurf.winding import boundary_faces, inside, orient_outward
+from neuralsurf.winding import boundary_faces, inside, orient_outward, signed_distance
 
 # ----------------------------------------------------------------------------- samples of one shape
 
@@ -99,8 +99,7 @@ def mesh_samples(mesh: Mesh, recipe: CacheRecipe, seed: int = 0) -> dict[str, np
     generator = torch.Generator().manual_seed(seed)
     surface, normals = sample_mesh_surface(surface_mesh, _n_base(recipe), generator)
     sdf_points, occ_uniform, occ_near = _near_and_uniform(surface, recipe, generator)
-    sdf = point_to_mesh_distance(sdf_points, surface_mesh)
-    sdf = torch.where(inside(sdf_points, surface_mesh), -sdf, sdf)
+    sdf = signed_distance(sdf_points, surface_mesh)
     return {
         "sdf_points": sdf_points.float().numpy(),
         "sdf_values": sdf.float().numpy(),
@@ -237,17 +236,13 @@ def check_frame(surface: Tensor, stats: FrameStats, where: str, size: float | No
 def _shape_cache(entry: ShapeEntry, record: ShapeRecord, out: str, recipe: CacheRecipe, normalize: bool,
                  layout: str, seed: int) -> tuple[str, str]:
     """Write one shape's cache unless it is there with the same source and recipe; returns (name, status)."""
-    path = Path(out) / record.split / f"{record.name}.npz"
+    path = cache_path(Path(out), record)
     stat = entry.path.stat() if entry.path.is_file() else (entry.path / "points.npz").stat()
     source = {"path": str(entry.path), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}
     key = json.dumps({"record": asdict(record), "recipe": asdict(recipe), "source": source, "normalize": normalize},
                      sort_keys=True)
-    if path.is_file():
-        try:
-            if str(load_cache(path)["recipe"]) == key:
-                return record.name, "cached"
-        except InputError:
-            pass  # unreadable: built again
+    if path.is_file() and _cached_recipe(path) == key:  # unreadable: built again
+        return record.name, "cached"
     shape_seed = int(hashlib.sha256(f"{seed}/{entry.category}/{entry.name}".encode()).hexdigest()[:15], 16)
     if layout == "occupancy":
         arrays = occupancy_samples(read_occupancy_shape(entry.path), recipe, shape_seed)
@@ -408,7 +403,7 @@ class FolderCollection:
     def _write_manifest(self, out: Path) -> None:
         surfaces, sizes = [], []
         for record in self.records("train"):
-            arrays = load_cache(out / record.split / f"{record.name}.npz")
+            arrays = load_cache(cache_path(out, record))
             surfaces.append(torch.from_numpy(arrays["surface_points"]))
             sizes.append(float(arrays["file_size"]))
         stats = FrameStats.from_shapes(surfaces, sizes)
@@ -439,11 +434,10 @@ class FolderCollection:
         stats = self.frame_stats()
         shapes = []
         for record, entry in [(r, e) for r, e in self._entries if r.split == "test"][:limit]:
-            arrays = load_cache(self.folder / record.split / f"{record.name}.npz")
-            mesh = Mesh(torch.from_numpy(arrays["mesh_vertices"]).double(), torch.from_numpy(arrays["mesh_faces"]))
-            surface = torch.from_numpy(arrays["surface_points"]).double()
-            check_frame(surface, stats, f"test shape {entry.path}", float(arrays["file_size"]))
-            shapes.append(TestShape(record.name, mesh, surface))
+            arrays = load_cache(cache_path(self.folder, record))
+            shape = TestShape.from_cache(record.name, arrays)
+            check_frame(shape.surface, stats, f"test shape {entry.path}", float(arrays["file_size"]))
+            shapes.append(shape)
         if not shapes:
             raise ConfigError(f"{self.description}: no test shapes; list some in test.lst or set test_fraction > 0")
         return shapes
