@@ -54,6 +54,20 @@ def strided_hits(frames: DepthFrames, pixel_stride: int = 1) -> Tensor:
     return torch.cat(parts)
 
 
+def frame_readings(points: Tensor, depth: Tensor, K: Tensor, cam_to_world: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """World points Float64[Tensor, "n 3"] in depth images Float[Tensor, "f h w"] seen by K Float64[Tensor,
+    "f 3 3"] at cam_to_world Float64[Tensor, "f 4 4"] -> (z, reading, seen), each [f, n]: the points' depth
+    along each optical axis, the depth read at their nearest pixel (float64; 0 where not `seen`), and
+    whether they project into the image in front of the camera."""
+    height, width = depth.shape[-2:]
+    uv, z = project_points(points.expand(len(depth), -1, -1), K, cam_to_world)
+    pixel = uv.round().long()
+    seen = (z > 0) & (pixel[..., 0] >= 0) & (pixel[..., 0] < width) & (pixel[..., 1] >= 0) & (pixel[..., 1] < height)
+    flat = (pixel[..., 1].clamp(0, height - 1) * width + pixel[..., 0].clamp(0, width - 1))
+    reading = torch.gather(depth.reshape(len(depth), -1).double(), 1, flat)
+    return z, torch.where(seen, reading, 0.0), seen
+
+
 def view_votes(centres: Tensor, frames: DepthFrames, band: float, sigma_of_depth=kinect_sigma,
                chunk: int = 8) -> tuple[Tensor, Tensor]:
     """Votes of the frames on world points: (near, free) Int32[Tensor, "n"], the number of views that
@@ -61,15 +75,9 @@ def view_votes(centres: Tensor, frames: DepthFrames, band: float, sigma_of_depth
     farther than that behind it (they saw through the point). centres: Float64[Tensor, "n 3"]."""
     near = torch.zeros(len(centres), dtype=torch.int32)
     free = torch.zeros(len(centres), dtype=torch.int32)
-    height, width = frames.height, frames.width
     for start in range(0, len(frames), chunk):
-        depth = frames.depth[start : start + chunk].cpu()
         K, pose = frames.K[start : start + chunk].cpu().double(), frames.cam_to_world[start : start + chunk].cpu().double()
-        uv, z = project_points(centres.expand(len(depth), -1, -1), K, pose)
-        pixel = uv.round().long()
-        seen = (z > 0) & (pixel[..., 0] >= 0) & (pixel[..., 0] < width) & (pixel[..., 1] >= 0) & (pixel[..., 1] < height)
-        flat = (pixel[..., 1].clamp(0, height - 1) * width + pixel[..., 0].clamp(0, width - 1))
-        reading = torch.gather(depth.reshape(len(depth), -1).double(), 1, flat)
+        z, reading, seen = frame_readings(centres, frames.depth[start : start + chunk].cpu(), K, pose)
         valid = seen & (reading > 0)
         margin = torch.clamp(3 * sigma_of_depth(reading), min=band)
         near += (valid & ((z - reading).abs() <= margin)).sum(0).int()

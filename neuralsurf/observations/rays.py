@@ -35,12 +35,11 @@ from neuralsurf.geometry import (
     backproject_depth_to_camera,
     kinect_sigma,
     knn,
-    project_points,
     quadric_heights,
 )
 from neuralsurf.losses import eikonal_loss
 from neuralsurf.observations.base import NotObserved, Observation, Sampler, check_weights
-from neuralsurf.observations.observed import ObservedSurface, observed_points, stride_frames
+from neuralsurf.observations.observed import ObservedSurface, frame_readings, observed_points, stride_frames
 from neuralsurf.sampling import cloud_spacing, point_areas, winding_number
 from neuralsurf.strategies import choose, names, register
 from neuralsurf.structures import DepthFrames, Normalization
@@ -150,12 +149,8 @@ def carve_labels(points: Tensor, frames: DepthFrames, band: float, sigma_of_dept
     near = torch.zeros(len(points), dtype=torch.bool)
     behind, missing, seen_by = (torch.zeros(len(points), dtype=torch.int32) for _ in range(3))
     for depth, K, pose in zip(frames.depth.cpu(), frames.K.cpu(), frames.cam_to_world.cpu()):
-        uv, z = project_points(points.double(), K.double(), pose.double())
-        pixel = uv.round().long()
-        seen = (z > 0) & (pixel[:, 0] >= 0) & (pixel[:, 0] < depth.shape[1]) & (pixel[:, 1] >= 0) & (
-            pixel[:, 1] < depth.shape[0])
-        reading = torch.zeros(len(points), dtype=torch.float64)
-        reading[seen] = depth[pixel[seen, 1], pixel[seen, 0]].double()
+        z, reading, seen = (t[0] for t in frame_readings(points.double(), depth[None], K[None].double(),
+                                                            pose[None].double()))
         valid = seen & (reading > 0)
         margin = torch.clamp(3 * sigma_of_depth(reading), min=band)
         in_front, is_behind = valid & (z < reading - margin), valid & (z > reading + margin)
