@@ -38,26 +38,18 @@ class NormalIntegration:
 
 def _gradients(normals: Tensor, mask: Tensor, K: Tensor | None, pixel_size: float, max_slope: float):
     """Target derivatives (p along u, q along v) of depth (orthographic) or log-depth (perspective)."""
-    n = normals.double().cpu().numpy()
-    nx, ny, nz = n[..., 0], n[..., 1], n[..., 2]
-    h, w = mask.shape
+    denominator, nx, ny, (fu, fv) = _weighted_normals(normals, mask, K, pixel_size)
     if K is None:
-        denominator = nz
         px, qy = -nx * pixel_size, -ny * pixel_size
-        lateral = np.ones((h, w))
     else:
-        K = np.asarray(torch.as_tensor(K, dtype=torch.float64).cpu())
-        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-        x, y = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
-        denominator = nx * x + ny * y + nz  # n . r with r = (x, y, 1)
-        px, qy = -nx / K[0, 0], -ny / K[1, 1]
-        lateral = np.full((h, w), K[0, 0])  # log-depth difference * f = depth difference in pixel footprints
+        px, qy = -nx / fu, -ny / fv
+    lateral = np.full(mask.shape, fu)  # unknown difference * lateral = depth difference in pixel footprints
     # grazing normals (n . r -> 0) give unbounded slopes: limit them to `max_slope` (in pixel footprints)
-    limit = max_slope / (lateral if K is not None else 1.0 / pixel_size)
+    limit = max_slope / lateral
     safe = np.where(np.abs(denominator) > 1e-12, denominator, -1e-12)
     p = np.clip(px / safe, -limit, limit)
     q = np.clip(qy / safe, -limit, limit)
-    return p, q, (lateral if K is not None else np.full((h, w), 1.0 / pixel_size))
+    return p, q, lateral
 
 
 def _check_integration_inputs(normals: Tensor, mask: Tensor | None, K) -> tuple[Tensor, Tensor]:
@@ -270,15 +262,15 @@ def integrate_bilateral(
         own = np.zeros(n_unknowns)  # each unknown's nt
         own[ia], own[ib] = nt[a], nt[b]
         blocks.append((D, ia, ib, nt[a], nt[b], tangent[a], tangent[b], has_forward, has_backward, own))
-    t, factor = np.zeros(n_unknowns), None
-    done, energies, window = 0, [], 10
+    t, factor, jumps = np.zeros(n_unknowns), None, None  # jumps: each block's D @ t for the current t
+    energies, window = [], 10
     for done in range(1, iterations + 1):
-        system, rhs, terms = None, np.zeros(n_unknowns), []
-        for D, ia, ib, nt_a, nt_b, m_a, m_b, has_forward, has_backward, own in blocks:
-            if done == 1:
+        system, rhs, weights = None, np.zeros(n_unknowns), []
+        for i, (D, ia, ib, nt_a, nt_b, m_a, m_b, has_forward, has_backward, own) in enumerate(blocks):
+            if jumps is None:
                 w_forward = np.full(n_unknowns, 0.5)
             else:
-                jump = D @ t
+                jump = jumps[i]
                 forward, backward = np.zeros(n_unknowns), np.zeros(n_unknowns)
                 forward[ia], backward[ib] = jump, jump
                 argument = k * own**2 * (backward**2 - forward**2)
@@ -292,11 +284,11 @@ def integrate_bilateral(
             part = D.T @ diags(weight) @ D
             system = part if system is None else system + part
             rhs -= D.T @ (wf * nt_a * m_a + wb * nt_b * m_b)
-            terms.append((D, wf, wb, nt_a, nt_b, m_a, m_b))
+            weights.append((wf, wb))
         t, factor = _solve_reweighted(system.tocsr(), rhs, t, factor)
+        jumps = [block[0] @ t for block in blocks]
         energy = 0.0
-        for D, wf, wb, nt_a, nt_b, m_a, m_b in terms:
-            jump = D @ t
+        for jump, (wf, wb), (_, _, _, nt_a, nt_b, m_a, m_b, *_) in zip(jumps, weights, blocks):
             energy += float((wf * (nt_a * jump + m_a) ** 2 + wb * (nt_b * jump + m_b) ** 2).sum())
         energies.append(energy)
         if len(energies) > window and abs(energies[-1 - window] - energy) <= window * tolerance * energy:
