@@ -492,7 +492,7 @@ def test_data_root_is_the_fetch_cache_when_neuralsurf_data_is_unset(tmp_path, mo
 
 
 def test_the_tum_scene_holds_frames_out_and_names_its_fetch_command_when_absent(tmp_path, monkeypatch):
-    from neuralsurf.scenes.captures import rgbd_capture
+    from neuralsurf.scenes.recipes import rgbd_capture
 
     monkeypatch.delenv("NEURALSURF_DATA", raising=False)
     monkeypatch.setenv("NEURALSURF_CACHE", str(tmp_path / "cache"))
