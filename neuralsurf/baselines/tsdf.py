@@ -339,6 +339,10 @@ class TSDFVolume:
         self._keys, self._slots = keys, torch.cat([self._slots, slots])[order]
         return slots
 
+    def _workers(self) -> int:
+        """Worker threads on a CPU: `threads`, or torch's intra-op thread count when None or "auto"."""
+        return torch.get_num_threads() if self.threads in (None, "auto") else self.threads
+
     def _block_coords(self, keys: Tensor) -> Tensor:
         """Int64[Tensor, "b"] linear block keys -> Int64[Tensor, "b 3"] block coordinates."""
         ny, nz = int(self.block_counts[1]), int(self.block_counts[2])
@@ -368,7 +372,7 @@ class TSDFVolume:
         compiled = cpu and (depth.numel() >= _COMPILE_PIXELS if self.compiled is None else self.compiled)
         workers = 1
         if cpu and not compiled:  # eager: chunks on `workers` threads, each torch op on one
-            workers = torch.get_num_threads() if self.threads in (None, "auto") else self.threads
+            workers = self._workers()
             threads = 1
         else:
             threads = None if self.threads == "auto" else self.threads
@@ -581,7 +585,7 @@ class TSDFVolume:
         if self.frames_integrated == 0:
             raise ExtractionError("the TSDF volume is empty: call integrate(frames) before extract_mesh()")
         cpu = self.device.type == "cpu"
-        workers = (torch.get_num_threads() if self.threads in (None, "auto") else self.threads) if cpu else 1
+        workers = self._workers() if cpu else 1
         with torch_threads(1 if cpu else None), ThreadPoolExecutor(workers) as pool:
             return self._extract_mesh(pool, workers)
 
