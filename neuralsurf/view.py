@@ -27,9 +27,9 @@ from typing import Any
 import numpy as np
 
 from neuralsurf.errors import InputError, MissingDependencyError, NeuralsurfError
-from neuralsurf.evaluation.distances import FOLDER
+from neuralsurf.evaluation.distances import colours_path, error_meshes
 from neuralsurf.evaluation.filenames import safe_name
-from neuralsurf.evaluation.store import _scene_classes, read_rows, row_stem
+from neuralsurf.evaluation.store import load_scene, read_rows
 from neuralsurf.io import read_mesh
 
 MESH_SUFFIXES = (".ply", ".obj", ".off", ".stl", ".glb")
@@ -126,15 +126,11 @@ def run_rows(folder: Path) -> list[dict[str, Any]]:
 def _scene_input(folder: Path, scene: str) -> list[Item]:
     """The input points and cameras of `scene` from the run's scene cache (`scenes/<scene>-<key>.pt`,
     the newest), or [] when the run kept none or it cannot be read."""
-    import torch
-
-
     files = sorted((folder / "scenes").glob(f"{safe_name(scene)}-*.pt"), key=lambda p: p.stat().st_mtime)
     if not files:
         return []
     try:
-        with torch.serialization.safe_globals(_scene_classes()):
-            built = torch.load(files[-1], weights_only=True)
+        built = load_scene(files[-1])
     except Exception:  # noqa: BLE001 - the view goes on without the input
         return []
     built = built.scenes[0] if hasattr(built, "scenes") else built  # a set of shapes: its first
@@ -167,9 +163,9 @@ def run_groups(folder: Path) -> list[Group]:
         if row.get("status") != "ok" or not row.get("mesh") or not (folder / row["mesh"]).is_file():
             continue
         group = groups.setdefault(row["scene"], Group(row["scene"]))
-        stem = row_stem(row["scene"], row["method"])
-        group.items.append(_mesh_item(row["method"], folder / row["mesh"], folder / "meshes" / f"{stem}__error.glb"))
-        missed = folder / "meshes" / f"{stem}__gt_error.glb"
+        coloured = error_meshes(row["scene"], row["method"])
+        group.items.append(_mesh_item(row["method"], folder / row["mesh"], folder / coloured["prediction"]))
+        missed = folder / coloured["ground truth"]
         if missed.is_file():
             vertices, faces, colours = _mesh_arrays(missed)
             group.items.append(Item(f"missed by {row['method']}", vertices, faces,
@@ -191,7 +187,7 @@ def _scene_scale(folder: Path, scene: str) -> float | None:
     """The top of a scene's error colours, as recorded with its error-coloured meshes (colours.json)."""
 
     try:
-        made = json.loads((folder / FOLDER / safe_name(scene) / "colours.json").read_text())
+        made = json.loads((folder / colours_path(scene)).read_text())
         return float(next(iter(made.values()))["top"])
     except (OSError, ValueError, StopIteration, KeyError, TypeError):
         return None

@@ -64,6 +64,19 @@ def distances_path(scene: str, method: str) -> Path:
     return Path(FOLDER) / safe_name(scene) / f"{safe_name(method)}.npz"
 
 
+def error_meshes(scene: str, method: str) -> dict[str, str]:
+    """The error-coloured GLBs of a row, relative to the results folder: {"prediction":
+    meshes/<scene>__<method>__error.glb, "ground truth": meshes/<scene>__<method>__gt_error.glb}."""
+    stem = row_stem(scene, method)
+    return {"prediction": f"meshes/{stem}__error.glb", "ground truth": f"meshes/{stem}__gt_error.glb"}
+
+
+def colours_path(scene: str) -> Path:
+    """distances/<scene>/colours.json, relative to the results folder: what the scene's error-coloured
+    files were made with ({method: {"top": the scale, "stamp": ..., "files": [...]}})."""
+    return Path(FOLDER) / safe_name(scene) / "colours.json"
+
+
 def save_distances(run_dir: Path, scene: str, method: str, mesh: Mesh, gt: Mesh, render_size: int) -> str:
     """Measure `vertex_distances(mesh, gt)` and store them with both meshes and the render size
     (`distances_path`); returns that path relative to `run_dir`."""
@@ -101,7 +114,7 @@ def write_error_views(rows: list[dict[str, Any]], run_dir: str | Path) -> dict[t
     for scene, paths in by_scene.items():
         data = {method: np.load(path) for method, path in paths.items()}
         top = shared_scale([d[key] for d in data.values() for key in ("to_gt", "to_mesh")])
-        manifest_path = run_dir / FOLDER / safe_name(scene) / "colours.json"
+        manifest_path = run_dir / colours_path(scene)
         try:
             manifest = json.loads(manifest_path.read_text())
         except (OSError, ValueError):
@@ -111,8 +124,7 @@ def write_error_views(rows: list[dict[str, Any]], run_dir: str | Path) -> dict[t
             gt_vertices = arrays["gt_vertices"]
             view = {"top": top, "extent": float(np.ptp(gt_vertices, axis=0).max()),
                     "render": f"renders/{stem}__error.png" if row.get("render") else None,
-                    "meshes": {"prediction": f"meshes/{stem}__error.glb",
-                               "ground truth": f"meshes/{stem}__gt_error.glb"} if row.get("mesh") else {}}
+                    "meshes": error_meshes(scene, method) if row.get("mesh") else {}}
             files = [name for name in [view["render"], *view["meshes"].values()] if name]
             made = {"top": top, "stamp": _stamp(paths[method]), "files": files}
             if manifest.get(method) != made or not all((run_dir / name).is_file() for name in files):

@@ -139,6 +139,15 @@ def _scene_classes() -> list[type]:
     return classes
 
 
+def load_scene(path: str | Path) -> Any:
+    """A scene stored by `cached_scene`, read back with torch.load(weights_only=True) allowing only
+    SCENE_CLASSES; torch's error for a file that holds anything else."""
+    import torch
+
+    with torch.serialization.safe_globals(_scene_classes()):
+        return torch.load(path, weights_only=True)
+
+
 def cached_scene(folder: str | Path, name: str, key: str, build: Callable[[], Any]) -> Any:
     """The scene `build()` makes, kept as `<folder>/<name>-<key>.pt` (key: a hash of the scene's
     settings): built by the first process that asks (under a lock; the others wait, then read it),
@@ -147,15 +156,10 @@ def cached_scene(folder: str | Path, name: str, key: str, build: Callable[[], An
     import torch
 
     path = Path(folder) / f"{safe_name(name)}-{key}.pt"
-
-    def load(file: Path) -> Any:
-        with torch.serialization.safe_globals(_scene_classes()):
-            return torch.load(file, weights_only=True)
-
     with file_lock(path.with_suffix(".lock")):
         if path.is_file():
             try:
-                return load(path)
+                return load_scene(path)
             except Exception as error:  # noqa: BLE001 - a file that cannot be read is built again
                 log.warning("scene %s: cannot read %s (%s); building it again", name, path,
                             str(error).splitlines()[0][:200])
@@ -164,7 +168,7 @@ def cached_scene(folder: str | Path, name: str, key: str, build: Callable[[], An
         try:
             with replaced(path) as temporary:
                 torch.save(scene, temporary)
-                load(temporary)  # kept only when it reads back (no classes outside SCENE_CLASSES)
+                load_scene(temporary)  # kept only when it reads back (no classes outside SCENE_CLASSES)
         except Exception as error:  # noqa: BLE001 - not kept: every process builds it then
             log.warning("scene %s is not kept in %s (%s)", name, folder, str(error).splitlines()[0][:200])
         return scene
