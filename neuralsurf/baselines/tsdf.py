@@ -287,9 +287,10 @@ class TSDFVolume:
                     f"surfaces), a voxel_size of at least {coarser:.3g}, or smaller bounds"
                 )
         self._used = 0 if self.sparse else capacity
-        self._tsdf = torch.zeros(capacity, voxels, device=self.device)
-        self._weight = torch.zeros(capacity, voxels, device=self.device)
-        self._color = torch.zeros(capacity, voxels, 3, device=self.device) if self.with_color else None
+        # storage rows: the blocks' slots, then at least one row of zeros (where absent blocks read)
+        self._tsdf = torch.zeros(capacity + 1, voxels, device=self.device)
+        self._weight = torch.zeros(capacity + 1, voxels, device=self.device)
+        self._color = torch.zeros(capacity + 1, voxels, 3, device=self.device) if self.with_color else None
 
     # ----------------------------------------------------------------------------------- state
 
@@ -321,8 +322,8 @@ class TSDFVolume:
     def _allocate(self, keys: Tensor) -> Tensor:
         """New blocks for Int64[Tensor, "b"] keys (not yet allocated) -> their slots, Int64[Tensor, "b"]."""
         needed = self._used + len(keys)
-        if needed > len(self._tsdf):
-            capacity = max(needed, int(len(self._tsdf) * 1.5))
+        if needed >= len(self._tsdf):  # keep a row of zeros after the last slot
+            capacity = max(needed + 1, int(len(self._tsdf) * 1.5))
             extra = (capacity - len(self._tsdf)) * self.block_size**3 * _BYTES_PER_VOXEL[self.with_color]
             if extra + self.memory_bytes > available_memory(self.device):  # the copy holds old and new
                 raise ConfigError(
@@ -605,8 +606,7 @@ class TSDFVolume:
         around = self._keys_around(keys, upper.reshape(8, 3))
         where = torch.searchsorted(keys, around).clamp_max(len(keys) - 1)
         keys = keys[observed.any(1)[slots] & ((keys[where] == around) & inside[where]).any(1)]
-        zero = tsdf.new_zeros(1, tsdf.shape[1])
-        tsdf, weight = torch.cat([tsdf, zero]), torch.cat([weight, zero])
+        tsdf, weight = self._tsdf[: self._used + 1], self._weight[: self._used + 1]  # the last: zeros
         size, side = self.block_size, self.block_size + 3
         own = torch.zeros(side, dtype=torch.bool)
         own[1 : size + 1] = True  # a cube's own cells: first corners at its block's voxels

@@ -86,9 +86,9 @@ def load_volume(cls, path, device="auto", frames_per_pass: int | None = None):
     if volume.sparse:
         expected["keys"] = expected["slots"] = (used,)
     else:
-        expected["tsdf"] = expected["weight"] = (len(volume._tsdf), voxels)
+        expected["tsdf"] = expected["weight"] = (volume._used, voxels)
         if volume.with_color:
-            expected["color"] = (len(volume._tsdf), voxels, 3)
+            expected["color"] = (volume._used, voxels, 3)
     for key, shape in expected.items():
         if key not in arrays or arrays[key].shape != shape:
             raise FileFormatError(
@@ -96,8 +96,13 @@ def load_volume(cls, path, device="auto", frames_per_pass: int | None = None):
                 f"{shape} for its settings; the file is damaged"
             )
     to = lambda key, dtype: torch.from_numpy(np.ascontiguousarray(arrays[key])).to(volume.device, dtype)
-    volume._tsdf, volume._weight = to("tsdf", torch.float32), to("weight", torch.float32)
-    volume._color = to("color", torch.float32) if volume.with_color else None
+
+    def rows(key: str) -> torch.Tensor:  # the stored blocks, then a row of zeros (where absent blocks read)
+        stored = to(key, torch.float32)
+        return torch.cat([stored, stored.new_zeros((1,) + stored.shape[1:])])
+
+    volume._tsdf, volume._weight = rows("tsdf"), rows("weight")
+    volume._color = rows("color") if volume.with_color else None
     volume._used = used
     if volume.sparse:
         volume._keys, volume._slots = to("keys", torch.int64), to("slots", torch.int64)
