@@ -249,18 +249,15 @@ def cells_of_points(valid: np.ndarray) -> np.ndarray:
 
 
 def level_set(values: np.ndarray, level: float = 0.0, valid: np.ndarray | None = None,
-              cells: np.ndarray | None = None, device: torch.device | str = "cpu") -> tuple[np.ndarray, np.ndarray]:
+              device: torch.device | str = "cpu") -> tuple[np.ndarray, np.ndarray]:
     """Marching cubes of the `level` set of Float[ndarray, "X Y Z"] point values, in grid units.
 
     valid: Bool[ndarray, "X Y Z"] points with a value (e.g. observed TSDF voxels): a cell with an invalid
-    corner gets no faces. cells: Bool[ndarray, "X-1 Y-1 Z-1"] the cells to mesh (default all), e.g. one
-    piece of a larger grid. Returns vertices Float32[ndarray, "v 3"] and faces Int64[ndarray, "f 3"],
-    oriented towards values above `level`; both empty when no cell holds a face. A vertex's position
-    depends only on its edge's two values after `off_level` (which reads each point's six neighbours),
-    so calls on pieces of a grid that overlap by those neighbours give the same vertices where their
-    cells meet (`merge_on_edges` joins them). On a CUDA `device` (all cells) the cubes are marched there (`neuralsurf.marching`:
-    the same vertices as skimage's, ambiguous cells triangulated alike or otherwise); else by skimage's
-    Lewiner marching cubes on the CPU, skipping masked cells.
+    corner gets no faces. Returns vertices Float32[ndarray, "v 3"] and faces Int64[ndarray, "f 3"],
+    oriented towards values above `level`; both empty when no cell holds a face. On a CUDA `device` (no
+    `valid`) the cubes are marched there (`neuralsurf.marching`: the same vertices as skimage's,
+    ambiguous cells triangulated alike or otherwise); else by skimage's Lewiner marching cubes on the
+    CPU, skipping masked cells.
     """
     from skimage.measure import marching_cubes as skimage_marching_cubes
 
@@ -268,15 +265,14 @@ def level_set(values: np.ndarray, level: float = 0.0, valid: np.ndarray | None =
     finite = values if valid is None else np.where(valid, values, np.float32(level + 1.0))
     if not float(finite.min()) < level < float(finite.max()):
         return empty
-    on_gpu = torch.device(device).type == "cuda" and valid is None and cells is None
+    on_gpu = torch.device(device).type == "cuda" and valid is None
     finite = off_level(torch.from_numpy(finite).to(device if on_gpu else "cpu"), level)
     if on_gpu:
         vertices, faces = (t.cpu().numpy() for t in marching_cubes_torch(finite, level))
         return vertices.astype(np.float32), faces.astype(np.int64)
     mask = None
-    if valid is not None or cells is not None:
-        keep = cells_of_points(valid) if valid is not None else cells
-        keep = keep if cells is None or valid is None else keep & cells
+    if valid is not None:
+        keep = cells_of_points(valid)
         if not keep.any():
             return empty
         mask = np.zeros(values.shape, dtype=bool)
@@ -286,36 +282,6 @@ def level_set(values: np.ndarray, level: float = 0.0, valid: np.ndarray | None =
     except RuntimeError:  # "No surface found": every cell with a sign change is masked
         return empty
     return vertices.astype(np.float32), faces.astype(np.int64)  # outward
-
-
-_ON_POINT = 5e-5
-"""A marching-cubes vertex nearer than this (grid units) to a grid point in every coordinate is on it."""
-
-
-def merge_on_edges(points: np.ndarray, faces: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
-    """Merge the vertices that lie on the same grid edge (or grid point).
-
-    A marching-cubes vertex lies on a grid edge, at least _ON_POINT from its ends unless on a grid
-    point (`off_level` keeps values off the level by 1e-4 of their differences), so its edge is the
-    lower point of the one non-integral coordinate; a few lie inside a cell (Lewiner's ambiguous cases)
-    and stay apart.
-    Args: points Float64[ndarray, "v 3"] grid units; faces Int[ndarray, "f 3"]; shape: grid points per axis.
-    Returns: the merged points and renumbered faces, without faces that lost a corner."""
-    nearest = np.round(points)
-    off = np.abs(points - nearest)
-    axis = off.argmax(1)
-    on_point = off.max(1) < _ON_POINT
-    lower = nearest.astype(np.int64)
-    rows = np.arange(len(points))
-    lower[rows, axis] = np.where(on_point, lower[rows, axis], np.floor(points[rows, axis]).astype(np.int64))
-    linear = np.ravel_multi_index(tuple(lower.T), tuple(int(n) for n in shape), mode="clip")
-    key = linear * 4 + np.where(on_point, 3, axis)
-    inner = (off >= _ON_POINT).sum(1) > 1  # a vertex inside a cell (an ambiguous case's): never merged
-    key[inner] = -1 - rows[inner]
-    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
-    faces = inverse.reshape(-1)[faces]
-    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
-    return points[first], faces
 
 
 def marching_cubes(values: np.ndarray, grid: Grid, level: float = 0.0, valid: np.ndarray | None = None,
@@ -550,7 +516,7 @@ def slice_image(values, max_abs: float | None = None, bands: int = 10) -> np.nda
 
 
 __all__ = [
-    "Grid", "GridSamples", "extract_mesh", "field_slice", "level_set", "make_grid", "marching_cubes", "merge_on_edges",
+    "Grid", "GridSamples", "extract_mesh", "field_slice", "level_set", "make_grid", "marching_cubes",
     "sample_grid", "slice_image",
 ]
 

@@ -75,35 +75,65 @@ def case_table(device: str = "cpu") -> tuple[Tensor, Tensor]:
     return table.to(device), torch.tensor([len(t) for t in cases]).to(device)
 
 
+_EDGE_START = torch.tensor([_CORNERS[a] for a, _ in _EDGES])  # [12, 3] first corner of each edge
+_EDGE_AXIS = torch.tensor([(b - a).bit_length() - 1 for a, b in _EDGES])  # [12]
+
+
+def cube_triangles(values: Tensor, valid: Tensor | None, origins: Tensor, shape, level: float = 0.0) -> tuple[Tensor, Tensor]:
+    """The level set's triangles inside some cubes of one grid, each corner named by its grid edge.
+
+    Args: values Float[Tensor, "m X Y Z"] point values of m cubes; valid Bool[Tensor, "m X Y Z"] | None:
+    points with a value (a cell with an invalid corner gets no triangles); origins Int64[Tensor, "m 3"]
+    grid index of each cube's first point; shape: points per axis of the whole grid.
+    Returns keys Int64[Tensor, "f 3"]: each triangle corner's grid edge (linear index of its first point
+    * 3 + axis; triangles oriented towards values above `level`), and positions Float[Tensor, "f 3 3"]
+    of those vertices in grid units (linear interpolation along the edge). Cubes that share points
+    give their shared edges the same keys and positions (`merge_edge_vertices` joins them).
+    """
+    m, X, Y, Z = values.shape
+    below = values < level
+    case = torch.zeros((m, X - 1, Y - 1, Z - 1), dtype=torch.uint8, device=values.device)  # a byte a cell
+    for c, (i, j, k) in enumerate(_CORNERS):
+        case |= below[:, i : X - 1 + i, j : Y - 1 + j, k : Z - 1 + k].to(torch.uint8) << c
+    crossed = (case > 0) & (case < 255)
+    if valid is not None:
+        for i, j, k in _CORNERS:
+            crossed &= valid[:, i : X - 1 + i, j : Y - 1 + j, k : Z - 1 + k]
+    cells = crossed.nonzero()  # [n, 4]: cube, cell
+    table, counts = case_table(str(values.device))
+    cell_case = case[tuple(cells.T)].long()
+    keep = torch.arange(5, device=values.device) < counts[cell_case, None]  # [n, 5]
+    edges = table[cell_case][keep]  # [f, 3] cell-local edges
+    owner = cells[:, None, :].expand(-1, 5, -1)[keep]  # [f, 4] cube and cell of each triangle
+    axis = _EDGE_AXIS.to(values.device)[edges]  # [f, 3]
+    start = owner[:, None, 1:] + _EDGE_START.to(values.device)[edges]  # [f, 3, 3] first point in its cube
+    linear = lambda p: ((owner[:, None, 0] * X + p[..., 0]) * Y + p[..., 1]) * Z + p[..., 2]
+    step = torch.nn.functional.one_hot(axis, 3)
+    flat = values.reshape(-1)
+    v0, v1 = flat[linear(start)], flat[linear(start + step)]
+    t = ((level - v0) / (v1 - v0)).clamp(0, 1)
+    point = origins[owner[:, 0]][:, None, :] + start  # [f, 3, 3] in the grid
+    keys = ((point[..., 0] * shape[1] + point[..., 1]) * shape[2] + point[..., 2]) * 3 + axis
+    return keys, point.to(values.dtype) + t[..., None] * step.to(values.dtype)
+
+
+def merge_edge_vertices(keys: Tensor, positions: Tensor) -> tuple[Tensor, Tensor]:
+    """`cube_triangles`' keys Int64[Tensor, "f 3"] and positions Float[Tensor, "f 3 3"] -> vertices
+    Float[Tensor, "v 3"] (one per grid edge) and faces Int64[Tensor, "f 3"]."""
+    keys = keys.reshape(-1)
+    if len(keys) and int(keys.max()) < 2**31:  # int32 sorts about twice as fast
+        keys = keys.int()
+    unique, faces = torch.unique(keys, return_inverse=True)
+    vertices = positions.new_empty(len(unique), 3)
+    vertices[faces] = positions.reshape(-1, 3)  # a shared edge's copies are equal
+    return vertices, faces.reshape(-1, 3)
+
+
 def marching_cubes_torch(values: Tensor, level: float = 0.0) -> tuple[Tensor, Tensor]:
     """Level set of Float[Tensor, "X Y Z"] point values, on their device.
 
     Returns vertices Float[Tensor, "v 3"] in grid units and faces Int[Tensor, "f 3"], oriented towards
     values above `level` (outward for an SDF), shared vertices merged.
     """
-    X, Y, Z = values.shape
-    below = values < level
-    case = torch.zeros((X - 1, Y - 1, Z - 1), dtype=torch.uint8, device=values.device)  # a byte a cell
-    for c, (i, j, k) in enumerate(_CORNERS):
-        case |= below[i : X - 1 + i, j : Y - 1 + j, k : Z - 1 + k].to(torch.uint8) << c
-    cells = ((case > 0) & (case < 255)).nonzero()  # [n, 3]
-    table, counts = case_table(str(values.device))
-    cell_case = case[cells[:, 0], cells[:, 1], cells[:, 2]].long()
-    triangles = table[cell_case]  # [n, 5, 3]
-    keep = torch.arange(5, device=values.device) < counts[cell_case, None]  # [n, 5]
-    edges = triangles[keep]  # [f, 3] cell-local edges
-    owner = cells[:, None, :].expand(-1, 5, -1)[keep]  # [f, 3] cell of each triangle
-    edge_start = torch.tensor([_CORNERS[a] for a, _ in _EDGES], device=values.device)  # [12, 3]
-    edge_axis = torch.tensor([(b - a).bit_length() - 1 for a, b in _EDGES], device=values.device)  # [12]
-    start = owner[:, None, :] + edge_start[edges]  # [f, 3, 3] grid point where each vertex's edge starts
-    key = ((start[..., 0] * Y + start[..., 1]) * Z + start[..., 2]) * 3 + edge_axis[edges]
-    unique, faces = torch.unique(key.reshape(-1), return_inverse=True)
-    axis, point = unique % 3, unique // 3
-    p = torch.stack([point // (Y * Z), point // Z % Y, point % Z], -1)  # [v, 3]
-    step = torch.nn.functional.one_hot(axis, 3)
-    v0 = values[p[:, 0], p[:, 1], p[:, 2]]
-    q = p + step
-    v1 = values[q[:, 0], q[:, 1], q[:, 2]]
-    t = ((level - v0) / (v1 - v0)).clamp(0, 1)
-    vertices = p.to(values.dtype) + t[:, None] * step.to(values.dtype)
-    return vertices, faces.reshape(-1, 3)
+    origin = torch.zeros(1, 3, dtype=torch.long, device=values.device)
+    return merge_edge_vertices(*cube_triangles(values[None], None, origin, values.shape, level))

@@ -16,7 +16,6 @@ from neuralsurf.extract import (
     level_set,
     make_grid,
     marching_cubes,
-    merge_on_edges,
     off_level,
     slice_image,
 )
@@ -382,28 +381,3 @@ def test_marching_cubes_skips_cells_with_invalid_corners():
     assert int(half.faces.max()) == len(half.vertices) - 1  # unused vertices are dropped
 
 
-@pytest.mark.parametrize("step", [None, 1 / 32])
-def test_pieces_meshed_apart_and_merged_on_their_edges_give_the_whole_mesh(step):
-    """`level_set` of the cells of each of 3 x 2 pieces (a cell mask), then `merge_on_edges`: the mesh of one
-    call over the whole grid, closed, also with exact zeros on the grid (vertices on grid points)."""
-    shape = Torus()
-    grid = make_grid(UNIT_BOX, 40)
-    index = np.stack(np.meshgrid(*[np.arange(s) for s in grid.shape], indexing="ij"), -1).reshape(-1, 3)
-    values = shape.sdf(torch.from_numpy(grid.world(index))).reshape(grid.shape)
-    values = (values if step is None else torch.round(values / step) * step).numpy()
-    whole_vertices, whole_faces = level_set(values)
-    cells = np.array(grid.shape) - 1
-    points, faces, count = [], [], 0
-    for x in np.array_split(np.arange(cells[0]), 3):
-        for y in np.array_split(np.arange(cells[1]), 2):
-            mask = np.zeros(cells, dtype=bool)
-            mask[x[0] : x[-1] + 1, y[0] : y[-1] + 1] = True
-            vertices, triangles = level_set(values, cells=mask)
-            points.append(vertices.astype(np.float64))
-            faces.append(triangles + count)
-            count += len(vertices)
-    merged, merged_faces = merge_on_edges(np.concatenate(points), np.concatenate(faces), grid.shape)
-    assert len(merged_faces) == len(whole_faces) and len(merged) == len(whole_vertices)
-    assert cKDTree(whole_vertices).query(merged)[0].max() < 1e-4
-    mesh = Mesh(torch.from_numpy(merged.astype(np.float32)), torch.from_numpy(merged_faces))
-    assert mesh.is_watertight

@@ -23,10 +23,11 @@ Integration, a pass of `frames_per_pass` frames at a time (one on a CPU, 32 on a
     torch.compile (`CompiledOnCPU`), for long sequences (20-35 s of compilation once per process).
 
 Extraction
-    Marching cubes through `neuralsurf.extract.level_set` on the blocks that may hold a sign change,
-    packed as cubes with a margin (`TSDFVolume._block_tiles`), groups of blocks on `threads` worker
-    threads, cells with an unobserved corner skipped; vertices merged by the grid edge they lie on (`neuralsurf.extract.merge_on_edges`), so
-    the mesh has no seams between blocks.
+    Marching cubes in PyTorch (`neuralsurf.marching.cube_triangles`) on the blocks that may hold a sign
+    change, each read as a cube of its voxels and the next point along each axis
+    (`TSDFVolume._block_cubes`), groups of blocks on `threads` worker threads, cells with an unobserved
+    corner skipped; a vertex is named by the grid edge it lies on, so the blocks' meshes join without
+    seams (`neuralsurf.marching.merge_edge_vertices`).
 """
 
 from __future__ import annotations
@@ -54,8 +55,9 @@ from neuralsurf.baselines.tsdf_voxels import (
 )
 from neuralsurf.devices import resolve_device
 from neuralsurf.errors import ConfigError, ExtractionError, InputError
-from neuralsurf.extract import as_bounds, level_set, merge_on_edges
+from neuralsurf.extract import as_bounds
 from neuralsurf.geometry import backproject_depth
+from neuralsurf.marching import cube_triangles, merge_edge_vertices
 from neuralsurf.progress import progress_bar
 from neuralsurf.structures import DepthFrames, Mesh
 
@@ -71,7 +73,7 @@ _FRAMES_PER_PASS = {"cpu": 1, "cuda": 32}
 """Default frames fused per pass: one on a CPU (each frame visits only its own voxels); on a GPU a
 batch, so that the fixed cost of a pass (kernel launches, a few host syncs) is shared."""
 _MESH_BLOCKS = 4096
-"""Blocks meshed per marching-cubes call (about 60 bytes per voxel: 0.15 GB for blocks of 8^3)."""
+"""Blocks meshed per marching-cubes call (about 25 bytes per voxel: 50 MB for blocks of 8^3)."""
 _BYTES_PER_VOXEL = {False: 8, True: 20}
 """tsdf + weight (float32), plus three float32 colour channels."""
 
@@ -541,29 +543,24 @@ class TSDFVolume:
 
         return torch.lerp(lookup(lower), lookup(upper), t).clamp(0, 1).cpu()
 
-    def _block_tiles(self, keys: Tensor, tsdf: Tensor, weight: Tensor) -> tuple[Tensor, Tensor, tuple[int, int, int]]:
-        """The grid points of some blocks with a margin, one cube per block, packed side by side.
-
-        A block's cube holds its points from one before its first to two after its last along each axis
-        (side S = B + 3): its own cells and, for every point of them, the six neighbours (`off_level`).
+    def _block_cubes(self, keys: Tensor, tsdf: Tensor, weight: Tensor) -> tuple[Tensor, Tensor]:
+        """The grid points of some blocks and the next point along each axis, a cube of side B + 1 per
+        block: its cells are the cells whose first corner is one of the block's voxels.
         Args: keys Int64[Tensor, "m"] block keys; tsdf, weight: Float[Tensor, "(used + 1) B^3"] the stored
-        blocks and a last one of zeros (where absent blocks read). Returns tsdf Float[Tensor, "aS bS cS"]
-        and valid Bool[Tensor, "aS bS cS"] (observed), block i's cube at tile (i // (b c), i // c % b,
-        i % c), and (a, b, c).
+        blocks and a last one of zeros (where absent blocks read). Returns tsdf Float[Tensor, "m S S S"]
+        and valid Bool[Tensor, "m S S S"] (observed), S = B + 1.
         """
-        size, side, absent = self.block_size, self.block_size + 3, len(tsdf) - 1
-        a = b = max(1, round(len(keys) ** (1 / 3)))
-        c = -(-len(keys) // (a * b))
-        shifts = torch.stack(torch.meshgrid(*[torch.arange(-1, 2, device=self.device)] * 3, indexing="ij"), -1)
-        slots = self._slots_of(self._keys_around(keys, shifts.reshape(27, 3)))  # (m, 27)
-        slots = torch.cat([slots.masked_fill_(slots < 0, absent), slots.new_full((a * b * c - len(keys), 27), absent)])
-        step = torch.arange(side, device=self.device) - 1
-        near, within = step.div(size, rounding_mode="floor") + 1, step % size  # neighbour 0..2, voxel in it
-        neighbour = (near[:, None, None] * 9 + near[None, :, None] * 3 + near[None, None, :]).view(-1)
+        size, side, absent = self.block_size, self.block_size + 1, len(tsdf) - 1
+        upper = torch.stack(torch.meshgrid(*[torch.arange(2, device=self.device)] * 3, indexing="ij"), -1)
+        slots = self._slots_of(self._keys_around(keys, upper.reshape(8, 3)))  # (m, 8)
+        slots.masked_fill_(slots < 0, absent)
+        step = torch.arange(side, device=self.device)
+        near, within = step.div(size, rounding_mode="floor"), step % size  # neighbour 0..1, voxel in it
+        neighbour = (near[:, None, None] * 4 + near[None, :, None] * 2 + near[None, None, :]).view(-1)
         voxel = ((within[:, None, None] * size + within[None, :, None]) * size + within[None, None, :]).view(-1)
-        index = torch.add(voxel, slots[:, neighbour], alpha=size**3)  # (tiles, S^3)
-        packed = lambda t: t.view(a, b, c, side, side, side).permute(0, 3, 1, 4, 2, 5).reshape(a * side, b * side, c * side)
-        return packed(tsdf.view(-1)[index]), packed(weight.view(-1)[index] > 0), (a, b, c)
+        index = torch.add(voxel, slots[:, neighbour], alpha=size**3)  # (m, S^3)
+        cube = (len(keys), side, side, side)
+        return tsdf.view(-1)[index].view(cube), (weight.view(-1)[index] > 0).view(cube)
 
     def _keys_around(self, keys: Tensor, shifts: Tensor) -> Tensor:
         """Int64[Tensor, "m"] block keys, Int64[Tensor, "s 3"] block offsets -> Int64[Tensor, "m s"] the keys
@@ -578,11 +575,10 @@ class TSDFVolume:
         (towards positive TSDF, i.e. the cameras), with vertex colours when `with_color`.
 
         The blocks that may own a cell with a sign change (an observed value <= 0 in them or in one of
-        the seven blocks after them), at most _MESH_BLOCKS at a time (on `threads` worker threads), are packed as cubes side by side
-        (`_block_tiles`) and meshed by `neuralsurf.extract.level_set`, each cube's own cells only and
-        cells with an unobserved corner skipped. A vertex on a block's face is found from the same values
-        in each block that shares it; vertices are merged by the grid edge they lie on, so the mesh has
-        no seams between blocks."""
+        the seven blocks after them), at most _MESH_BLOCKS at a time (on `threads` worker threads), are
+        read as cubes (`_block_cubes`) and marched by `neuralsurf.marching.cube_triangles`, cells with an
+        unobserved corner skipped. A vertex on a block's face is found from the same values in each
+        block that shares it and named by its grid edge, so the mesh has no seams between blocks."""
         if self.frames_integrated == 0:
             raise ExtractionError("the TSDF volume is empty: call integrate(frames) before extract_mesh()")
         cpu = self.device.type == "cpu"
@@ -607,35 +603,25 @@ class TSDFVolume:
         where = torch.searchsorted(keys, around).clamp_max(len(keys) - 1)
         keys = keys[observed.any(1)[slots] & ((keys[where] == around) & inside[where]).any(1)]
         tsdf, weight = self._tsdf[: self._used + 1], self._weight[: self._used + 1]  # the last: zeros
-        size, side = self.block_size, self.block_size + 3
-        own = torch.zeros(side, dtype=torch.bool)
-        own[1 : size + 1] = True  # a cube's own cells: first corners at its block's voxels
-        own = own[:, None, None] & own[None, :, None] & own[None, None, :]
+        origins = self._block_coords(keys) * self.block_size
 
-        def mesh_part(part: Tensor) -> tuple[np.ndarray, np.ndarray]:  # grid positions, faces
-            values, valid, (a, b, c) = self._block_tiles(part, tsdf, weight)
-            cells = own.repeat(a, b, c)[:-1, :-1, :-1].numpy()
-            vertices, triangles = level_set(values.cpu().numpy(), 0.0, valid.cpu().numpy(), cells)
-            tile = np.floor(vertices / side).astype(np.int64)
-            block = self._block_coords(part).cpu().numpy()[(tile[:, 0] * b + tile[:, 1]) * c + tile[:, 2]]
-            return block * size - 1 + (vertices.astype(np.float64) - tile * side), triangles
+        def mesh_part(part: Tensor) -> tuple[Tensor, Tensor]:  # cube_triangles of some blocks
+            values, valid = self._block_cubes(keys[part], tsdf, weight)
+            return cube_triangles(values, valid, origins[part], self.grid_shape)
 
         per_call = max(64, min(_MESH_BLOCKS, -(-len(keys) // (2 * workers))))  # a few calls a worker
-        pieces = list(pool.map(mesh_part, keys.split(per_call)))
-        points, faces, count = [], [], 0
-        for vertices, triangles in pieces:
-            points.append(vertices)
-            faces.append(triangles + count)
-            count += len(vertices)
-        if not count:
+        pieces = list(pool.map(mesh_part, torch.arange(len(keys), device=self.device).split(per_call)))
+        edges, positions = (torch.cat(items) for items in zip(*pieces)) if pieces else (torch.zeros(0), None)
+        if not len(edges):
             raise ExtractionError(
                 "the fused TSDF has no zero crossing between observed voxels: the frames see no surface with "
                 "both sides inside the truncation band; check the truncation (a few voxels) and the poses"
             )
-        points, faces = merge_on_edges(np.concatenate(points), np.concatenate(faces), self.grid_shape)
+        points, faces = merge_edge_vertices(edges, positions)
+        points = points.cpu().double().numpy()
         vertices = torch.from_numpy((self.origin + points * self.voxel_size).astype(np.float32))
         colors = self._color_at(points) if self.with_color else None
-        return Mesh(vertices, torch.from_numpy(faces), colors)
+        return Mesh(vertices, faces.cpu(), colors)
 
 
 __all__ = ["WEIGHTINGS", "TSDFVolume", "available_memory", "depth_bounds"]
