@@ -12,13 +12,14 @@ The volume
     surfaces, not the box. Stored values are signed distances in metres, in [-truncation, truncation].
 
 Integration, a pass of `frames_per_pass` frames at a time (one on a CPU, 32 on a GPU)
-    1. The blocks that the frames' truncation bands touch (`tsdf_bands.candidate_blocks`; allocated
-       in sparse mode): as in Open3D's VoxelBlockGrid, a frame updates the voxels of these only.
+    1. The blocks that the frames' truncation bands touch (`tsdf_bands.candidate_blocks`), for every
+       pass first (allocated in sparse mode): as in Open3D's VoxelBlockGrid, a frame updates the
+       voxels of these only.
     2. Their voxels' running weighted averages of the projective signed distance, nearest pixel,
        frame after frame (`tsdf_voxels.fuse_blocks`), in chunks of _CHUNK_OBSERVATIONS.
     On a CPU, eager: each torch op on one thread (many short ops, whose thread synchronisation costs
-    more than it gains on a few cores), the chunks of a pass on `threads` worker threads side by side,
-    and the next pass's blocks found meanwhile. Compiled (`compiled`, by default for calls of
+    more than it gains on a few cores), the passes' blocks found on `threads` worker threads side by
+    side, then each thread fusing its share of the blocks through all passes. Compiled (`compiled`, by default for calls of
     _COMPILE_PIXELS depth pixels or more): the band search and the voxel pass as loops compiled by
     torch.compile (`CompiledOnCPU`), for long sequences (20-35 s of compilation once per process).
 
@@ -188,7 +189,7 @@ class TSDFVolume:
             candidate blocks (the result is the same as one at a time, in order); default 1 on a
             CPU and 32 on a GPU, where per-pass costs dominate.
         threads: CPU threads of `integrate` and `extract_mesh`. Eager fusion: worker threads that fuse
-            chunks of blocks side by side, each torch op on one thread (torch's setting restored
+            shares of the blocks side by side, each torch op on one thread (torch's setting restored
             afterwards); "auto" or None: as many as torch's threads. Compiled fusion: torch's threads
             ("auto" or None: torch's setting; compiled loops keep the thread count of the process's
             first compiled fusion). Extraction: worker threads that mesh groups of blocks side by side,
@@ -388,26 +389,35 @@ class TSDFVolume:
         self, frames: DepthFrames, depth: Tensor, colors: Tensor | None, bar, compiled: bool, pool: Executor | None
     ) -> None:
         """The passes of `integrate` over depth Float[Tensor, "n h w"] and colours (on the device),
-        compiled or eager; with a `pool`, a pass's candidate blocks are found while the pass before fuses."""
+        compiled or eager: first every pass's candidate blocks (`_candidates`, the passes side by side on
+        a `pool`'s threads) and their slots, then the voxel passes in order; with a `pool`, each of its
+        threads fuses one share of the blocks through all passes (a block's frames stay in order, and no
+        thread waits for another between passes)."""
         passes = [slice(start, start + self.frames_per_pass) for start in range(0, len(frames), self.frames_per_pass)]
-        candidates = lambda part: self._candidates(
-            depth[part], frames.K[part].cpu(), frames.cam_to_world[part].cpu(), compiled
-        )
-        upcoming = None
-        for i, part in enumerate(passes):
-            blocks = candidates(part) if upcoming is None else upcoming.result()
-            upcoming = None if pool is None or i + 1 == len(passes) else pool.submit(candidates, passes[i + 1])
-            self._integrate_frames(
-                depth[part],
-                frames.K[part].cpu(),
-                frames.cam_to_world[part].cpu(),
-                None if colors is None else colors[part],
-                compiled,
-                blocks,
-                pool,
-            )
-            self.frames_integrated += len(depth[part])
-            bar.update(len(depth[part]))
+        K, cam_to_world = frames.K.cpu(), frames.cam_to_world.cpu()
+        find = lambda part: self._candidates(depth[part], K[part], cam_to_world[part], compiled)
+        blocks = list(pool.map(find, passes)) if pool is not None else [find(part) for part in passes]
+        slots = [self._slots_of(keys) for keys, _ in blocks]
+        if self.sparse and any(bool((slot < 0).any()) for slot in slots):  # blocks touched for the first time
+            self._allocate(torch.unique(torch.cat([keys[slot < 0] for (keys, _), slot in zip(blocks, slots)])))
+            slots = [self._slots_of(keys) for keys, _ in blocks]
+        shares = 1 if pool is None else pool._max_workers
+
+        def fuse_share(share: int) -> None:
+            for part, (keys, frame_keys), slot in zip(passes, blocks, slots):
+                if shares > 1:
+                    mine = slot % shares == share
+                    keys, slot = keys[mine], slot[mine]
+                self._integrate_frames(depth[part], K[part], cam_to_world[part],
+                                       None if colors is None else colors[part], compiled, keys, frame_keys, slot)
+                if share == 0:
+                    bar.update(len(depth[part]))
+
+        if shares == 1:
+            fuse_share(0)
+        else:
+            list(pool.map(fuse_share, range(shares)))
+        self.frames_integrated += len(depth)
 
     def _candidates(self, depth: Tensor, K: Tensor, cam_to_world: Tensor, compiled: bool) -> tuple[Tensor, Tensor | None]:
         """`candidate_blocks` of depth images Float[Tensor, "f h w"] seen by K Float[Tensor, "f 3 3"] at
@@ -423,20 +433,13 @@ class TSDFVolume:
 
     def _integrate_frames(
         self, depth: Tensor, K: Tensor, cam_to_world: Tensor, colors: Tensor | None, compiled: bool,
-        blocks: tuple[Tensor, Tensor | None], pool: Executor | None,
+        keys: Tensor, frame_keys: Tensor | None, slots: Tensor,
     ) -> None:
         """Fuse depth images Float[Tensor, "f h w"] seen by K Float[Tensor, "f 3 3"] at cam_to_world
         Float[Tensor, "f 4 4"] (both on the CPU), colours Float[Tensor, "f h w 3"] | None, in order, into
-        their candidate `blocks` (`_candidates`); `compiled`: through `_COMPILED` (CPU); with a `pool`,
-        chunks of blocks side by side on its threads."""
+        some of their candidate blocks (`_candidates`): keys Int64[Tensor, "b"] at slots Int64[Tensor,
+        "b"]; `compiled`: through `_COMPILED` (CPU)."""
         origin = torch.as_tensor(self.origin, dtype=torch.float64)
-        run = lambda function: _COMPILED[function] if compiled else function
-        keys, frame_keys = blocks
-        slots = self._slots_of(keys)
-        if self.sparse:  # allocate the blocks these frames touch for the first time
-            fresh = slots < 0
-            if fresh.any():
-                slots[fresh] = self._allocate(keys[fresh])
         projection = grid_to_pixel(K, cam_to_world, origin, self.voxel_size).to(self.device)
         n_frames, voxels, total = len(depth), self.block_size**3, int(self.block_counts.prod())
         padded = pad_image(depth)
@@ -445,11 +448,10 @@ class TSDFVolume:
         colors = None if colors is None else pad_image(colors).reshape(-1, 3)
         cap = math.inf if self.max_weight is None else self.max_weight
         limits = torch.tensor([self.truncation, cap], dtype=depth.dtype, device=self.device)
-        fuse = run(fuse_blocks)
+        fuse = _COMPILED[fuse_blocks] if compiled else fuse_blocks
         chunk_observations = _CHUNK_OBSERVATIONS["compiled"] if compiled else self._chunk_observations
         per_chunk = max(1, chunk_observations // (voxels * n_frames))
-
-        def fuse_chunk(start: int) -> None:
+        for start in range(0, len(keys), per_chunk):
             chunk, chunk_slots = keys[start : start + per_chunk], slots[start : start + per_chunk]
             frame_mask = None
             if frame_keys is not None:  # a frame updates only the blocks its own band touches
@@ -460,13 +462,6 @@ class TSDFVolume:
                 self._tsdf, self._weight, self._color, chunk_slots, self._block_coords(chunk) * self.block_size,
                 self._local, projection, padded, limits, frame_mask, weights, colors,
             )
-
-        starts = range(0, len(keys), per_chunk)
-        if pool is None or len(starts) == 1:
-            for start in starts:
-                fuse_chunk(start)
-        else:  # chunks hold distinct blocks: they can run side by side
-            list(pool.map(fuse_chunk, starts))
 
     # ------------------------------------------------------------------------------ save / load
 
