@@ -45,7 +45,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from neuralsurf.baselines.tsdf_bands import _TILE, candidate_blocks, tile_box_codes
+from neuralsurf.baselines.tsdf_bands import _TILE, candidate_blocks, candidates_by_pass, tile_box_codes
 from neuralsurf.baselines.tsdf_files import load_volume, save_volume
 from neuralsurf.baselines.tsdf_voxels import (
     camera_to_grid,
@@ -53,6 +53,7 @@ from neuralsurf.baselines.tsdf_voxels import (
     grid_to_pixel,
     pad_image,
     pixel_weights,
+    voxel_projection,
 )
 from neuralsurf.devices import resolve_device
 from neuralsurf.errors import ConfigError, ExtractionError, InputError
@@ -73,6 +74,11 @@ each eager, cache-sized on a CPU; ~12 compiled, where a step costs ~0.5 ms more;
 _FRAMES_PER_PASS = {"cpu": 1, "cuda": 32}
 """Default frames fused per pass: one on a CPU (each frame visits only its own voxels); on a GPU a
 batch, so that the fixed cost of a pass (kernel launches, a few host syncs) is shared."""
+_FRAMES_PER_SEARCH = 5
+"""Frames whose candidate blocks one `candidate_blocks` call finds, at least (a pass at least): on a CPU,
+its many small ops on one frame's image tiles hold Python's lock long enough that two threads gain
+little side by side (50 7-Scenes frames at 1 cm, 2 threads: 0.17-0.19 s a frame at a time, 0.12 s five
+at a time; 0.21 s on one thread)."""
 _MESH_BLOCKS = 4096
 """Blocks meshed per marching-cubes call (about 25 bytes per voxel: 50 MB for blocks of 8^3)."""
 _BYTES_PER_VOXEL = {False: 8, True: 20}
@@ -393,10 +399,18 @@ class TSDFVolume:
         a `pool`'s threads) and their slots, then the voxel passes in order; with a `pool`, each of its
         threads fuses one share of the blocks through all passes (a block's frames stay in order, and no
         thread waits for another between passes)."""
-        passes = [slice(start, start + self.frames_per_pass) for start in range(0, len(frames), self.frames_per_pass)]
+        per_pass, total = self.frames_per_pass, int(self.block_counts.prod())
+        passes = [slice(start, start + per_pass) for start in range(0, len(frames), per_pass)]
         K, cam_to_world = frames.K.cpu(), frames.cam_to_world.cpu()
-        find = lambda part: self._candidates(depth[part], K[part], cam_to_world[part], compiled)
-        blocks = list(pool.map(find, passes)) if pool is not None else [find(part) for part in passes]
+        per_search = per_pass * max(1, _FRAMES_PER_SEARCH // per_pass)
+
+        def find(start: int) -> list[tuple[Tensor, Tensor | None]]:  # the blocks of the passes of some frames
+            part = slice(start, start + per_search)
+            found = self._candidates(depth[part], K[part], cam_to_world[part], compiled)
+            return candidates_by_pass(*found, len(depth[part]), per_pass, total)
+
+        starts = range(0, len(frames), per_search)
+        blocks = [item for found in (pool.map(find, starts) if pool is not None else map(find, starts)) for item in found]
         slots = [self._slots_of(keys) for keys, _ in blocks]
         if self.sparse and any(bool((slot < 0).any()) for slot in slots):  # blocks touched for the first time
             self._allocate(torch.unique(torch.cat([keys[slot < 0] for (keys, _), slot in zip(blocks, slots)])))
@@ -441,7 +455,9 @@ class TSDFVolume:
         "b"]; `compiled`: through `_COMPILED` (CPU)."""
         origin = torch.as_tensor(self.origin, dtype=torch.float64)
         projection = grid_to_pixel(K, cam_to_world, origin, self.voxel_size).to(self.device)
+        linear, shift, offset = voxel_projection(projection, self._local)
         n_frames, voxels, total = len(depth), self.block_size**3, int(self.block_counts.prod())
+        origins = (self._block_coords(keys) * self.block_size).to(depth.dtype)
         padded = pad_image(depth)
         weights = None if self.weighting == "constant" else pad_image(pixel_weights(depth, self.weighting))
         weights = None if weights is None else weights.reshape(-1)
@@ -453,14 +469,15 @@ class TSDFVolume:
         per_chunk = max(1, chunk_observations // (voxels * n_frames))
         for start in range(0, len(keys), per_chunk):
             chunk, chunk_slots = keys[start : start + per_chunk], slots[start : start + per_chunk]
+            chunk_origins = origins[start : start + per_chunk]
             frame_mask = None
             if frame_keys is not None:  # a frame updates only the blocks its own band touches
                 tagged = chunk + total * torch.arange(n_frames, device=self.device)[:, None]  # (f, m)
                 where = torch.searchsorted(frame_keys, tagged).clamp_max(len(frame_keys) - 1)
                 frame_mask = (frame_keys[where] == tagged).to(depth.dtype)
             fuse(
-                self._tsdf, self._weight, self._color, chunk_slots, self._block_coords(chunk) * self.block_size,
-                self._local, projection, padded, limits, frame_mask, weights, colors,
+                self._tsdf, self._weight, self._color, chunk_slots, chunk_origins, linear, shift, offset, padded,
+                limits, frame_mask, weights, colors,
             )
 
     # ------------------------------------------------------------------------------ save / load

@@ -214,4 +214,21 @@ def candidate_blocks(
     return _unique_keys(frame_keys % total, total), frame_keys
 
 
-__all__ = ["box_keys", "candidate_blocks", "tile_block_ranges", "tile_box_codes"]
+def candidates_by_pass(
+    keys: Tensor, frame_keys: Tensor | None, frames: int, per_pass: int, total: int
+) -> list[tuple[Tensor, Tensor | None]]:
+    """`candidate_blocks`' (keys, frame_keys) of some frames -> the same for each pass of `per_pass`
+    consecutive frames of them (the last pass may hold fewer); `total`: blocks in the volume."""
+    if frame_keys is None:  # one frame
+        return [(keys, None)]
+    starts = torch.arange(0, frames + per_pass, per_pass).clamp_max(frames)
+    bounds = torch.searchsorted(frame_keys, (starts * total).to(frame_keys.device)).tolist()
+    passes = []
+    for first, (low, high) in enumerate(zip(bounds[:-1], bounds[1:])):
+        own = frame_keys[low:high] - int(starts[first]) * total  # frame_keys of this pass's frames
+        single = int(starts[first + 1] - starts[first]) == 1
+        passes.append((own, None) if single else (_unique_keys(own % total, total), own))
+    return passes
+
+
+__all__ = ["box_keys", "candidate_blocks", "candidates_by_pass", "tile_block_ranges", "tile_box_codes"]
