@@ -72,3 +72,17 @@ def test_fusion_methods_run_on_a_tiny_rig_fusion(tmp_path):
         assert row["chamfer_l1"] > 0 and 0 < row["normal_consistency"] <= 1 and row["hausdorff"] > 0
         assert (tmp_path / row["mesh"]).is_file()
     assert by_method["ps_robust"]["status"] == "ok" and by_method["ps_robust"]["normal_error_mean_deg"] < 30
+
+
+def test_a_mesh_of_a_photometric_capture_without_depth_or_truth_is_skipped_not_left_unscored(tmp_path, shared_data):
+    """suite=real's specular bunny has no depth and no true surface: Poisson on its cloud (made from the
+    ground-truth normals) is skipped with the reason, photometric stereo is scored."""
+    from neuralsurf.cli import evaluate
+
+    cfg = compose_evaluate(["suite=real", "scenes=[bunny_specular_ps]", "methods=[poisson,ps_least_squares]",
+                            f"data_root={shared_data}", "render=false", "device=cpu"])
+    OmegaConf.set_struct(cfg, False)
+    cfg.run_dir = str(tmp_path)
+    rows = {row["method"]: row for row in evaluate(cfg)}
+    assert rows["poisson"]["status"] == "skipped" and "ground-truth normals" in rows["poisson"]["reason"]
+    assert rows["ps_least_squares"]["status"] == "ok" and rows["ps_least_squares"]["normal_error_mean_deg"] > 0

@@ -220,6 +220,10 @@ def run_row(row: dict[str, Any], built: dict[str, Any], make_method: MethodFacto
             log(f"  {method_name:>12} on {scene_name}: normal error mean {row['normal_error_mean_deg']:.3f} "
                 f"deg, median {row['normal_error_median_deg']:.3f} deg  {row['seconds']:.1f} s")
             return True
+        if getattr(scene, "cloud_from_truth", False):
+            raise NotApplicable("the scene's only 3D input is made from its ground-truth normals (a photometric "
+                                "capture without depth or a true surface): a mesh of it cannot be scored; its "
+                                "photometric stereo rows are")
         mesh = check_mesh(output)
         row["seconds"] = time.perf_counter() - started
         row["peak_rss_mb"], row["cuda_peak_mb"] = peak_memory_mb()

@@ -58,4 +58,4 @@ def uw_gray_sphere(name: str = "uw_gray_sphere", root: str | None = None, folder
     cloud = PointCloud(points, normals[v, u].double())
     return Scene(name, cloud, None, description=f"{len(capture)} lights calibrated from the chrome ball, "
                                                  f"{capture.width}x{capture.height}, real matte sphere ({path})",
-                 photometric=(capture,))
+                 photometric=(capture,), cloud_from_truth=True)

@@ -68,6 +68,9 @@ class Scene:
     near_distance: float | None = None
     """Rooms: neural fields are meshed only this close to the input points (world units), so space no
     camera saw stays empty; None for objects (a mask would hollow out their insides)."""
+    cloud_from_truth: bool = False
+    """True when `cloud` is made from the ground truth only to complete the scene (photometric captures
+    with neither depth nor a true surface): a mesh reconstructed on it is not scored (its row is skipped)."""
 
 
 def data_root(root: str | Path | None = None) -> Path:
@@ -272,7 +275,8 @@ def bunny_specular_ps(name: str = "bunny_specular_ps", root: str | None = None,
     points = torch.stack([u.double(), v.double(), relief[mask].double()], -1)
     cloud = PointCloud(points, capture.normals[mask].double())
     return Scene(name, cloud, None, description=f"{len(capture)} lights, {capture.width}x{capture.height}, "
-                                                 f"specular, real-data layout ({path})", photometric=(capture,))
+                                                 f"specular, real-data layout ({path})", photometric=(capture,),
+                 cloud_from_truth=True)
 
 
 @lru_cache(maxsize=4)
