@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from scipy import ndimage
@@ -82,24 +83,43 @@ def check(errors: dict[str, tuple[float, float]]) -> None:
     assert bini_band <= 0.5 * ls_band, errors
 
 
-@pytest.mark.parametrize(("name", "size"), [("step", 96), ("sphere_on_plane", 64)])
+@pytest.mark.parametrize(
+    ("name", "size"), [("step", 64), ("step", 96), ("sphere_on_plane", 64), ("box_on_ground", 64)]
+)
 def test_bilateral_keeps_the_discontinuities_least_squares_smooths(name, size):
+    # the same k at 64 and 96 pixels: a hidden-riser step opens at both (the paper's test alone stalls at 64)
     check(scene_errors(name, size))
 
 
-CREASES_CUT = pytest.mark.xfail(
+PARALLEL_OCCLUSION = pytest.mark.xfail(
     strict=True,
-    reason="the sigmoid of squared one-sided differences also cuts concave creases between a steep and a "
-    "flat face (the boxes' bottoms on the ground): at the discontinuities 0.65-0.7x least squares' error",
+    reason="the boxes' tops are parallel to the ground they occlude, so the jump across their back edges is a "
+    "constant log-depth offset that no normal reveals; at 96 pixels the reweighting joins the tops to the "
+    "ground behind and cuts them from the front faces instead (0.68x least squares at the discontinuities)",
 )
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "name", [pytest.param(name, marks=CREASES_CUT) if name == "stacked_boxes" else name for name in DISCONTINUITY_SCENES]
+    ("name", "size"),
+    [(name, 128) for name in DISCONTINUITY_SCENES] + [pytest.param("stacked_boxes", 96, marks=PARALLEL_OCCLUSION)],
 )
-def test_bilateral_beats_least_squares_on_every_scene_at_128(name):
-    check(scene_errors(name, 128))
+def test_bilateral_beats_least_squares_on_every_scene(name, size):
+    check(scene_errors(name, size))
+
+
+def test_conjugate_gradients_match_a_direct_solve():
+    from scipy.sparse import random as sparse_random, identity
+
+    from neuralsurf.photometric.integration import _pcg
+
+    B = sparse_random(60, 40, density=0.1, random_state=0, format="csr")
+    A = (B.T @ B + 0.1 * identity(40)).tocsr()
+    b = np.random.default_rng(0).normal(size=40)
+    x, converged = _pcg(A, b, np.zeros(40), lambda r: r / A.diagonal(), 1e-12, 200)
+    assert converged and np.allclose(x, np.linalg.solve(A.toarray(), b), atol=1e-9)
+    _, converged = _pcg(A, b, np.zeros(40), lambda r: r, 1e-12, 2)
+    assert not converged
 
 
 def test_bilateral_is_exact_on_a_perspective_plane_and_rejects_bad_options():
