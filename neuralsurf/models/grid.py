@@ -1,0 +1,93 @@
+"""A signed distance field stored on a sparse voxel grid: values at the grid points of the blocks that
+depth frames observed, trilinearly interpolated (the layout of a sparse TSDF volume, optimised by `fit`).
+
+Grid point (i, j, k) lies at origin + (i, j, k) * voxel (unit frame); only the observed points hold a
+value (`rows`: each point's row of `values`, -1 where none). A query averages the observed corners of its
+cell with their trilinear weights (so unobserved points, which may lie in free space or behind a surface,
+invent no zero crossing) and reads `outside` where no corner is observed. Initialised from a fused TSDF (`from_grid`), the field
+starts at TSDF's answer and its observed values are then refined by gradient descent.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from neuralsurf.errors import ConfigError
+from neuralsurf.models.spec import rebuildable
+
+
+@rebuildable
+class VoxelSDF(nn.Module):
+    """Unit-frame x[..., 3] -> signed distance [...]: trilinear in the observed values of a sparse voxel grid
+    (see the module docstring).
+
+    Args:
+        shape: grid points per axis.
+        origin: unit-frame position of grid point (0, 0, 0).
+        voxel: grid spacing, unit frame.
+        n_observed: grid points that hold a value.
+        outside: the value where no corner of a query's cell is observed (free space, unit frame).
+    """
+
+    def __init__(self, shape: list[int], origin: list[float], voxel: float, n_observed: int, outside: float = 0.05):
+        super().__init__()
+        shape, origin = [int(s) for s in shape], [float(o) for o in origin]
+        if len(shape) != 3 or len(origin) != 3 or any(s < 2 for s in shape) or not voxel > 0 or n_observed < 1:
+            raise ConfigError(f"VoxelSDF needs 3 grid sizes >= 2, 3 origin coordinates, voxel > 0 and n_observed >= 1; "
+                              f"got shape={shape}, origin={origin}, voxel={voxel}, n_observed={n_observed}")
+        self.shape, self.voxel, self.outside = shape, float(voxel), float(outside)
+        self.register_buffer("origin", torch.tensor(origin, dtype=torch.float32))
+        self.values = nn.Parameter(torch.full((n_observed, 1), float(outside)))
+        self.register_buffer("rows", torch.full(shape, -1, dtype=torch.int32))
+        corner = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+        self.register_buffer("steps", (corner[:, 0] * shape[1] + corner[:, 1]) * shape[2] + corner[:, 2],
+                             persistent=False)
+
+    @classmethod
+    def from_grid(cls, values: Tensor, observed: Tensor, origin, voxel: float, outside: float | None = None) -> VoxelSDF:
+        """The field of dense grid values Float[Tensor, "X Y Z"] (unit frame) where Bool[Tensor, "X Y Z"]
+        `observed`, point (0, 0, 0) at `origin` (3 unit-frame coordinates), spaced `voxel`. `outside`:
+        default the largest observed value."""
+        if values.shape != observed.shape or values.dim() != 3:
+            raise ConfigError(f"VoxelSDF.from_grid needs values and observed of one shape X Y Z, got "
+                              f"{tuple(values.shape)} and {tuple(observed.shape)}")
+        n = int(observed.sum())
+        if not n:
+            raise ConfigError("VoxelSDF.from_grid: no grid point is observed; fuse frames that see the surface first")
+        outside = float(values[observed].max()) if outside is None else float(outside)
+        model = cls(list(values.shape), [float(o) for o in origin], voxel, n, outside)
+        with torch.no_grad():
+            model.values[:, 0] = values[observed].float()
+            model.rows[observed] = torch.arange(n, dtype=torch.int32)
+        return model
+
+    def forward(self, x: Tensor, latent: Tensor | None = None) -> Tensor:
+        """x Float[Tensor, "... 3"] unit frame -> Float[Tensor, "..."]."""
+        if latent is not None:
+            raise ConfigError("VoxelSDF is one shape's field; it takes no latent code")
+        g = (x.reshape(-1, 3) - self.origin) / self.voxel
+        base = g.detach().floor()
+        fraction = g - base
+        base = base.long()
+        inside = ((base >= 0) & (base < base.new_tensor(self.shape) - 1)).all(-1)
+        linear = torch.where(inside, (base[:, 0] * self.shape[1] + base[:, 1]) * self.shape[2] + base[:, 2], 0)
+        row = self.rows.view(-1)[linear[:, None] + self.steps].long()  # (n, 8), corners i-major
+        present = (row >= 0) & inside[:, None]
+        value = torch.nn.functional.embedding(row.clamp_min(0), self.values)[..., 0]
+        wx, wy, wz = (torch.stack([1 - fraction[:, a], fraction[:, a]], -1) for a in range(3))
+        w = (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(-1, 8) * present
+        total = w.sum(-1)
+        mixed = (w * value).sum(-1) / total.clamp_min(1e-12)
+        # a cell with some observed corners reads them alone; with none, free space
+        result = torch.where(total > 1e-6, mixed, torch.full_like(mixed, self.outside))
+        return result.reshape(x.shape[:-1])
+
+    @torch.no_grad()
+    def dense(self) -> tuple[Tensor, Tensor]:
+        """(values Float[Tensor, "X Y Z"], observed Bool[Tensor, "X Y Z"]) of the whole grid (unit frame;
+        `outside` where not observed)."""
+        observed = self.rows >= 0
+        values = torch.full(self.shape, self.outside, device=self.values.device)
+        values[observed] = self.values[self.rows[observed].long(), 0]
+        return values, observed
