@@ -19,7 +19,7 @@ import torch
 from neuralsurf.baselines import TSDFVolume
 from neuralsurf.errors import ExtractionError
 from neuralsurf.evaluation.methods import NotApplicable
-from neuralsurf.extract import level_set
+from neuralsurf.marching import cube_triangles, merge_edge_vertices
 from neuralsurf.models.grid import VoxelSDF
 from neuralsurf.observations import NotObserved
 from neuralsurf.scenes import Scene
@@ -40,16 +40,26 @@ def fused_voxels(frames: DepthFrames, bounds: torch.Tensor, voxel: float, trunca
                               truncation / scale)
 
 
-def voxel_mesh(model: VoxelSDF, normalization: Normalization) -> Mesh:
+def voxel_mesh(model: VoxelSDF, normalization: Normalization, slab: int = 64) -> Mesh:
     """Marching cubes of the 0-level set of `model`'s grid over the cells whose corners are all observed, in
-    the world frame of `normalization`, faces oriented outward. Raises ExtractionError when it has none."""
-    values, observed = model.dense()
-    vertices, faces = level_set(values.cpu().numpy(), 0.0, observed.cpu().numpy())
-    if not len(faces):
+    the world frame of `normalization`, faces oriented outward; in slabs of `slab` cells along the first axis
+    (bounded memory), their vertices joined by grid edge (`marching.cube_triangles`). Raises ExtractionError
+    when it has none."""
+    size = model.shape[0]
+    keys, positions = [], []
+    for start in range(0, size - 1, slab):
+        values, observed = model.dense(start, min(start + slab + 1, size))
+        origin = torch.tensor([[start, 0, 0]], device=values.device)
+        k, p = cube_triangles(values[None], observed[None], origin, model.shape)
+        keys.append(k)
+        positions.append(p.double())
+    keys, positions = torch.cat(keys), torch.cat(positions)
+    if not len(keys):
         raise ExtractionError("the voxel field has no zero crossing between observed grid points: the frames saw no "
                               "surface with both sides inside the truncation band")
-    unit = model.origin.double().cpu() + torch.from_numpy(vertices).double() * model.voxel
-    return Mesh(normalization.to_world(unit).float(), torch.from_numpy(faces))
+    points, faces = merge_edge_vertices(keys, positions)
+    unit = model.origin.double().cpu() + points.cpu() * model.voxel
+    return Mesh(normalization.to_world(unit).float(), faces.cpu().long())
 
 
 def neural_voxels(scene: Scene, observations: Mapping[str, Callable | None], *, voxel_fraction: float = 1 / 512,

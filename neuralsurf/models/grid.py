@@ -84,10 +84,11 @@ class VoxelSDF(nn.Module):
         return result.reshape(x.shape[:-1])
 
     @torch.no_grad()
-    def dense(self) -> tuple[Tensor, Tensor]:
-        """(values Float[Tensor, "X Y Z"], observed Bool[Tensor, "X Y Z"]) of the whole grid (unit frame;
-        `outside` where not observed)."""
-        observed = self.rows >= 0
-        values = torch.full(self.shape, self.outside, device=self.values.device)
-        values[observed] = self.values[self.rows[observed].long(), 0]
+    def dense(self, start: int = 0, stop: int | None = None) -> tuple[Tensor, Tensor]:
+        """(values Float[Tensor, "x Y Z"], observed Bool[Tensor, "x Y Z"]) of the grid points whose first index lies
+        in [start, stop) (default: the whole grid; unit frame; `outside` where not observed)."""
+        rows = self.rows[start:stop]
+        observed = rows >= 0
+        values = torch.full(rows.shape, self.outside, device=self.values.device)
+        values[observed] = self.values[rows[observed].long(), 0]
         return values, observed
