@@ -1,26 +1,31 @@
-"""A real room from depth frames: the neural fit from rays (experiment redkitchen_depth), meshed only where the
-frames observed a surface (`neuralsurf.observations.observed`), against TSDF fusion of the same frames, in one
-run: time, peak memory, held-out depth error (mean, median) and completeness, side by side.
+"""A real room from depth frames: the neural voxel fit (`suite=depth`'s neural_voxels: TSDF fusion at half the
+tsdf method's voxel as the start of a sparse voxel SDF, refined by `fit` on the rays and meshed on its observed
+voxels) against TSDF fusion of the same frames (the tsdf method), in one run: time, peak memory, held-out depth
+error (mean, median) and completeness, side by side.
 
-    python benchmarks/bench_room.py [--frames 50] [--steps N] [--voxel 0.04] [--maps DIR]
+    python benchmarks/bench_room.py [--frames 50] [--steps N] [--mlp] [--maps DIR]
 
 The 7-Scenes redkitchen frames come from $NEURALSURF_DATA (or the fetch cache); every 10th frame is held out
 and the meshes are rendered from those views. --frames takes the first N frames (a block of the sequence).
---maps writes each method's per-pixel error maps of the held-out views as PNGs (measured | rendered | signed
-error: red where the mesh lies behind the reading, blue where it stands in front, black where it shows
-nothing) and prints where the error comes from (shares of the mean by signed error).
+--mlp adds the hash-grid MLP fitted from scratch (experiment redkitchen_depth, meshed where frames observed a
+surface: `neuralsurf.observations.observed`; minutes). --maps writes each method's per-pixel error maps of the
+held-out views as PNGs (measured | rendered | signed error: red where the mesh lies behind the reading, blue
+where it stands in front, black where it shows nothing) and prints where the error comes from (shares of the
+mean by signed error).
 """
 
 from __future__ import annotations
 
 import argparse
 import itertools
+import os
 import platform
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+import torch._dynamo
 from bench_bunny import CONFIGS
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
@@ -58,53 +63,57 @@ def error_breakdown(rendered: torch.Tensor, measured: torch.Tensor) -> str:
     return "; ".join(parts)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=None, help="the first N frames (default: all 100)")
-    parser.add_argument("--steps", type=int, default=None, help="fit steps (default: the experiment's)")
-    parser.add_argument("--voxel", type=float, default=None,
-                        help="observed-space voxel, metres (default: the experiment's extract.observed_voxel)")
-    parser.add_argument("--maps", type=Path, default=None, help="folder for the held-out error maps (PNG)")
-    args = parser.parse_args()
-
-    overrides = ["experiment=redkitchen_depth"] + ([f"data.max_frames={args.frames}"] if args.frames else [])
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        cfg = compose(config_name="train", overrides=overrides)
+def mlp_fit(cfg, scene):
+    """The hash-grid MLP of `cfg` (experiment redkitchen_depth) fitted to the scene's rays from scratch, meshed
+    where the frames observed a surface."""
     trainer = OmegaConf.to_container(cfg.trainer, resolve=True)
-    trainer.update(steps=args.steps or trainer["steps"], progress=False, image_every=0, mesh_every=0)
-    extract = OmegaConf.to_container(cfg.extract, resolve=True)
-    extract["observed_voxel"] = args.voxel or extract.get("observed_voxel")
-    print(f"machine: {platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, "
-          f"torch {torch.__version__}, CPU")
-    scene = instantiate(cfg.data)
-    print(scene.description)
-
+    trainer.update(progress=False, image_every=0, mesh_every=0)
     torch.manual_seed(0)
     model = instantiate(cfg.model, _convert_="all")
     observation = instantiate(cfg.observation.rays, _convert_="all")(scene)
+    result = ns.fit(model, observation, optimizer=instantiate(cfg.optimizer), device="cpu", **trainer)
+    return extract_scene_mesh(result.field, scene, OmegaConf.to_container(cfg.extract, resolve=True))
 
-    def neural():
-        result = ns.fit(model, observation, optimizer=instantiate(cfg.optimizer), device="cpu", **trainer)
-        return extract_scene_mesh(result.field, scene, extract)
 
-    print(f"neural: {trainer['steps']} steps, observed voxels {extract['observed_voxel']} m, extraction "
-          f"{extract['resolution']} cells")
-    rows = {"neural (rays)": run("neural fit + observed extraction", neural),
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=None, help="the first N frames (default: all 100)")
+    parser.add_argument("--steps", type=int, default=None, help="voxel fit steps (default: the method's)")
+    parser.add_argument("--mlp", action="store_true", help="also the MLP fitted from scratch (experiment redkitchen_depth)")
+    parser.add_argument("--maps", type=Path, default=None, help="folder for the held-out error maps (PNG)")
+    args = parser.parse_args()
+
+    frames = [f"+scene.redkitchen.max_frames={args.frames}"] if args.frames else []
+    steps = [f"method.neural_voxels.trainer.steps={args.steps}"] if args.steps else []
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        cfg = compose(config_name="evaluate", overrides=["suite=depth", "device=cpu", *frames, *steps])
+        mlp = compose(config_name="train", overrides=["experiment=redkitchen_depth"] +
+                      ([f"data.max_frames={args.frames}"] if args.frames else []))
+    print(f"machine: {platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, "
+          f"torch {torch.__version__}, CPU; load average {os.getloadavg()[0]:.1f}")
+    scene = instantiate(cfg.scene.redkitchen)
+    print(scene.description)
+    voxels = instantiate(cfg.method.neural_voxels, _partial_=True, _convert_="all")
+    method = OmegaConf.to_container(cfg.method.neural_voxels, resolve=True)
+    print(f"neural voxels: 1/{1 / method['voxel_fraction']:.0f} of the box, {method['trainer']['steps']} steps")
+    rows = {"neural (voxels)": run("voxel fusion + fit + extraction", voxels, scene),
             "TSDF": run("TSDF fusion, 1/256 voxels", tsdf, scene, device="cpu")}
+    if args.mlp:
+        rows["neural (MLP)"] = run("MLP fit + observed extraction", mlp_fit, mlp, scene)
     held = scene.held_out
-    print(f"\n{'':<14} {'wall s':>8} {'CPU s':>8} {'peak MiB':>9} {'mean cm':>8} {'median mm':>10} {'compl.':>7}")
+    print(f"\n{'':<16} {'wall s':>8} {'CPU s':>8} {'peak MiB':>9} {'mean cm':>8} {'median mm':>10} {'compl.':>7}")
     for name, (mesh, wall, cpu, memory) in rows.items():
         metrics = ns.metrics.depth_metrics(mesh, held)
-        print(f"{name:<14} {wall:8.1f} {cpu:8.1f} {memory:9.0f} {100 * metrics['depth_error_mean']:8.2f} "
+        print(f"{name:<16} {wall:8.1f} {cpu:8.1f} {memory:9.0f} {100 * metrics['depth_error_mean']:8.2f} "
               f"{1000 * metrics['depth_error_median']:10.2f} {metrics['depth_completeness']:7.3f}")
-    (_, neural_wall, neural_cpu, _), (_, tsdf_wall, tsdf_cpu, _) = rows.values()
+    (_, neural_wall, neural_cpu, _), (_, tsdf_wall, tsdf_cpu, _) = list(rows.values())[:2]
     print(f"time ratio neural / TSDF: {neural_wall / tsdf_wall:.1f}x wall, {neural_cpu / tsdf_cpu:.1f}x CPU")
     for name, (mesh, *_) in rows.items():
         rendered, _ = render_depth(mesh, held.K.cpu(), held.cam_to_world.cpu(), held.width, held.height)
         print(f"{name} held-out error by sign: {error_breakdown(rendered, held.depth.cpu())}")
         if args.maps is not None:
             args.maps.mkdir(parents=True, exist_ok=True)
-            path = args.maps / f"{name.split()[0].lower()}_held_out_error.png"
+            path = args.maps / f"{name.replace(' (', '_').rstrip(')').lower()}_held_out_error.png"
             held_out_error_image(rendered.numpy(), held.depth.cpu().numpy()).save(path)
             print(f"  error maps: {path}")
 
