@@ -414,7 +414,7 @@ def _turn_down(primitive: Primitive, degrees: float, pivot: tuple[float, float, 
     return Primitive(primitive.kind, centre, primitive.half, tuple(map(tuple, (P @ np.asarray(primitive.rotation)).tolist())))
 
 
-DISCONTINUITY_SCENES = ("step", "sphere_on_plane", "stacked_boxes", "box_on_ground")
+DISCONTINUITY_SCENES = ("step", "sphere_on_plane", "stacked_boxes", "leaning_boxes", "box_on_ground")
 """Names of `discontinuity_scene`'s views."""
 
 
@@ -426,7 +426,12 @@ def discontinuity_scene(name: str, size: int = 128, fov_deg: float = 40.0) -> tu
       face is hidden: a pure step);
     - "sphere_on_plane": a sphere in front of a tilted plane (an occluding contour with grazing normals);
     - "stacked_boxes": a box on a box on a ground plane before a wall, turned and seen from above
-      (creases; the boxes' far edges occlude what lies behind);
+      (creases; the boxes' far edges occlude what lies behind). The lower box's top is parallel to the
+      ground it occludes: scaled about the camera onto that ground (the upper box with it) and broken
+      from the box's front faces instead, it keeps every normal, so normals cannot tell which of the
+      two surfaces was seen;
+    - "leaning_boxes": the same boxes tipped 10 degrees about the camera's x axis (in opposite senses),
+      so that their tops are not parallel to the ground;
     - "box_on_ground": one turned box on a ground plane before a wall, seen obliquely.
 
     Returns:
@@ -439,10 +444,11 @@ def discontinuity_scene(name: str, size: int = 128, fov_deg: float = 40.0) -> tu
         primitives = [tilted, slab]
     elif name == "sphere_on_plane":
         primitives = [tilted, Primitive("ball", (0.15, 0.1, 2.5), (0.6, 0.0, 0.0))]
-    elif name == "stacked_boxes":
+    elif name in ("stacked_boxes", "leaning_boxes"):
+        lean = 10.0 if name == "leaning_boxes" else 0.0
         ground = Primitive("plane", (0.0, 0.6, 0.0), (0.0, -1.0, 0.0))
-        lower = Primitive("box", (0.0, 0.3, 3.0), (0.6, 0.3, 0.45), _rotation(25.0, 0.0))
-        upper = Primitive("box", (0.1, -0.15, 3.0), (0.3, 0.15, 0.3), _rotation(-20.0, 0.0))
+        lower = Primitive("box", (0.0, 0.3, 3.0), (0.6, 0.3, 0.45), _rotation(25.0, lean))
+        upper = Primitive("box", (0.1, -0.15, 3.0), (0.3, 0.15, 0.3), _rotation(-20.0, -lean))
         wall = Primitive("plane", (0.0, 0.0, 5.0), (0.1, 0.0, -1.0))
         primitives = [_turn_down(p, 25.0) for p in (ground, wall, lower, upper)]
     elif name == "box_on_ground":
