@@ -30,6 +30,7 @@ from torch import Tensor
 
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.geometry import point_to_mesh_distance
+from neuralsurf.io.meshes import vertex_normals
 from neuralsurf.structures import Mesh
 
 INSIDE_THRESHOLD = 0.5
@@ -224,21 +225,70 @@ def signed_distance(points: Tensor, mesh: Mesh, **options) -> Tensor:
     return torch.where(inside(points, mesh, **options).to(distance.device), -distance, distance)
 
 
+def _weighted_median(values: Tensor, weights: Tensor, groups: Tensor, n: int) -> Tensor:
+    """Float64[Tensor, "n"]: the weighted median of `values` (Float[Tensor, "k"], `weights` likewise)
+    within each of `n` groups (`groups`: Int[Tensor, "k"] in 0 .. n - 1); an empty group gets 1/2."""
+    order = np.lexsort((values.numpy(), groups.numpy()))  # by group, then by value
+    g, v, w = groups.numpy()[order], values.numpy()[order], weights.numpy()[order] + 1e-30
+    cumulative = np.cumsum(w)
+    before = np.concatenate([[0.0], cumulative])[np.searchsorted(g, np.arange(n))]
+    reached = cumulative - before[g] >= np.bincount(g, weights=w, minlength=n)[g] / 2
+    index = np.flatnonzero(reached)
+    present, first = np.unique(g[index], return_index=True)  # each group's first value past half its weight
+    median = np.full(n, 0.5)
+    median[present] = v[index[first]]
+    return torch.from_numpy(median)
+
+
 def boundary_faces(mesh: Mesh, offset: float = 1e-3, **options) -> Tensor:
-    """Bool[Tensor, "f"]: faces between inside and outside: the winding number is at least 1/2 on
-    exactly one side of the face's centroid, `offset` (a fraction of the longest side) along its
-    normal. Inner sheets (inside on both sides) and stray sheets (outside on both) are not; keep
-    `offset` below half the thinnest wall. Faces should face outward (`orient_outward`)."""
+    """Bool[Tensor, "f"]: faces between inside and outside; faces should face outward (`orient_outward`).
+
+    1. Open sheets inside or outside the shape go first, whole: an open patch (faces joined across
+       manifold edges, `consistent_patches`, with a border) shifts the winding number near it by up to
+       1/2 (an inner sheet just below the surface puts the layer between them at 1/2), so it would
+       spoil the test below. Each open patch is scored by the area-weighted median over its faces of
+       the winding number midway across the face (the mean of its two sides: what the rest of the mesh
+       says there, without the face's own jump of 1): about 1/2 on the surface, 1 for an inner sheet,
+       0 for a stray one. Patches scored 3/4 or more, or under 1/4, are removed and the rest scored
+       again without them, until none is.
+    2. Of the faces left, those where the winding number (of the faces left) is at least 1/2 on
+       exactly one side, `offset` (a fraction of the longest side) along the normal from the centroid:
+       faces of closed parts inside others (winding number 2 and 1) are not. Keep `offset` below half
+       the thinnest wall.
+    """
     if mesh.is_empty:
         raise InputError("boundary_faces needs a mesh with faces, got an empty mesh")
-    vertices = mesh.vertices.detach().cpu().double()
+    vertices, faces = mesh.vertices.detach().cpu().double(), mesh.faces.cpu()
+    patch, _ = consistent_patches(faces)
+    patches = int(patch.max()) + 1
+    candidate = torch.zeros(patches, dtype=torch.bool)
+    candidate[patch[_border_faces(faces)]] = True  # open patches
     extent = float((vertices.max(0).values - vertices.min(0).values).max().clamp_min(1e-12))
-    centroid = vertices[mesh.faces.cpu()].mean(1)
-    normal = Mesh(vertices, mesh.faces.cpu()).face_normals()
-    step = offset * extent * normal
-    sides = inside(torch.cat([centroid + step, centroid - step]), Mesh(vertices, mesh.faces.cpu()), **options)
-    front, back = sides.chunk(2)
-    return (front != back).to(mesh.faces.device)
+    corners = vertices[faces]
+    cross = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    step = offset * extent * torch.nn.functional.normalize(cross, dim=-1)
+    sides = torch.cat([corners.mean(1) + step, corners.mean(1) - step])  # front, back
+    wind = winding_number(sides, Mesh(vertices, faces), **options)
+    active = torch.ones(patches, dtype=torch.bool)
+    while True:
+        front, back = wind.chunk(2)
+        score = _weighted_median((front + back)[active[patch]] / 2, cross.norm(dim=-1)[active[patch]],
+                                 patch[active[patch]], patches)
+        sheet = active & candidate & ((score >= 0.75) | (score < 0.25))
+        if not sheet.any():
+            break
+        active &= ~sheet
+        # winding numbers add up over faces: take the sheets' own (exact) part out
+        wind = wind - _exact(sides, corners[sheet[patch]], 2**20)
+    return (active[patch] & ((front >= INSIDE_THRESHOLD) != (back >= INSIDE_THRESHOLD))).to(mesh.faces.device)
+
+
+def _border_faces(faces: Tensor) -> Tensor:
+    """Bool[Tensor, "f"]: faces with an edge no other face has (Int[Tensor, "f 3"] faces)."""
+    f = faces.numpy()
+    edges = np.sort(np.stack([f, np.roll(f, -1, axis=1)], -1).reshape(-1, 2), axis=1)
+    _, edge, count = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
+    return torch.from_numpy((count[edge.ravel()] == 1).reshape(-1, 3).any(1))
 
 
 # ----------------------------------------------------------------------------- orientation
@@ -374,15 +424,6 @@ def _region(vertices: Tensor, faces: Tensor, centre: Tensor, radius: float) -> T
     return ((vertices[faces] - centre).norm(dim=-1) < radius).any(1)
 
 
-def _vertex_normals(vertices: Tensor, faces: Tensor) -> Tensor:
-    a, b, c = vertices[faces].unbind(1)
-    area_normal = torch.linalg.cross(b - a, c - a)
-    normals = torch.zeros_like(vertices)
-    for k in range(3):
-        normals.index_add_(0, faces[:, k], area_normal)
-    return torch.nn.functional.normalize(normals, dim=-1)
-
-
 def damage_mesh(mesh: Mesh, *, holes: int = 3, duplicated: int = 2, inner: int = 2, flipped: float = 0.1,
                 radius: float = 0.05, inset: float = 0.01, seed: int = 0) -> DamagedMesh:
     """A clean, closed mesh damaged as CAD meshes are, for testing signs against the clean mesh.
@@ -406,7 +447,7 @@ def damage_mesh(mesh: Mesh, *, holes: int = 3, duplicated: int = 2, inner: int =
     faces = mesh.faces.cpu().clone()
     extent = float((vertices.max(0).values - vertices.min(0).values).max())
     r = radius * extent
-    normals = _vertex_normals(vertices, faces)
+    normals = torch.from_numpy(vertex_normals(vertices.numpy(), faces.numpy()))
     centres = vertices[torch.randint(len(vertices), (holes + duplicated + inner,), generator=generator)]
     keep = torch.ones(len(faces), dtype=torch.bool)
     for centre in centres[:holes]:

@@ -141,6 +141,30 @@ def test_damaged_mesh_keeps_the_clean_inside_away_from_the_damage(ring_mesh):
     assert len(query) > 200
 
 
+def test_inner_sheets_just_below_the_surface_leave_the_boundary_and_the_signs_above_them():
+    """An open sheet just inside the surface puts the winding number of the layer between them near
+    1/2; whole sheets must go before the faces between inside and outside are chosen. Oracle: the
+    clean sphere mesh's exact inside (ray parity) and distances."""
+    from neuralsurf.geometry import mesh_contains, point_to_mesh_distance
+
+    mesh = sphere(3)
+    damaged = damage_mesh(mesh, holes=0, duplicated=0, inner=6, flipped=0.0, radius=0.15, inset=0.01, seed=5)
+    n_sphere = len(mesh.faces)
+    assert len(damaged.mesh.faces) > n_sphere + 100  # the sheets, 0.02 below the surface, facing either way
+    boundary = boundary_faces(damaged.mesh)
+    assert boundary[:n_sphere].all() and not boundary[n_sphere:].any()
+    generator = torch.Generator().manual_seed(6)
+    directions = damaged.centres[torch.randint(len(damaged.centres), (1500,), generator=generator)]
+    directions = torch.nn.functional.normalize(directions + 0.1 * torch.randn(1500, 3, dtype=torch.float64,
+                                                                             generator=generator), dim=-1)
+    query = directions * (1 + 0.06 * (torch.rand(1500, 1, dtype=torch.float64, generator=generator) - 0.5))
+    surface = Mesh(damaged.mesh.vertices, damaged.mesh.faces[boundary])
+    truth = torch.where(mesh_contains(query, mesh), -1.0, 1.0).double() * point_to_mesh_distance(query, mesh)
+    assert (truth.abs() < 0.01).sum() > 300  # the layer between the sheets and the surface is sampled
+    assert torch.equal(inside(query, surface), truth < 0)
+    assert (signed_distance(query, surface) - truth).abs().max() < 1e-5
+
+
 def test_bad_input_is_named():
     mesh = sphere(1)
     with pytest.raises(InputError, match="empty mesh"):
