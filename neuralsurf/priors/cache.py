@@ -21,6 +21,7 @@ across processes or interrupted.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import zipfile
@@ -32,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from neuralsurf.errors import ConfigError, FileFormatError
 from neuralsurf.geometry import sample_mesh_surface
@@ -75,29 +77,50 @@ class CacheRecipe:
             raise ConfigError(f"CacheRecipe needs 0 <= volume_fraction <= 1, padding >= 0 and two positive "
                               f"near_sigmas and occ_near_sigma > 0, got {self}")
 
+    @property
+    def n_volume(self) -> int:
+        """SDF samples uniform in the padded cube (the rest are near the surface)."""
+        return round(self.n_sdf * self.volume_fraction)
+
+    @property
+    def n_base(self) -> int:
+        """Surface points a cache's samples start from (`sample_positions`)."""
+        return self.n_surface + self.n_sdf - self.n_volume + self.n_occ
+
+
+def sample_positions(surface: Tensor, recipe: CacheRecipe, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
+    """Where a cache's samples lie, from Float64[Tensor, "n_base 3"] surface points (`recipe.n_base`:
+    the first `n_surface` are the surface samples themselves, the next feed the near-surface SDF
+    samples, the last `n_occ` the near-surface occupancy samples).
+
+    Returns:
+        sdf points Float64[Tensor, "n_sdf 3"] (near the surface at both `near_sigmas`, then uniform),
+        uniform occupancy points and near-surface occupancy points, Float64[Tensor, "n_occ 3"] each.
+    """
+    n_near = recipe.n_sdf - recipe.n_volume
+    half = 0.5 + recipe.padding
+
+    def uniform(n: int) -> Tensor:
+        return (2 * torch.rand(n, 3, dtype=torch.float64, generator=generator) - 1) * half
+
+    sigmas = torch.tensor(recipe.near_sigmas, dtype=torch.float64)[torch.arange(n_near) % 2]
+    near = surface[recipe.n_surface:recipe.n_surface + n_near]
+    near = near + sigmas[:, None] * torch.randn(n_near, 3, dtype=torch.float64, generator=generator)
+    sdf_points = torch.cat([near, uniform(recipe.n_volume)])
+    occ_near = surface[recipe.n_surface + n_near:recipe.n_base]
+    occ_near = occ_near + recipe.occ_near_sigma * torch.randn(len(occ_near), 3, dtype=torch.float64,
+                                                              generator=generator)
+    return sdf_points, uniform(recipe.n_occ), occ_near
+
 
 def shape_samples(shape: Shape, recipe: CacheRecipe) -> dict[str, np.ndarray]:
     """Every array of a shape's cache (see the module docstring), from the shape's own seed."""
     mesh = shape.mesh(recipe.mesh_resolution, recipe.padding)
     check_shape(shape, mesh)
     generator = torch.Generator().manual_seed(shape.record.seed % (2**63))
-    n_volume = round(recipe.n_sdf * recipe.volume_fraction)
-    n_near = recipe.n_sdf - n_volume
-    n_base = recipe.n_surface + n_near + recipe.n_occ
-    base, _ = sample_mesh_surface(Mesh(mesh.vertices.double(), mesh.faces), n_base, generator)
+    base, _ = sample_mesh_surface(Mesh(mesh.vertices.double(), mesh.faces), recipe.n_base, generator)
     surface, normals = shape.project(base)
-    half = 0.5 + recipe.padding
-
-    def uniform(n: int):
-        return (2 * torch.rand(n, 3, dtype=torch.float64, generator=generator) - 1) * half
-
-    near_base = surface[recipe.n_surface : recipe.n_surface + n_near]
-    sigmas = torch.tensor(recipe.near_sigmas, dtype=torch.float64)[torch.arange(n_near) % 2]
-    near = near_base + sigmas[:, None] * torch.randn(n_near, 3, dtype=torch.float64, generator=generator)
-    sdf_points = torch.cat([near, uniform(n_volume)])
-    occ_near = surface[recipe.n_surface + n_near :] + recipe.occ_near_sigma * torch.randn(
-        recipe.n_occ, 3, dtype=torch.float64, generator=generator)
-    occ_uniform = uniform(recipe.n_occ)
+    sdf_points, occ_uniform, occ_near = sample_positions(surface, recipe, generator)
     record = json.dumps({"record": asdict(shape.record), "recipe": asdict(recipe)}, sort_keys=True)
     return {
         "sdf_points": sdf_points.float().numpy(),
@@ -166,10 +189,39 @@ def build_shape(record: ShapeRecord, out: str | Path, recipe: CacheRecipe) -> st
     return "built"
 
 
-def _build_in_worker(args) -> tuple[str, str]:
+def _build_job(args) -> tuple[str, str]:
     record, out, recipe = args
-    torch.set_num_threads(1)
     return record.name, build_shape(record, out, recipe)
+
+
+def _one_thread() -> None:
+    torch.set_num_threads(1)
+
+
+def run_jobs(work: Callable[[tuple], tuple[str, str]], jobs: Sequence[tuple], workers: int, progress: bool,
+             counts: dict[str, int] | None = None, on_done: Callable[[str, str], None] | None = None) -> dict[str, int]:
+    """Run `work(job) -> (name, status)` on every job, in `workers` spawned processes of one torch
+    thread each (0: in this one), with a progress bar; `work` must be a module-level function.
+    Returns `counts` (shapes per status, e.g. {"built": ..., "cached": ...}) with these jobs added."""
+    from tqdm.auto import tqdm
+
+    counts = dict(counts or {})
+    done = sum(counts.values())
+    bar = tqdm(total=done + len(jobs), initial=done, desc="shapes", disable=not progress, dynamic_ncols=True)
+    with contextlib.ExitStack() as stack:
+        stack.callback(bar.close)
+        if workers > 0 and jobs:
+            pool = stack.enter_context(ProcessPoolExecutor(workers, mp_context=get_context("spawn"),
+                                                           initializer=_one_thread))
+            results = pool.map(work, jobs)
+        else:
+            results = map(work, jobs)
+        for name, status in results:
+            counts[status] = counts.get(status, 0) + 1
+            bar.update(1)
+            if on_done:
+                on_done(name, status)
+    return counts
 
 
 def write_manifest(out: Path, records: Sequence[ShapeRecord], recipe: CacheRecipe) -> Path:
@@ -208,29 +260,7 @@ def build_collection(out: str | Path, records: Sequence[ShapeRecord], recipe: Ca
 def _build_collection(out: Path, records: Sequence[ShapeRecord], recipe: CacheRecipe, workers: int,
                       progress: bool, on_done: Callable[[str, str], None] | None) -> dict[str, int]:
     """`build_collection` without its lock."""
-    from tqdm.auto import tqdm
-
     write_manifest(out, records, recipe)
-    cached = [record for record in records if is_cached(record, out, recipe)]
-    counts = {"built": 0, "cached": len(cached)}
-    bar = tqdm(total=len(records), initial=len(cached), desc="shapes", disable=not progress, dynamic_ncols=True)
-    done = {record.name for record in cached}
-    jobs = [(record, str(out), recipe) for record in records if record.name not in done]
-    try:
-        if workers and workers > 0 and jobs:
-            with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-                for name, status in pool.map(_build_in_worker, jobs):
-                    counts[status] += 1
-                    bar.update(1)
-                    if on_done:
-                        on_done(name, status)
-        else:
-            for record, _, _ in jobs:
-                status = build_shape(record, out, recipe)
-                counts[status] += 1
-                bar.update(1)
-                if on_done:
-                    on_done(record.name, status)
-    finally:
-        bar.close()
-    return counts
+    cached = {record.name for record in records if is_cached(record, out, recipe)}
+    jobs = [(record, str(out), recipe) for record in records if record.name not in cached]
+    return run_jobs(_build_job, jobs, workers or 0, progress, {"built": 0, "cached": len(cached)}, on_done)

@@ -27,10 +27,8 @@ import json
 import math
 import random
 import warnings
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from functools import cached_property
-from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -39,7 +37,7 @@ from torch import Tensor
 
 from neuralsurf.data import cache_dir
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.geometry import knn, sample_mesh_surface
+from neuralsurf.geometry import knn, point_to_mesh_distance, sample_mesh_surface
 from neuralsurf.io.meshes import read_mesh
 from neuralsurf.io.npz import write_npz
 from neuralsurf.io.shape_folders import (
@@ -51,36 +49,20 @@ from neuralsurf.io.shape_folders import (
     read_occupancy_shape,
 )
 from neuralsurf.locks import file_lock
-from neuralsurf.priors.cache import CacheRecipe, _cached_recipe, cache_path, load_cache
+from neuralsurf.priors.cache import (
+    CacheRecipe,
+    _cached_recipe,
+    cache_path,
+    load_cache,
+    run_jobs,
+    sample_positions,
+)
 from neuralsurf.priors.collection import TestShape
 from neuralsurf.priors.procedural import ShapeRecord
 from neuralsurf.structures import Mesh, Normalization
-from neuralsurf.winding import boundary_faces, inside, orient_outward, signed_distance
+from neuralsurf.winding import boundary_faces, inside, orient_outward
 
 # ----------------------------------------------------------------------------- samples of one shape
-
-
-def _near_and_uniform(surface: Tensor, recipe: CacheRecipe, generator: torch.Generator):
-    """The sample positions of a cache from Float64[Tensor, "n_surface + n_near + n_occ 3"] surface points:
-    (sdf points, occupancy points uniform, occupancy points near the surface)."""
-    n_volume = round(recipe.n_sdf * recipe.volume_fraction)
-    n_near = recipe.n_sdf - n_volume
-    half = 0.5 + recipe.padding
-
-    def uniform(n: int) -> Tensor:
-        return (2 * torch.rand(n, 3, dtype=torch.float64, generator=generator) - 1) * half
-
-    sigmas = torch.tensor(recipe.near_sigmas, dtype=torch.float64)[torch.arange(n_near) % 2]
-    near = surface[recipe.n_surface:recipe.n_surface + n_near]
-    near = near + sigmas[:, None] * torch.randn(n_near, 3, dtype=torch.float64, generator=generator)
-    occ_near = surface[recipe.n_surface + n_near:]
-    occ_near = occ_near + recipe.occ_near_sigma * torch.randn(len(occ_near), 3, dtype=torch.float64,
-                                                              generator=generator)
-    return torch.cat([near, uniform(n_volume)]), uniform(recipe.n_occ), occ_near
-
-
-def _n_base(recipe: CacheRecipe) -> int:
-    return recipe.n_surface + recipe.n_sdf - round(recipe.n_sdf * recipe.volume_fraction) + recipe.n_occ
 
 
 def mesh_samples(mesh: Mesh, recipe: CacheRecipe, seed: int = 0) -> dict[str, np.ndarray]:
@@ -97,16 +79,19 @@ def mesh_samples(mesh: Mesh, recipe: CacheRecipe, seed: int = 0) -> dict[str, np
     used, faces = torch.unique(mesh.faces[keep], return_inverse=True)
     surface_mesh = Mesh(mesh.vertices[used], faces.reshape(-1, 3))
     generator = torch.Generator().manual_seed(seed)
-    surface, normals = sample_mesh_surface(surface_mesh, _n_base(recipe), generator)
-    sdf_points, occ_uniform, occ_near = _near_and_uniform(surface, recipe, generator)
-    sdf = signed_distance(sdf_points, surface_mesh)
+    surface, normals = sample_mesh_surface(surface_mesh, recipe.n_base, generator)
+    sdf_points, occ_uniform, occ_near = sample_positions(surface, recipe, generator)
+    points = torch.cat([sdf_points, occ_uniform, occ_near])
+    sdf_inside, uniform_inside, near_inside = inside(points, surface_mesh).split(
+        [len(sdf_points), len(occ_uniform), len(occ_near)])
+    distance = point_to_mesh_distance(sdf_points, surface_mesh)
     return {
         "sdf_points": sdf_points.float().numpy(),
-        "sdf_values": sdf.float().numpy(),
+        "sdf_values": torch.where(sdf_inside, -distance, distance).float().numpy(),
         "occ_uniform_points": occ_uniform.float().numpy(),
-        "occ_uniform_inside": inside(occ_uniform, surface_mesh).numpy(),
+        "occ_uniform_inside": uniform_inside.numpy(),
         "occ_near_points": occ_near.float().numpy(),
-        "occ_near_inside": inside(occ_near, surface_mesh).numpy(),
+        "occ_near_inside": near_inside.numpy(),
         "surface_points": surface[: recipe.n_surface].float().numpy(),
         "surface_normals": normals[: recipe.n_surface].float().numpy(),
         "mesh_vertices": surface_mesh.vertices.float().numpy(),
@@ -123,9 +108,9 @@ def occupancy_samples(shape: OccupancyShape, recipe: CacheRecipe, seed: int = 0)
         raise InputError("Occupancy Networks' pointcloud.npz has no normals: near-surface signs need them")
     generator = torch.Generator().manual_seed(seed)
     cloud, cloud_normals = shape.surface.double(), shape.normals.double()
-    pick = torch.randint(len(cloud), (_n_base(recipe),), generator=generator)
-    sdf_points, _, occ_near = _near_and_uniform(cloud[pick], recipe, generator)
-    n_volume = round(recipe.n_sdf * recipe.volume_fraction)
+    pick = torch.randint(len(cloud), (recipe.n_base,), generator=generator)
+    sdf_points, _, occ_near = sample_positions(cloud[pick], recipe, generator)
+    n_volume = recipe.n_volume
     order = torch.randperm(len(shape.points), generator=generator)
     uniform, uniform_inside = shape.points.double()[order], shape.occupancies[order]
     near = sdf_points[: recipe.n_sdf - n_volume]
@@ -259,11 +244,7 @@ def _shape_cache(entry: ShapeEntry, record: ShapeRecord, out: str, recipe: Cache
     return record.name, "built"
 
 
-def _worker_init() -> None:
-    torch.set_num_threads(1)
-
-
-def _build_one(args) -> tuple[str, str]:
+def _build_job(args) -> tuple[str, str]:
     return _shape_cache(*args)
 
 
@@ -379,24 +360,10 @@ class FolderCollection:
     def build(self, progress: bool = True) -> Path:
         """Write every missing cache (resumable) and `collection.json` with the training shapes' frame
         statistics; returns the folder. Processes building one folder together take turns."""
-        from tqdm.auto import tqdm
-
         out = self.folder
         with file_lock(out / ".build.lock"):
             jobs = [(e, r, str(out), self.recipe, self.normalize, self.layout, self.seed) for r, e in self._entries]
-            bar = tqdm(total=len(jobs), desc="shapes", disable=not progress, dynamic_ncols=True)
-            try:
-                if self.workers > 0:
-                    with ProcessPoolExecutor(self.workers, mp_context=get_context("spawn"),
-                                             initializer=_worker_init) as pool:
-                        for _ in pool.map(_build_one, jobs):
-                            bar.update(1)
-                else:
-                    for job in jobs:
-                        _build_one(job)
-                        bar.update(1)
-            finally:
-                bar.close()
+            run_jobs(_build_job, jobs, self.workers, progress)
             self._write_manifest(out)
         return out
 
