@@ -102,3 +102,52 @@ def test_a_fused_plane_is_meshed_on_the_plane_and_its_fit_keeps_it_there():
                  progress=False, image_every=0)
     refitted = voxel_mesh(result.model, normalization)
     assert (refitted.vertices[:, 2] - PLANE_Z).abs().max() < 2e-3 and len(refitted.faces) >= 0.9 * len(mesh.faces)
+
+
+SHIFT = Normalization(torch.tensor([0.0, 0.0, 1.5], dtype=torch.float64), 1.0)
+"""The unit frame of the analytic grids: the world shifted by 1.5 along z, so the scenes lie in the unit box."""
+
+
+def grid_of(sdf, lo, hi, voxel):
+    """A VoxelSDF (unit frame: SHIFT) of the analytic world `sdf` (points [..., 3] -> [...]) sampled on the grid
+    over the world box lo..hi, observed within 0.1 of its surface."""
+    axes = [torch.arange(a, b + 1e-9, voxel) for a, b in zip(lo, hi)]
+    points = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1)
+    values = sdf(points)
+    return VoxelSDF.from_grid(values, values.abs() < 0.1, [lo[0], lo[1], lo[2] - 1.5], voxel, 0.1)
+
+
+def fitted(model, observation, steps, lr):
+    return fit(model, observation, steps=steps, normalization=SHIFT, optimizer=functools.partial(torch.optim.Adam, lr=lr),
+               encoding_lr=None, device="cpu", progress=False, image_every=0).model
+
+
+@pytest.mark.filterwarnings("ignore:after 60 steps the field has one sign")  # the box is mostly free space
+def test_the_fit_moves_a_misplaced_plane_onto_the_readings():
+    model = grid_of(lambda p: PLANE_Z + 0.015 - p[..., 2], (-0.6, -0.5, 1.8), (0.6, 0.5, 2.2), 0.02)  # 1.5 cm behind
+    frames = plane_frames()
+    model = fitted(model, EdgeRays(frames, pixel_stride=2, n_rays=512, n_edge=0, weights={"surface": 1.0, "band": 1.0}),
+                   60, 1e-3)
+    z = voxel_mesh(model, SHIFT).vertices[:, 2]
+    central = z[(z - PLANE_Z).abs() < 0.05]
+    assert (central - PLANE_Z).abs().median() < 3e-3 and len(central) > 0.9 * len(z)
+
+
+def test_the_edge_term_trims_a_fattened_silhouette():
+    """One camera sees a card at depth 1 (pixels 20-39 across: x in [-0.2, 0.133] there) in front of a wall at
+    depth 2; the field's card is 3 cm too wide. The rays beside the card's image pass through that margin."""
+    frames = plane_frames(xs=(0.0,))
+    frames.depth[:, 20:30, 20:40] = 1.0
+    low, high = torch.tensor([-0.2 - 0.03, -1 / 15 - 0.03, 1.0]), torch.tensor([0.4 / 3 + 0.03, 0.1 + 0.03, 1.02])
+
+    def card_and_wall(p):
+        outside = torch.maximum(low - p, p - high)
+        card = outside.clamp_min(0).norm(dim=-1) + outside.amax(-1).clamp_max(0)
+        return torch.minimum(card, PLANE_Z - p[..., 2])
+
+    model = grid_of(card_and_wall, (-0.5, -0.4, 0.8), (0.5, 0.4, 2.2), 0.01)
+    before = voxel_mesh(model, SHIFT).vertices
+    observation = EdgeRays(frames, pixel_stride=1, window=3, spread=0.03, n_edge=4096, weights={"edge": 1.0})
+    after = voxel_mesh(fitted(model, observation, 60, 2e-3), SHIFT).vertices
+    width = lambda v: float(v[v[:, 2] < 1.5, 0].max())  # the card's right edge
+    assert width(before) > 0.4 / 3 + 0.025 and width(after) < 0.4 / 3 + 0.012
