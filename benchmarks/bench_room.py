@@ -1,7 +1,8 @@
 """A real room from depth frames: the neural voxel fit (`suite=depth`'s neural_voxels: TSDF fusion at half the
 tsdf method's voxel as the start of a sparse voxel SDF, refined by `fit` on the rays and meshed on its observed
 voxels) against TSDF fusion of the same frames (the tsdf method), in one run: time, peak memory, held-out depth
-error (mean, median) and completeness, side by side.
+error (mean, median) and completeness, side by side. "TSDF fine" is TSDF fusion at the voxel fit's own voxel
+(what the fit starts from): the fit's own part is the difference between it and the neural row.
 
     python benchmarks/bench_room.py [--frames 50] [--steps N] [--mlp] [--maps DIR]
 
@@ -98,6 +99,9 @@ def main() -> None:
     print(f"neural voxels: 1/{1 / method['voxel_fraction']:.0f} of the box, {method['trainer']['steps']} steps")
     rows = {"neural (voxels)": run("voxel fusion + fit + extraction", voxels, scene),
             "TSDF": run("TSDF fusion, 1/256 voxels", tsdf, scene, device="cpu")}
+    fine = {"voxel_fraction": method["voxel_fraction"], "margin_fraction": method["margin_fraction"]}
+    rows["TSDF fine"] = run(f"TSDF fusion, the voxels' start (1/{1 / fine['voxel_fraction']:.0f})", tsdf, scene,
+                            device="cpu", **fine)
     if args.mlp:
         rows["neural (MLP)"] = run("MLP fit + observed extraction", mlp_fit, mlp, scene)
     held = scene.held_out
