@@ -236,3 +236,25 @@ def test_suite_priors_folder_sets_one_collection_for_scenes_and_priors(tmp_path)
     assert all(isinstance(c, FolderCollection) for c in collections)
     assert len({c.folder for c in collections}) == 1 and collections[0].source == str(tmp_path)
     assert collections[0].n_train == 5 and list(cfg.scenes) == ["shapes_cloud", "shapes_one_view"]
+
+
+@pytest.mark.parametrize("experiment", ["shapes_deepsdf_tiny", "shapes_onet_tiny"])
+def test_tiny_experiments_take_a_shape_folder_with_their_sizes(tmp_path, experiment):
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    from neuralsurf.priors import ShapeCollection
+    from neuralsurf.priors.folders import FolderCollection
+
+    configs = Path(__file__).resolve().parents[1] / "configs"
+    with initialize_config_dir(config_dir=str(configs), version_base="1.3"):
+        procedural = compose(config_name="train", overrides=[f"experiment={experiment}"])
+        folder = compose(config_name="train", overrides=[f"experiment={experiment}", "data=shape_folder",
+                                                         f"data.source={tmp_path}"])
+    shapes = instantiate(procedural.data)
+    assert isinstance(shapes, ShapeCollection) and shapes.mesh_resolution == 64 and shapes.n_train == 2
+    collection = instantiate(folder.data)  # no mesh_resolution: its meshes come from the files
+    assert isinstance(collection, FolderCollection) and collection.source == str(tmp_path)
+    assert (collection.n_train, collection.n_test, collection.n_sdf) == (2, 1, procedural.data.n_sdf)
