@@ -79,6 +79,10 @@ _FRAMES_PER_SEARCH = 5
 its many small ops on one frame's image tiles hold Python's lock long enough that two threads gain
 little side by side (50 7-Scenes frames at 1 cm, 2 threads: 0.17-0.19 s a frame at a time, 0.12 s five
 at a time; 0.21 s on one thread)."""
+_FUSION_WORKERS = 4
+"""Eager fusion's worker threads by default, at most: its many short ops hold Python's lock, so more
+threads wait on each other (50 7-Scenes frames at 1 cm, a 16-core Xeon: 35, 26, 17, 24 and 36 ms a frame
+on 1, 2, 4, 8 and 16 threads; extraction kept gaining up to 8)."""
 _MESH_BLOCKS = 4096
 """Blocks meshed per marching-cubes call (about 25 bytes per voxel: 50 MB for blocks of 8^3)."""
 _BYTES_PER_VOXEL = {False: 8, True: 20}
@@ -196,10 +200,10 @@ class TSDFVolume:
             CPU and 32 on a GPU, where per-pass costs dominate.
         threads: CPU threads of `integrate` and `extract_mesh`. Eager fusion: worker threads that fuse
             shares of the blocks side by side, each torch op on one thread (torch's setting restored
-            afterwards); "auto" or None: as many as torch's threads. Compiled fusion: torch's threads
-            ("auto" or None: torch's setting; compiled loops keep the thread count of the process's
-            first compiled fusion). Extraction: worker threads that mesh groups of blocks side by side,
-            as many as eager fusion's.
+            afterwards); "auto" or None: as many as torch's threads, at most _FUSION_WORKERS.
+            Compiled fusion: torch's threads ("auto" or None: torch's setting; compiled loops keep the
+            thread count of the process's first compiled fusion). Extraction: worker threads that mesh
+            groups of blocks side by side; "auto" or None: as many as torch's threads.
         compiled: on a CPU, compile the fusion with torch.compile (see the module docstring; needs a
             C++ compiler, else a warning and eager fusion); None: for `integrate` calls of at least
             _COMPILE_PIXELS depth pixels, where compilation pays for itself. No effect on a GPU.
@@ -349,9 +353,12 @@ class TSDFVolume:
         self._keys, self._slots = keys, torch.cat([self._slots, slots])[order]
         return slots
 
-    def _workers(self) -> int:
-        """Worker threads on a CPU: `threads`, or torch's intra-op thread count when None or "auto"."""
-        return torch.get_num_threads() if self.threads in (None, "auto") else self.threads
+    def _workers(self, most: int | None = None) -> int:
+        """Worker threads on a CPU: `threads`, or torch's intra-op thread count (at most `most`) when None
+        or "auto"."""
+        if self.threads in (None, "auto"):
+            return min(torch.get_num_threads(), most or torch.get_num_threads())
+        return self.threads
 
     def _block_coords(self, keys: Tensor) -> Tensor:
         """Int64[Tensor, "b"] linear block keys -> Int64[Tensor, "b 3"] block coordinates."""
@@ -382,7 +389,7 @@ class TSDFVolume:
         compiled = cpu and (depth.numel() >= _COMPILE_PIXELS if self.compiled is None else self.compiled)
         workers = 1
         if cpu and not compiled:  # eager: chunks on `workers` threads, each torch op on one
-            workers = self._workers()
+            workers = self._workers(_FUSION_WORKERS)
             threads = 1
         else:
             threads = None if self.threads == "auto" else self.threads
