@@ -1,4 +1,4 @@
-"""A real room from depth frames: the neural voxel fit (`suite=depth`'s neural_voxels: TSDF fusion at half the
+"""A real room from depth frames: the neural voxel fit (method neural_voxels: TSDF fusion at half the
 tsdf method's voxel as the start of a sparse voxel SDF, refined by `fit` on the rays and meshed on its observed
 voxels) against TSDF fusion of the same frames (the tsdf method), in one run: time, peak memory, held-out depth
 error (mean, median) and completeness, side by side. "TSDF fine" is TSDF fusion at the voxel fit's own voxel
