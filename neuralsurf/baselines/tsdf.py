@@ -53,7 +53,6 @@ from neuralsurf.baselines.tsdf_voxels import (
     grid_to_pixel,
     pad_image,
     pixel_weights,
-    voxel_projection,
 )
 from neuralsurf.devices import resolve_device
 from neuralsurf.errors import ConfigError, ExtractionError, InputError
@@ -462,9 +461,7 @@ class TSDFVolume:
         "b"]; `compiled`: through `_COMPILED` (CPU)."""
         origin = torch.as_tensor(self.origin, dtype=torch.float64)
         projection = grid_to_pixel(K, cam_to_world, origin, self.voxel_size).to(self.device)
-        linear, shift, offset = voxel_projection(projection, self._local)
         n_frames, voxels, total = len(depth), self.block_size**3, int(self.block_counts.prod())
-        origins = (self._block_coords(keys) * self.block_size).to(depth.dtype)
         padded = pad_image(depth)
         weights = None if self.weighting == "constant" else pad_image(pixel_weights(depth, self.weighting))
         weights = None if weights is None else weights.reshape(-1)
@@ -476,15 +473,14 @@ class TSDFVolume:
         per_chunk = max(1, chunk_observations // (voxels * n_frames))
         for start in range(0, len(keys), per_chunk):
             chunk, chunk_slots = keys[start : start + per_chunk], slots[start : start + per_chunk]
-            chunk_origins = origins[start : start + per_chunk]
             frame_mask = None
             if frame_keys is not None:  # a frame updates only the blocks its own band touches
                 tagged = chunk + total * torch.arange(n_frames, device=self.device)[:, None]  # (f, m)
                 where = torch.searchsorted(frame_keys, tagged).clamp_max(len(frame_keys) - 1)
                 frame_mask = (frame_keys[where] == tagged).to(depth.dtype)
             fuse(
-                self._tsdf, self._weight, self._color, chunk_slots, chunk_origins, linear, shift, offset, padded,
-                limits, frame_mask, weights, colors,
+                self._tsdf, self._weight, self._color, chunk_slots, self._block_coords(chunk) * self.block_size,
+                self._local, projection, padded, limits, frame_mask, weights, colors,
             )
 
     # ------------------------------------------------------------------------------ save / load

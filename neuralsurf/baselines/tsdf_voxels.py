@@ -64,45 +64,35 @@ def pad_image(image: Tensor) -> Tensor:
     return torch.nn.functional.pad(image, border)
 
 
-def voxel_projection(projection: Tensor, local: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """The per-frame parts of `observe_blocks`' projection.
-
-    Args: projection Float[Tensor, "f 3 4"] (`grid_to_pixel`); local Float[Tensor, "v 3"] voxel offsets
-    inside a block. Returns linear Float[Tensor, "f 3 3"] and shift Float[Tensor, "f 3"] with
-    grid index @ linear + shift = (z (u + 1.5), z (v + 1.5), z), so that floor(u + 1.5) is the nearest
-    pixel's column in the padded image (`pad_image`), and offset Float[Tensor, "f 3 v"] = (local @
-    linear) transposed, the voxels' share of it.
-    """
-    shifted = projection.clone()
-    shifted[:, :2] += 1.5 * shifted[:, 2:]
-    linear = shifted[:, :, :3].transpose(1, 2)
-    return linear, shifted[:, :, 3], (local @ linear).transpose(1, 2)
-
-
 def observe_blocks(
-    origins: Tensor, linear: Tensor, shift: Tensor, offset: Tensor, padded: Tensor, truncation: Tensor
+    blocks: Tensor, local: Tensor, projection: Tensor, padded: Tensor, truncation: Tensor
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Projective signed distances of the voxels of some blocks, as each of some depth images sees them.
 
     Args:
-        origins: Float[Tensor, "m 3"] grid index of each block's first voxel.
-        linear, shift, offset: the frames' projection (`voxel_projection`).
+        blocks: Int64[Tensor, "m 3"] grid index of each block's first voxel.
+        local: Float[Tensor, "v 3"] voxel offsets inside a block (v = block_size^3).
+        projection: Float[Tensor, "f 3 4"] per frame, grid index (homogeneous) -> (z u, z v, z) with
+            (u, v) pixel coordinates (K [R | t] composed with the grid's voxel size and origin).
         padded: Float[Tensor, "f h+2 w+2"] z-depth (0 = invalid) with a border of zeros (`pad_image`).
         truncation: Float[Tensor, ""] metres.
     Returns, over the voxels (f, m, v):
         seen Float[Tensor, "f m v"]: 1 where the voxel is in front of the camera and projects (nearest
         pixel) onto a valid depth d with d - z >= -truncation (any distance in front: free space
-        too), else 0; sdf Float[Tensor, "f m v"] = min(d - z, truncation); pixel Int[Tensor,
+        too), else 0; sdf Float[Tensor, "f m v"] = min(d - z, truncation); pixel Int64[Tensor,
         "f m v"] index into the padded images flattened together (frame-major).
     """
     frames, rows, cols = padded.shape
-    base = torch.matmul(origins, linear).add_(shift[:, None])  # (f, m, 3)
-    point = base.transpose(1, 2)[..., None] + offset[:, :, None]  # (f, 3, m, v): z (u + 1.5), z (v + 1.5), z
-    z = point[:, 2]
+    shifted = projection.clone()
+    shifted[:, :2] += 1.5 * shifted[:, 2:]  # (z (u + 1.5), z (v + 1.5), z): floor(u + 1.5) = padded column
+    linear = shifted[:, :, :3].transpose(1, 2)  # (f, 3, 3)
+    base = (blocks.to(linear.dtype) @ linear + shifted[:, None, :, 3])[..., None]  # (f, m, 3, 1)
+    offset = (local @ linear).transpose(1, 2)[:, None]  # (f, 1, 3, v)
+    z = base[:, :, 2] + offset[:, :, 2]  # (f, m, v)
     # voxels at or behind the camera plane get huge coordinates, clamped into the zero border (invalid depth)
     inverse = z.clamp_min(1e-30).reciprocal_()
-    column = point[:, 0].mul_(inverse).clamp_(0, cols - 1).floor_()
-    row = point[:, 1].mul_(inverse).clamp_(0, rows - 1).floor_()
+    column = (base[:, :, 0] + offset[:, :, 0]).mul_(inverse).clamp_(0, cols - 1).floor_()
+    row = (base[:, :, 1] + offset[:, :, 1]).mul_(inverse).clamp_(0, rows - 1).floor_()
     if rows * cols * frames < 2**24:  # whole numbers stay exact in float32
         if frames > 1:
             row += (torch.arange(frames, device=z.device) * rows)[:, None, None]
@@ -124,10 +114,9 @@ def fuse_blocks(
     weight: Tensor,
     color: Tensor | None,
     slots: Tensor,
-    origins: Tensor,
-    linear: Tensor,
-    shift: Tensor,
-    offset: Tensor,
+    blocks: Tensor,
+    local: Tensor,
+    projection: Tensor,
     padded: Tensor,
     limits: Tensor,
     frame_mask: Tensor | None,
@@ -140,14 +129,14 @@ def fuse_blocks(
 
     Args:
         tsdf, weight: Float[Tensor, "s v"] the volume's values; color: Float[Tensor, "s v 3"] | None.
-        slots: Int64[Tensor, "m"] the blocks' distinct slots in them; origins, linear, shift, offset,
-            padded: as `observe_blocks`.
+        slots: Int64[Tensor, "m"] the blocks' distinct slots in them; blocks, local, projection, padded:
+            as `observe_blocks`.
         limits: Float[Tensor, "2"] truncation (metres) and the weight cap (inf: none).
         frame_mask: Float[Tensor, "f m"] 1 where a frame's band touches a block (None: all do).
         weights: Float[Tensor, "p"] per-pixel weights of the padded images, flattened (None = 1);
         colors: Float[Tensor, "p 3"] | None their colours.
     """
-    seen, sdf, pixel = observe_blocks(origins, linear, shift, offset, padded, limits[0])
+    seen, sdf, pixel = observe_blocks(blocks, local, projection, padded, limits[0])
     if frame_mask is not None:
         seen = seen * frame_mask[..., None]
     average, total = tsdf.index_select(0, slots), weight.index_select(0, slots)
@@ -166,5 +155,4 @@ def fuse_blocks(
         color.index_copy_(0, slots, average_color)
 
 
-__all__ = ["camera_to_grid", "fuse_blocks", "grid_to_pixel", "observe_blocks", "pad_image", "pixel_weights", "voxel_projection",
-           "world_to_camera"]
+__all__ = ["camera_to_grid", "fuse_blocks", "grid_to_pixel", "observe_blocks", "pad_image", "pixel_weights", "world_to_camera"]
