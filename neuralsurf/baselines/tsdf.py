@@ -422,14 +422,16 @@ class TSDFVolume:
             self._allocate(torch.unique(torch.cat([keys[slot < 0] for (keys, _), slot in zip(blocks, slots)])))
             slots = [self._slots_of(keys) for keys, _ in blocks]
         shares = 1 if pool is None else pool._max_workers
+        origin = torch.as_tensor(self.origin, dtype=torch.float64)
+        projections = grid_to_pixel(K, cam_to_world, origin, self.voxel_size).to(self.device)
 
         def fuse_share(share: int) -> None:
             for part, (keys, frame_keys), slot in zip(passes, blocks, slots):
                 if shares > 1:
                     mine = slot % shares == share
                     keys, slot = keys[mine], slot[mine]
-                self._integrate_frames(depth[part], K[part], cam_to_world[part],
-                                       None if colors is None else colors[part], compiled, keys, frame_keys, slot)
+                self._integrate_frames(depth[part], projections[part], None if colors is None else colors[part],
+                                       compiled, keys, frame_keys, slot)
                 if share == 0:
                     bar.update(len(depth[part]))
 
@@ -452,15 +454,13 @@ class TSDFVolume:
         )
 
     def _integrate_frames(
-        self, depth: Tensor, K: Tensor, cam_to_world: Tensor, colors: Tensor | None, compiled: bool,
+        self, depth: Tensor, projection: Tensor, colors: Tensor | None, compiled: bool,
         keys: Tensor, frame_keys: Tensor | None, slots: Tensor,
     ) -> None:
-        """Fuse depth images Float[Tensor, "f h w"] seen by K Float[Tensor, "f 3 3"] at cam_to_world
-        Float[Tensor, "f 4 4"] (both on the CPU), colours Float[Tensor, "f h w 3"] | None, in order, into
-        some of their candidate blocks (`_candidates`): keys Int64[Tensor, "b"] at slots Int64[Tensor,
-        "b"]; `compiled`: through `_COMPILED` (CPU)."""
-        origin = torch.as_tensor(self.origin, dtype=torch.float64)
-        projection = grid_to_pixel(K, cam_to_world, origin, self.voxel_size).to(self.device)
+        """Fuse depth images Float[Tensor, "f h w"] seen through projection Float[Tensor, "f 3 4"]
+        (`grid_to_pixel`), colours Float[Tensor, "f h w 3"] | None, in order, into some of their candidate
+        blocks (`_candidates`): keys Int64[Tensor, "b"] at slots Int64[Tensor, "b"]; `compiled`: through
+        `_COMPILED` (CPU)."""
         n_frames, voxels, total = len(depth), self.block_size**3, int(self.block_counts.prod())
         padded = pad_image(depth)
         weights = None if self.weighting == "constant" else pad_image(pixel_weights(depth, self.weighting))
