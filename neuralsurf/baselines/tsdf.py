@@ -387,23 +387,24 @@ class TSDFVolume:
         cpu = self.device.type == "cpu"
         compiled = cpu and (depth.numel() >= _COMPILE_PIXELS if self.compiled is None else self.compiled)
         workers = 1
-        if cpu and not compiled:  # eager: chunks on `workers` threads, each torch op on one
+        if cpu and not compiled:  # eager: shares of the blocks on `workers` threads, each torch op on one
             workers = self._workers(_FUSION_WORKERS)
             threads = 1
         else:
             threads = None if self.threads == "auto" else self.threads
         with torch_threads(threads if cpu else None), ThreadPoolExecutor(workers) as pool:
-            self._integrate_all(frames, depth, colors, bar, compiled, pool if workers > 1 else None)
+            self._integrate_all(frames, depth, colors, bar, compiled, pool if workers > 1 else None, workers)
         bar.close()
         return self
 
     def _integrate_all(
-        self, frames: DepthFrames, depth: Tensor, colors: Tensor | None, bar, compiled: bool, pool: Executor | None
+        self, frames: DepthFrames, depth: Tensor, colors: Tensor | None, bar, compiled: bool, pool: Executor | None,
+        workers: int,
     ) -> None:
         """The passes of `integrate` over depth Float[Tensor, "n h w"] and colours (on the device),
         compiled or eager: first every pass's candidate blocks (`_candidates`, the passes side by side on
         a `pool`'s threads) and their slots, then the voxel passes in order; with a `pool`, each of its
-        threads fuses one share of the blocks through all passes (a block's frames stay in order, and no
+        `workers` threads fuses one share of the blocks through all passes (a block's frames stay in order, and no
         thread waits for another between passes)."""
         per_pass, total = self.frames_per_pass, int(self.block_counts.prod())
         passes = [slice(start, start + per_pass) for start in range(0, len(frames), per_pass)]
@@ -421,7 +422,7 @@ class TSDFVolume:
         if self.sparse and any(bool((slot < 0).any()) for slot in slots):  # blocks touched for the first time
             self._allocate(torch.unique(torch.cat([keys[slot < 0] for (keys, _), slot in zip(blocks, slots)])))
             slots = [self._slots_of(keys) for keys, _ in blocks]
-        shares = 1 if pool is None else pool._max_workers
+        shares = 1 if pool is None else workers
         origin = torch.as_tensor(self.origin, dtype=torch.float64)
         projections = grid_to_pixel(K, cam_to_world, origin, self.voxel_size).to(self.device)
 
