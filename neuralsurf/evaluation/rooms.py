@@ -1,9 +1,9 @@
-"""Rooms fitted at TSDF's cost: a sparse voxel SDF (`models.VoxelSDF`) that starts as the TSDF fusion of the
+"""Rooms fitted at TSDF's cost: a sparse voxel SDF (`models.grid.VoxelSDF`) that starts as the TSDF fusion of the
 frames and is refined by `fit` on the same frames' depth rays, then meshed on its observed voxels.
 
 TSDF fusion averages each view's projective distance; the rays then ask the field, over every view at once,
 for zero at the hits, the projected distance around them and free space beside depth edges
-(`observations.EdgeRays`; any observation of the frames will do). The field has values only at the grid
+(`observations.edges.EdgeRays`; any observation of the frames will do). The field has values only at the grid
 points fusion observed, so no surface appears in space no frame saw; its mesh is marching cubes of the grid
 itself (cells with all corners observed, as TSDF meshes).
 """
