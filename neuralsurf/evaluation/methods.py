@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torch import nn
+from torch import Tensor, nn
 
 from neuralsurf.baselines import TSDFVolume, reconstruct_poisson
 from neuralsurf.devices import resolve_device
@@ -92,6 +92,15 @@ def poisson(scene: Scene, *, depth: int = 9, density_trim: float | None = None, 
                                    normal_k=normal_k, n_threads=n_threads)
 
 
+def input_box(scene: Scene, margin_fraction: float) -> tuple[Tensor, float]:
+    """The box of the scene's input points enlarged by `margin_fraction` of its longest side on each side,
+    Float64[Tensor, "2 3"], and that longest side (the ground truth is not used)."""
+    points = scene.cloud.points.double().cpu()
+    lo, hi = points.min(0).values, points.max(0).values
+    size = float((hi - lo).max())
+    return torch.stack([lo - margin_fraction * size, hi + margin_fraction * size]), size
+
+
 def tsdf(scene: Scene, *, voxel_fraction: float = 1 / 256, truncation_voxels: float = 4.0,
          margin_fraction: float = 0.05, device: str = "auto", weighting: str = "constant",
          seed: int = 0, run_dir=None, config=None) -> Mesh:
@@ -99,10 +108,7 @@ def tsdf(scene: Scene, *, voxel_fraction: float = 1 / 256, truncation_voxels: fl
     the box of the back-projected input (enlarged by `margin_fraction`; the ground truth is not used)."""
     if scene.frames is None:
         raise NotApplicable("TSDF fusion needs depth frames; this scene is a point cloud")
-    points = scene.cloud.points.double().cpu()
-    lo, hi = points.min(0).values, points.max(0).values
-    size = float((hi - lo).max())
-    bounds = torch.stack([lo - margin_fraction * size, hi + margin_fraction * size])
+    bounds, size = input_box(scene, margin_fraction)
     voxel = voxel_fraction * size
     volume = TSDFVolume(bounds, voxel, truncation_voxels * voxel, device=device, weighting=weighting)
     return volume.integrate(scene.frames).extract_mesh()

@@ -18,7 +18,7 @@ import torch
 
 from neuralsurf.baselines import TSDFVolume
 from neuralsurf.errors import ExtractionError
-from neuralsurf.evaluation.methods import NotApplicable
+from neuralsurf.evaluation.methods import NotApplicable, input_box
 from neuralsurf.marching import cube_triangles, merge_edge_vertices
 from neuralsurf.models.grid import VoxelSDF
 from neuralsurf.observations import NotObserved
@@ -77,10 +77,7 @@ def neural_voxels(scene: Scene, observations: Mapping[str, Callable | None], *, 
         fitted = [build(scene) for build in builders]
     except NotObserved as error:
         raise NotApplicable(str(error)) from None
-    points = scene.cloud.points.double().cpu()
-    lo, hi = points.min(0).values, points.max(0).values
-    size = float((hi - lo).max())
-    bounds = torch.stack([lo - margin_fraction * size, hi + margin_fraction * size])
+    bounds, size = input_box(scene, margin_fraction)
     voxel = voxel_fraction * size
     normalization = Normalization.from_points(bounds)  # the box of the input: no second pass over the rays
     model = fused_voxels(scene.frames, bounds, voxel, truncation_voxels * voxel, normalization, device)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -226,6 +227,25 @@ def _weighted_normals(normals: Tensor, mask: Tensor, K: Tensor | None, pixel_siz
     return n[..., 0] * x + n[..., 1] * y + n[..., 2], n[..., 0], n[..., 1], (K[0, 0], K[1, 1])
 
 
+class _AxisPairs(NamedTuple):
+    """`integrate_bilateral`'s neighbouring pairs along one axis: D [pairs x unknowns] takes the unknowns
+    to J of pixel a's forward side (= pixel b's backward side); ia, ib the pairs' unknowns; nt_a, nt_b,
+    m_a, m_b their pixels' nt and nx (or ny); per unknown, whether it has a forward and a backward
+    side, and its own nt and nx (or ny)."""
+
+    D: object
+    ia: np.ndarray
+    ib: np.ndarray
+    nt_a: np.ndarray
+    nt_b: np.ndarray
+    m_a: np.ndarray
+    m_b: np.ndarray
+    has_forward: np.ndarray
+    has_backward: np.ndarray
+    own: np.ndarray
+    own_tangent: np.ndarray
+
+
 def integrate_bilateral(
     normals: Tensor,
     mask: Tensor | None = None,
@@ -274,8 +294,7 @@ def integrate_bilateral(
     index = _unknown_index(m)
     nt, nx, ny, factors = _weighted_normals(normals, mask, K, pixel_size)
     nt, nx, ny = nt.ravel(), nx.ravel(), ny.ravel()
-    # per axis: D [pairs x unknowns] takes t to J of pixel a's forward side = pixel b's backward side
-    blocks = []
+    blocks = []  # per axis
     for axis, tangent, factor in ((1, nx, factors[0]), (0, ny, factors[1])):
         a, b, ia, ib = _pairs(m, index, axis)
         e = np.arange(len(a))
@@ -288,40 +307,41 @@ def integrate_bilateral(
         own, own_tangent = np.zeros(n_unknowns), np.zeros(n_unknowns)  # each unknown's nt and nx (or ny)
         own[ia], own[ib] = nt[a], nt[b]
         own_tangent[ia], own_tangent[ib] = tangent[a], tangent[b]
-        blocks.append((D, ia, ib, nt[a], nt[b], tangent[a], tangent[b], has_forward, has_backward, own, own_tangent))
+        blocks.append(_AxisPairs(D, ia, ib, nt[a], nt[b], tangent[a], tangent[b], has_forward, has_backward, own,
+                                 own_tangent))
     t, factor, jumps = np.zeros(n_unknowns), None, None  # jumps: each block's D @ t for the current t
     energies, window = [], 10
     for done in range(1, iterations + 1):
         system, rhs, weights = None, np.zeros(n_unknowns), []
-        for i, (D, ia, ib, nt_a, nt_b, m_a, m_b, has_forward, has_backward, own, own_tangent) in enumerate(blocks):
+        for i, pairs in enumerate(blocks):
             if jumps is None:
                 w_forward = np.full(n_unknowns, 0.5)
             else:
-                jump = jumps[i]
                 forward, backward = np.zeros(n_unknowns), np.zeros(n_unknowns)
-                forward[ia], backward[ib] = jump, jump
+                forward[pairs.ia], backward[pairs.ib] = jumps[i], jumps[i]
                 # the paper's test (the larger jump nt J) plus each side's residual against the pixel's own normal
+                own, own_tangent = pairs.own, pairs.own_tangent
                 argument = k * (
                     own**2 * (backward**2 - forward**2)
                     + (own * backward + own_tangent) ** 2
                     - (own * forward + own_tangent) ** 2
                 )
                 w_forward = 1.0 / (1.0 + np.exp(-np.clip(argument, -50, 50)))
-            w_forward = np.where(has_backward, w_forward, 1.0)  # a lone side takes the whole weight
-            w_backward = np.where(has_forward, 1.0 - w_forward, 1.0)
+            w_forward = np.where(pairs.has_backward, w_forward, 1.0)  # a lone side takes the whole weight
+            w_backward = np.where(pairs.has_forward, 1.0 - w_forward, 1.0)
             # a's forward equation nt_a J + m_a and b's backward one nt_b J + m_b share J = (D t):
             # together one equation of weight W = wf nt_a^2 + wb nt_b^2 towards J = -(wf nt_a m_a + wb nt_b m_b) / W
-            wf, wb = w_forward[ia], w_backward[ib]
-            weight = wf * nt_a**2 + wb * nt_b**2
-            part = D.T @ diags(weight) @ D
+            wf, wb = w_forward[pairs.ia], w_backward[pairs.ib]
+            weight = wf * pairs.nt_a**2 + wb * pairs.nt_b**2
+            part = pairs.D.T @ diags(weight) @ pairs.D
             system = part if system is None else system + part
-            rhs -= D.T @ (wf * nt_a * m_a + wb * nt_b * m_b)
+            rhs -= pairs.D.T @ (wf * pairs.nt_a * pairs.m_a + wb * pairs.nt_b * pairs.m_b)
             weights.append((wf, wb))
         t, factor = _solve_reweighted(system.tocsr(), rhs, t, factor)
-        jumps = [block[0] @ t for block in blocks]
+        jumps = [pairs.D @ t for pairs in blocks]
         energy = 0.0
-        for jump, (wf, wb), (_, _, _, nt_a, nt_b, m_a, m_b, *_) in zip(jumps, weights, blocks):
-            energy += float((wf * (nt_a * jump + m_a) ** 2 + wb * (nt_b * jump + m_b) ** 2).sum())
+        for jump, (wf, wb), pairs in zip(jumps, weights, blocks):
+            energy += float((wf * (pairs.nt_a * jump + pairs.m_a) ** 2 + wb * (pairs.nt_b * jump + pairs.m_b) ** 2).sum())
         energies.append(energy)
         if len(energies) > window and abs(energies[-1 - window] - energy) <= window * tolerance * energy:
             break
