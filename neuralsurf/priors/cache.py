@@ -158,7 +158,7 @@ def load_cache(path: str | Path) -> dict[str, np.ndarray]:
     return arrays
 
 
-def _cached_recipe(path: Path) -> str | None:
+def cached_recipe(path: Path) -> str | None:
     """The recipe string of an existing, readable cache, or None."""
     try:
         with np.load(path, allow_pickle=False) as data:
@@ -174,7 +174,7 @@ def is_cached(record: ShapeRecord, out: str | Path, recipe: CacheRecipe) -> bool
     if not path.exists():
         return False
     expected = json.dumps({"record": asdict(record), "recipe": asdict(recipe)}, sort_keys=True)
-    found = _cached_recipe(path)
+    found = cached_recipe(path)
     if found is not None and found != expected:
         raise ConfigError(f"{path} was built with another recipe or record ({found}); build into another "
                           f"folder or delete it")

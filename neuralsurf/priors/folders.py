@@ -51,8 +51,8 @@ from neuralsurf.io.shape_folders import (
 from neuralsurf.locks import file_lock
 from neuralsurf.priors.cache import (
     CacheRecipe,
-    _cached_recipe,
     cache_path,
+    cached_recipe,
     load_cache,
     run_jobs,
     sample_positions,
@@ -226,7 +226,7 @@ def _shape_cache(entry: ShapeEntry, record: ShapeRecord, out: str, recipe: Cache
     source = {"path": str(entry.path), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}
     key = json.dumps({"record": asdict(record), "recipe": asdict(recipe), "source": source, "normalize": normalize},
                      sort_keys=True)
-    if path.is_file() and _cached_recipe(path) == key:  # unreadable: built again
+    if path.is_file() and cached_recipe(path) == key:  # unreadable: built again
         return record.name, "cached"
     shape_seed = int(hashlib.sha256(f"{seed}/{entry.category}/{entry.name}".encode()).hexdigest()[:15], 16)
     if layout == "occupancy":
