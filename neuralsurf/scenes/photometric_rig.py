@@ -425,13 +425,13 @@ def discontinuity_scene(name: str, size: int = 128, fov_deg: float = 40.0) -> tu
     - "step": a tilted plane behind a tilted slab that covers the left of the view (the slab's side
       face is hidden: a pure step);
     - "sphere_on_plane": a sphere in front of a tilted plane (an occluding contour with grazing normals);
-    - "stacked_boxes": a box on a box on a ground plane before a wall, turned and seen from above
-      (creases; the boxes' far edges occlude what lies behind). The lower box's top is parallel to the
-      ground it occludes: scaled about the camera onto that ground (the upper box with it) and broken
-      from the box's front faces instead, it keeps every normal, so normals cannot tell which of the
-      two surfaces was seen;
-    - "leaning_boxes": the same boxes tipped 10 degrees about the camera's x axis (in opposite senses),
-      so that their tops are not parallel to the ground;
+    - "stacked_boxes": a box on a box on a ground plane, turned and seen from above, about 0.3 in front
+      of a wall (creases; the boxes' far edges occlude the wall). The wall is what makes the view well posed:
+      with the lower box's top seen against the ground instead, which is parallel to it, that top
+      scaled about the camera onto the ground (the upper box with it) and broken from the box's front
+      faces keeps every normal and breaks as many pixel pairs, so normals could not tell the two apart;
+    - "leaning_boxes": the same boxes tipped 10 degrees about the camera's x axis (in opposite senses)
+      and about 1.3 in front of the wall: their tops are seen against the ground but are not parallel to it;
     - "box_on_ground": one turned box on a ground plane before a wall, seen obliquely.
 
     Returns:
@@ -449,7 +449,7 @@ def discontinuity_scene(name: str, size: int = 128, fov_deg: float = 40.0) -> tu
         ground = Primitive("plane", (0.0, 0.6, 0.0), (0.0, -1.0, 0.0))
         lower = Primitive("box", (0.0, 0.3, 3.0), (0.6, 0.3, 0.45), _rotation(25.0, lean))
         upper = Primitive("box", (0.1, -0.15, 3.0), (0.3, 0.15, 0.3), _rotation(-20.0, -lean))
-        wall = Primitive("plane", (0.0, 0.0, 5.0), (0.1, 0.0, -1.0))
+        wall = Primitive("plane", (0.0, 0.0, 5.0 if lean else 4.0), (0.1, 0.0, -1.0))
         primitives = [_turn_down(p, 25.0) for p in (ground, wall, lower, upper)]
     elif name == "box_on_ground":
         ground = Primitive("plane", (0.0, 0.4, 0.0), (0.0, -1.0, 0.0))
