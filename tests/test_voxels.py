@@ -1,20 +1,17 @@
-"""The voxel SDF (neuralsurf.models.grid), the edge rays that refine it (neuralsurf.observations.edges) and the
-room fit built on both (neuralsurf.evaluation.rooms), against analytic oracles: a linear field, which trilinear
-interpolation reproduces exactly, a plane seen by cameras facing it, and a step in depth."""
+"""The voxel SDF (neuralsurf.models.grid) and the room fit built on it (neuralsurf.evaluation.rooms), against
+oracles: a linear field, which trilinear interpolation reproduces exactly, a dense least-squares solve of the same
+equations, and a plane seen by cameras facing it."""
 
 from __future__ import annotations
-
-import functools
 
 import pytest
 import torch
 
-from neuralsurf.evaluation.rooms import fused_voxels, voxel_mesh
+from neuralsurf.errors import ConfigError
+from neuralsurf.evaluation.rooms import fused_voxels, ray_equations, solve_on_rays, voxel_mesh
 from neuralsurf.models.grid import VoxelSDF
 from neuralsurf.models.spec import build_model, model_spec
-from neuralsurf.observations.edges import EdgeRays, edge_ratios
 from neuralsurf.structures import DepthFrames, Normalization
-from neuralsurf.training import fit
 
 WIDTH, HEIGHT, F, PLANE_Z = 64, 48, 60.0, 2.0
 
@@ -71,37 +68,56 @@ def test_a_voxel_sdf_rebuilds_from_its_spec_and_state():
     assert torch.equal(rebuilt(points), model(points))
 
 
-def test_edge_ratios_mark_the_far_side_of_a_depth_step():
-    depth = torch.full((1, 20, 20), 2.0)
-    depth[0, 5:10, 5:10] = 1.0  # a near patch
-    depth[0, 15, 15] = 0.0  # a missing reading
-    ratio = edge_ratios(depth, jump=0.05, window=2)
-    assert ratio[0, 4, 7] == 0.5 and ratio[0, 11, 7] == 0.5 and ratio[0, 7, 3] == 0.5  # beside the patch
-    assert ratio[0, 7, 7] == 0 and ratio[0, 12, 7] == 0 and ratio[0, 15, 15] == 0 and ratio[0, 0, 0] == 0
+def test_the_solve_is_the_least_squares_solution_of_its_equations():
+    """Conjugate gradients run to convergence give the dense normal equations' solution, and the field is linear in
+    its values: model(points) is A v for the A the solve builds."""
+    generator = torch.Generator().manual_seed(0)
+    values = linear_grid()
+    observed = torch.rand(values.shape, generator=generator) < 0.8
+    model = VoxelSDF.from_grid(values, observed, (-0.3, -0.2, -0.1), 0.1)
+    points = torch.rand(300, 3, generator=generator) * torch.tensor([0.5, 0.4, 0.3]) + torch.tensor([-0.3, -0.2, -0.1])
+    targets, weights = torch.randn(300, generator=generator) * 0.05, torch.rand(300, generator=generator) + 0.5
+    rows, w = model.corners(points)
+    A = torch.zeros(300, len(model.values)).scatter_add_(1, rows, w).double()
+    start = model.values[:, 0].detach().double()
+    assert torch.allclose(model(points).double(), A @ start, atol=1e-6)
+    diagonal = (A * A * weights.double()[:, None]).sum(0)
+    lam = 2.0 * diagonal[diagonal > 0].mean()
+    W = torch.diag(weights.double())
+    expected = torch.linalg.solve(A.T @ W @ A + lam * torch.eye(len(start), dtype=torch.float64),
+                                  A.T @ W @ targets.double() + lam * start)
+    solved = solve_on_rays(model, points, targets, weights, prior_weight=2.0, iterations=200).values[:, 0]
+    assert torch.allclose(solved.double(), expected, atol=1e-5)
+    with pytest.raises(ConfigError, match="prior_weight > 0"):
+        solve_on_rays(model, points, targets, weights, prior_weight=0.0)
 
 
-def test_edge_samples_lie_on_the_far_rays_at_the_near_depth():
-    frames = plane_frames()
-    frames.depth[:, 20:30, 20:40] = 1.0
+def test_ray_equations_ask_zero_at_the_hits_and_the_normal_distance_around_them():
+    frames = plane_frames(xs=(0.0,))
     normalization = Normalization(torch.tensor([0.0, 0.0, 1.5], dtype=torch.float64), 2.0)
-    sampler = EdgeRays(frames, pixel_stride=1, spread=0.01).prepare(normalization, 0.55, torch.device("cpu"), 0)
-    batch = sampler.sample(torch.Generator().manual_seed(0))
-    z = normalization.to_world(batch.edge_points.double())[:, 2]
-    assert ((z - 1.0).abs() <= 0.011).all()  # z-depth 1 +- spread along rays whose readings are 2
+    points, targets, weights = ray_equations(frames, normalization, voxel=0.01, pixel_stride=4, n_band=2)
+    assert len(points) == 3 * (HEIGHT // 4) * (WIDTH // 4)
+    assert weights.mean() == pytest.approx(1.0) and (weights.reshape(-1, 3) == weights[::3, None]).all()  # per ray
+    z = normalization.to_world(points.double())[:, 2]
+    distance = (PLANE_Z - z) / normalization.scale  # the plane's signed distance, unit frame, + in front
+    assert torch.allclose(targets.double(), distance, atol=1e-6)
+    assert (targets == 0).sum() == len(points) // 3 and targets.abs().max() > 0.004  # the band: 1 voxel at least
 
 
-def test_a_fused_plane_is_meshed_on_the_plane_and_its_fit_keeps_it_there():
+def test_the_solve_moves_a_misplaced_plane_onto_the_readings_and_keeps_a_fused_one():
     frames = plane_frames()
     bounds = torch.tensor([[-1.0, -0.8, 1.6], [1.0, 0.8, 2.4]], dtype=torch.float64)
     normalization = Normalization.from_points(bounds)
     model = fused_voxels(frames, bounds, 0.04, 0.16, normalization)
-    mesh = voxel_mesh(model, normalization)
-    assert (mesh.vertices[:, 2] - PLANE_Z).abs().max() < 1e-4
-    result = fit(model, EdgeRays(frames, pixel_stride=2, n_rays=256, n_edge=0), steps=20, normalization=normalization,
-                 optimizer=functools.partial(torch.optim.Adam, lr=1e-4), encoding_lr=None, device="cpu",
-                 progress=False, image_every=0)
-    refitted = voxel_mesh(result.model, normalization)
-    assert (refitted.vertices[:, 2] - PLANE_Z).abs().max() < 2e-3 and len(refitted.faces) >= 0.9 * len(mesh.faces)
+    assert (voxel_mesh(model, normalization).vertices[:, 2] - PLANE_Z).abs().max() < 1e-4
+    kept = voxel_mesh(solve_on_rays(model, *ray_equations(frames, normalization, model.voxel, 2)), normalization)
+    assert (kept.vertices[:, 2] - PLANE_Z).abs().max() < 1e-3
+
+    behind = grid_of(lambda p: PLANE_Z + 0.015 - p[..., 2], (-0.6, -0.5, 1.8), (0.6, 0.5, 2.2), 0.02)  # 1.5 cm
+    moved = solve_on_rays(behind, *ray_equations(frames, SHIFT, behind.voxel, 1), prior_weight=0.01, iterations=50)
+    z = voxel_mesh(moved, SHIFT).vertices[:, 2]
+    central = z[(z - PLANE_Z).abs() < 0.05]
+    assert (central - PLANE_Z).abs().median() < 2e-3 and len(central) > 0.9 * len(z)
 
 
 SHIFT = Normalization(torch.tensor([0.0, 0.0, 1.5], dtype=torch.float64), 1.0)
@@ -115,39 +131,3 @@ def grid_of(sdf, lo, hi, voxel):
     points = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1)
     values = sdf(points)
     return VoxelSDF.from_grid(values, values.abs() < 0.1, [lo[0], lo[1], lo[2] - 1.5], voxel, 0.1)
-
-
-def fitted(model, observation, steps, lr):
-    return fit(model, observation, steps=steps, normalization=SHIFT, optimizer=functools.partial(torch.optim.Adam, lr=lr),
-               encoding_lr=None, device="cpu", progress=False, image_every=0).model
-
-
-@pytest.mark.filterwarnings("ignore:after 60 steps the field has one sign")  # the box is mostly free space
-def test_the_fit_moves_a_misplaced_plane_onto_the_readings():
-    model = grid_of(lambda p: PLANE_Z + 0.015 - p[..., 2], (-0.6, -0.5, 1.8), (0.6, 0.5, 2.2), 0.02)  # 1.5 cm behind
-    frames = plane_frames()
-    model = fitted(model, EdgeRays(frames, pixel_stride=2, n_rays=512, n_edge=0, weights={"surface": 1.0, "band": 1.0}),
-                   60, 1e-3)
-    z = voxel_mesh(model, SHIFT).vertices[:, 2]
-    central = z[(z - PLANE_Z).abs() < 0.05]
-    assert (central - PLANE_Z).abs().median() < 3e-3 and len(central) > 0.9 * len(z)
-
-
-def test_the_edge_term_trims_a_fattened_silhouette():
-    """One camera sees a card at depth 1 (pixels 20-39 across: x in [-0.2, 0.133] there) in front of a wall at
-    depth 2; the field's card is 3 cm too wide. The rays beside the card's image pass through that margin."""
-    frames = plane_frames(xs=(0.0,))
-    frames.depth[:, 20:30, 20:40] = 1.0
-    low, high = torch.tensor([-0.2 - 0.03, -1 / 15 - 0.03, 1.0]), torch.tensor([0.4 / 3 + 0.03, 0.1 + 0.03, 1.02])
-
-    def card_and_wall(p):
-        outside = torch.maximum(low - p, p - high)
-        card = outside.clamp_min(0).norm(dim=-1) + outside.amax(-1).clamp_max(0)
-        return torch.minimum(card, PLANE_Z - p[..., 2])
-
-    model = grid_of(card_and_wall, (-0.5, -0.4, 0.8), (0.5, 0.4, 2.2), 0.01)
-    before = voxel_mesh(model, SHIFT).vertices
-    observation = EdgeRays(frames, pixel_stride=1, window=3, spread=0.03, n_edge=4096, weights={"edge": 1.0})
-    after = voxel_mesh(fitted(model, observation, 60, 2e-3), SHIFT).vertices
-    width = lambda v: float(v[v[:, 2] < 1.5, 0].max())  # the card's right edge
-    assert width(before) > 0.4 / 3 + 0.025 and width(after) < 0.4 / 3 + 0.012

@@ -62,25 +62,32 @@ class VoxelSDF(nn.Module):
             model.rows[observed] = torch.arange(n, dtype=torch.int32)
         return model
 
-    def forward(self, x: Tensor, latent: Tensor | None = None) -> Tensor:
-        """x Float[Tensor, "... 3"] unit frame -> Float[Tensor, "..."]."""
-        if latent is not None:
-            raise ConfigError("VoxelSDF is one shape's field; it takes no latent code")
-        g = (x.reshape(-1, 3) - self.origin) / self.voxel
+    def corners(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """Float[Tensor, "n 3"] unit-frame queries -> (Long[Tensor, "n 8"] rows of `values` of each query's cell
+        corners, i-major (0 where unobserved), Float[Tensor, "n 8"] their trilinear weights over the observed corners,
+        summing to 1; all 0 where none is observed: such a query reads `outside`). The field is linear in `values`."""
+        g = (x - self.origin) / self.voxel
         base = g.detach().floor()
         fraction = g - base
         base = base.long()
         inside = ((base >= 0) & (base < base.new_tensor(self.shape) - 1)).all(-1)
         linear = torch.where(inside, (base[:, 0] * self.shape[1] + base[:, 1]) * self.shape[2] + base[:, 2], 0)
-        row = self.rows.view(-1)[linear[:, None] + self.steps].long()  # (n, 8), corners i-major
+        row = self.rows.view(-1)[linear[:, None] + self.steps].long()
         present = (row >= 0) & inside[:, None]
-        value = torch.nn.functional.embedding(row.clamp_min(0), self.values)[..., 0]
         wx, wy, wz = (torch.stack([1 - fraction[:, a], fraction[:, a]], -1) for a in range(3))
         w = (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(-1, 8) * present
-        total = w.sum(-1)
-        mixed = (w * value).sum(-1) / total.clamp_min(1e-12)
-        # a cell with some observed corners reads them alone; with none, free space
-        result = torch.where(total > 1e-6, mixed, torch.full_like(mixed, self.outside))
+        total = w.sum(-1, keepdim=True)
+        # a cell with some observed corners reads them alone
+        return row.clamp_min(0), torch.where(total > 1e-6, w / total.clamp_min(1e-12), 0.0)
+
+    def forward(self, x: Tensor, latent: Tensor | None = None) -> Tensor:
+        """x Float[Tensor, "... 3"] unit frame -> Float[Tensor, "..."]."""
+        if latent is not None:
+            raise ConfigError("VoxelSDF is one shape's field; it takes no latent code")
+        row, w = self.corners(x.reshape(-1, 3))
+        value = torch.nn.functional.embedding(row, self.values)[..., 0]
+        mixed = (w * value).sum(-1)
+        result = torch.where(w.detach().sum(-1) > 0, mixed, torch.full_like(mixed, self.outside))
         return result.reshape(x.shape[:-1])
 
     @torch.no_grad()
