@@ -24,14 +24,15 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from neuralsurf.geometry import mesh_contains, point_to_mesh_distance, sample_mesh_surface
 from neuralsurf.io import read_mesh, write_mesh
 from neuralsurf.io.npz import write_npz
 from neuralsurf.priors import CollectionSDF, Shape, collection_records, deepsdf, score_completions
-from neuralsurf.priors.cache import CacheRecipe, write_manifest
-from neuralsurf.priors.folders import FolderCollection
+from neuralsurf.priors.cache import CacheRecipe, cache_path, load_cache, write_manifest
+from neuralsurf.priors.folders import FolderCollection, sign_errors
 from neuralsurf.structures import Normalization
 from neuralsurf.training import default_optimizer, fit
 from neuralsurf.winding import damage_mesh
@@ -72,6 +73,9 @@ def main() -> None:
     parser.add_argument("--holes", type=int, default=3, help="holes cut into each damaged training mesh")
     parser.add_argument("--hole-radius", type=float, default=0.04, help="their radius (the longest side is 1)")
     parser.add_argument("--flipped", type=float, default=0.3, help="share of reversed faces")
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="train and score every row this many times, each with another draw of sample positions "
+                             "and another training seed (seed, seed + 1, ...); the IoUs are averaged")
     parser.add_argument("--rows", default="clean,damaged",
                         help="priors to train: clean, damaged, parity (the damaged meshes with ray-parity signs), "
                              "resampled (the clean meshes, another draw of samples)")
@@ -86,44 +90,94 @@ def main() -> None:
         watertight = write_folders(out, classes, args.n_train, args.n_test, args.mesh_resolution, args.seed, damage)
         print(f"training meshes watertight: clean {watertight['clean']}, damaged {watertight['damaged']} of "
               f"{args.n_train * len(classes)}", flush=True)
-    results = {}
     clean = folder_collection(out, "clean", args)
     clean.build(progress=False)
-    test_shapes = clean.test_shapes()  # the same clean meshes for every prior
-    for kind in args.rows.split(","):
-        started = time.perf_counter()
-        if kind == "parity":  # the damaged folder with ray-parity signs: the watertight-mesh recipe
-            collection = folder_collection(out, "damaged", args)
-            folder = parity_caches(collection, out / "parity_cache", args.n_sdf, args.seed)
-        elif kind == "resampled":
-            collection = folder_collection(out, "clean", args, root="resampled_cache", seed=args.seed + 1000)
-            folder = collection.build(progress=False)
-        else:
-            collection = folder_collection(out, kind, args)
-            folder = collection.build(progress=False)
-        built = time.perf_counter() - started
-        torch.manual_seed(args.seed)
-        model = deepsdf(collection.count("train"), latent_dim=args.latent_dim, width=args.width, depth=args.depth,
-                        skip_layers=(args.depth // 2,))
-        started = time.perf_counter()
-        result = fit(model, [CollectionSDF(folder, shapes_per_batch=12, samples_per_shape=1024)],
-                     steps=args.steps, normalization=Normalization(), encoding_lr=None, progress=False, seed=args.seed,
-                     optimizer=functools.partial(default_optimizer, lr=1e-3))
-        trained = time.perf_counter() - started
-        means, per_shape, _ = score_completions(result.model, test_shapes, latent_steps=args.latent_steps,
-                                                seed=args.seed)
-        results[kind] = {"iou": means["iou"], "chamfer_l1_exact": means.get("chamfer_l1_exact"),
-                         "build_s": built, "train_s": trained, "per_shape": per_shape}
-        print(f"{kind:8s} IoU {means['iou']:.3f}  Chamfer-L1 {means.get('chamfer_l1_exact', float('nan')):.4f}  "
-              f"(build {built:.0f} s, {args.steps} steps {trained:.0f} s, {collection.count('train')} train, "
-              f"{len(test_shapes)} test shapes)", flush=True)
+    test_shapes = clean.test_shapes()  # the same clean meshes (and input clouds) for every prior
+    rows = args.rows.split(",")
+    results = {kind: {"iou": [], "chamfer_l1_exact": [], "build_s": 0.0, "train_s": 0.0, "score_s": 0.0,
+                      "per_shape": []} for kind in rows}
+    for repeat in range(args.repeats):
+        seed = args.seed + repeat  # another draw of sample positions and another training run
+        for kind in rows:
+            row = results[kind]
+            started = time.perf_counter()
+            collection, folder = row_caches(out, kind, args, seed, repeat)
+            row["build_s"] += time.perf_counter() - started
+            if kind in ("clean", "damaged") and repeat == 0:
+                row["sign_errors"] = label_errors(out, kind, collection)
+                print_label_errors(kind, row["sign_errors"])
+            torch.manual_seed(seed)
+            model = deepsdf(collection.count("train"), latent_dim=args.latent_dim, width=args.width,
+                            depth=args.depth, skip_layers=(args.depth // 2,))
+            started = time.perf_counter()
+            result = fit(model, [CollectionSDF(folder, shapes_per_batch=12, samples_per_shape=1024)],
+                         steps=args.steps, normalization=Normalization(), encoding_lr=None, progress=False,
+                         seed=seed, optimizer=functools.partial(default_optimizer, lr=1e-3))
+            row["train_s"] += time.perf_counter() - started
+            started = time.perf_counter()
+            means, per_shape, _ = score_completions(result.model, test_shapes, latent_steps=args.latent_steps,
+                                                    seed=args.seed)
+            row["score_s"] += time.perf_counter() - started
+            row["iou"].append(means["iou"])
+            row["chamfer_l1_exact"].append(means.get("chamfer_l1_exact", float("nan")))
+            row["per_shape"].append(per_shape)
+            ratio = f"  ratio to clean {means['iou'] / results['clean']['iou'][-1]:.3f}" if (
+                kind != "clean" and "clean" in results) else ""
+            print(f"repeat {repeat} {kind:9s} IoU {means['iou']:.3f}  Chamfer-L1 "
+                  f"{means.get('chamfer_l1_exact', float('nan')):.4f}{ratio}", flush=True)
     print()
-    for kind in results:
+    for kind, row in results.items():
+        print(f"{kind:9s} mean IoU {np.mean(row['iou']):.3f} over {args.repeats} repeat(s) x {len(test_shapes)} test "
+              f"shapes (by class: {class_means(row['per_shape'])})  Chamfer-L1 {np.mean(row['chamfer_l1_exact']):.4f}  "
+              f"time: build {row['build_s']:.0f} s, train {row['train_s']:.0f} s, score {row['score_s']:.0f} s")
+    for kind, row in results.items():
         if kind != "clean" and "clean" in results:
-            print(f"IoU {kind} / clean = {results[kind]['iou']:.3f} / {results['clean']['iou']:.3f} = "
-                  f"{results[kind]['iou'] / results['clean']['iou']:.3f}")
+            each = ", ".join(f"{a / b:.3f}" for a, b in zip(row["iou"], results["clean"]["iou"]))
+            print(f"IoU {kind} / clean = {np.mean(row['iou']):.3f} / {np.mean(results['clean']['iou']):.3f} = "
+                  f"{np.mean(row['iou']) / np.mean(results['clean']['iou']):.3f} (each repeat: {each})")
     name = f"bench_real_priors_{args.rows.replace(',', '_')}.json"
     (out / name).write_text(json.dumps({"args": vars(args), **results}, indent=1))
+
+
+def row_caches(out: Path, kind: str, args, seed: int, repeat: int) -> tuple[FolderCollection, Path]:
+    """The collection of a row and its built caches, with sample positions drawn from `seed`."""
+    suffix = f"_{repeat}" if repeat else ""
+    if kind == "parity":  # the damaged folder with ray-parity signs: the watertight-mesh recipe
+        collection = folder_collection(out, "damaged", args, seed=seed)
+        return collection, parity_caches(collection, out / f"parity_cache{suffix}", args.n_sdf, seed)
+    if kind == "resampled":
+        collection = folder_collection(out, "clean", args, root=f"resampled_cache{suffix}", seed=seed + 1000)
+    else:
+        collection = folder_collection(out, kind, args, root=f"{kind}_cache{suffix}", seed=seed)
+    return collection, collection.build(progress=False)
+
+
+def label_errors(out: Path, kind: str, collection: FolderCollection) -> dict[str, dict[str, list[float]]]:
+    """Per class, per kind of sample (`folders.sign_errors`): the share of each training shape's cached
+    labels that disagree with its clean mesh's exact inside, in the frame the cache was built in."""
+    errors: dict[str, dict[str, list[float]]] = {}
+    for record, entry in zip(collection.records("train"), collection.sources("train")):
+        frame = Normalization.from_points(read_mesh(entry.path).vertices.double())
+        clean = read_mesh(out / "clean" / record.kind / f"{entry.name}.ply")
+        shares = sign_errors(load_cache(cache_path(collection.folder, record)), frame.mesh_to_unit(clean),
+                             collection.recipe)
+        for key, share in shares.items():
+            errors.setdefault(record.kind, {}).setdefault(key, []).append(share)
+    return errors
+
+
+def print_label_errors(kind: str, errors: dict[str, dict[str, list[float]]]) -> None:
+    for category, shares in errors.items():
+        text = ", ".join(f"{key} {100 * np.mean(v):.3f}% (max {100 * np.max(v):.3f}%)" for key, v in shares.items())
+        print(f"labels of {kind} {category} training caches against the clean meshes, wrong: {text}", flush=True)
+
+
+def class_means(per_shape: list[list[dict]]) -> str:
+    by_class: dict[str, list[float]] = {}
+    for rows in per_shape:
+        for row in rows:
+            by_class.setdefault(row["shape"].split("_")[0], []).append(row["iou"])
+    return " / ".join(f"{c} {np.mean(v):.3f}" for c, v in by_class.items())
 
 
 def folder_collection(out: Path, kind: str, args, root: str | None = None, seed: int | None = None) -> FolderCollection:

@@ -37,7 +37,7 @@ from torch import Tensor
 
 from neuralsurf.data import cache_dir
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.geometry import knn, point_to_mesh_distance, sample_mesh_surface
+from neuralsurf.geometry import knn, mesh_contains, point_to_mesh_distance, sample_mesh_surface
 from neuralsurf.io.meshes import read_mesh
 from neuralsurf.io.npz import write_npz
 from neuralsurf.io.shape_folders import (
@@ -135,6 +135,26 @@ def occupancy_samples(shape: OccupancyShape, recipe: CacheRecipe, seed: int = 0)
         "mesh_vertices": np.zeros((0, 3), np.float32),
         "mesh_faces": np.zeros((0, 3), np.int64),
     }
+
+
+def sign_errors(arrays: dict[str, np.ndarray], reference: Mesh, recipe: CacheRecipe) -> dict[str, float]:
+    """Shares of a shape cache's samples whose side disagrees with a watertight reference mesh in the
+    cache's frame (its exact inside by ray parity, `geometry.mesh_contains`): how wrong the labels
+    taken from a damaged mesh are, with the clean mesh as the reference.
+
+    Returns:
+        {"sdf_near", "sdf_volume" (the SDF samples near the surface and uniform in the box, by sign),
+        "occ_uniform", "occ_near" (the occupancy samples)}: each a share in [0, 1].
+    """
+    sdf_points = torch.from_numpy(arrays["sdf_points"]).double()
+    occ = {key: torch.from_numpy(arrays[f"{key}_points"]).double() for key in ("occ_uniform", "occ_near")}
+    points = torch.cat([sdf_points, *occ.values()])
+    truth = mesh_contains(points, Mesh(reference.vertices.double(), reference.faces))
+    labels = torch.cat([torch.from_numpy(arrays["sdf_values"]) < 0, torch.from_numpy(arrays["occ_uniform_inside"]),
+                        torch.from_numpy(arrays["occ_near_inside"])])
+    wrong = (labels != truth).split([len(sdf_points) - recipe.n_volume, recipe.n_volume, *map(len, occ.values())])
+    return {key: float(part.double().mean()) if len(part) else 0.0
+            for key, part in zip(("sdf_near", "sdf_volume", "occ_uniform", "occ_near"), wrong)}
 
 
 # ----------------------------------------------------------------------------- canonical frame
