@@ -158,6 +158,16 @@ def test_sparse_and_dense_give_the_same_mesh(sphere_frames, sphere_mesh):
     assert torch.equal(mesh.vertices, sphere_mesh.vertices) and torch.equal(mesh.faces, sphere_mesh.faces)
 
 
+@pytest.mark.parametrize("sparse", [True, False])
+def test_observed_voxels_are_the_dense_grids_weighted_points(sphere_frames, sparse):
+    volume = TSDFVolume(BOX, 0.02, block_size=4, device="cpu", sparse=sparse).integrate(sphere_frames[:6])
+    linear, values = volume.observed_voxels()
+    tsdf, weight = volume.to_dense()
+    seen = (weight > 0).reshape(-1).nonzero()[:, 0]
+    order = linear.argsort()
+    assert torch.equal(linear[order], seen) and torch.equal(values[order], tsdf.reshape(-1)[seen])
+
+
 def test_block_extraction_equals_one_marching_cubes_call(sphere_frames, monkeypatch):
     from skimage.measure import marching_cubes
 

@@ -533,6 +533,19 @@ class TSDFVolume:
         color = None if self._color is None else assemble(self._color)
         return assemble(self._tsdf), assemble(self._weight), color
 
+    def observed_voxels(self) -> tuple[Tensor, Tensor]:
+        """(Int64[Tensor, "n"] linear indices of the grid points with weight > 0 in `grid_shape`, i-major, ascending
+        within each block; Float[Tensor, "n"] their signed distances), read from the blocks without a dense grid."""
+        keys = self._keys if self.sparse else torch.arange(self._used, device=self.device)
+        slots = self._slots if self.sparse else keys
+        size, (_, ny, nz) = self.block_size, self.grid_shape
+        corner = self._block_coords(keys) * size
+        base = (corner[:, 0] * ny + corner[:, 1]) * nz + corner[:, 2]
+        local = self._local.long()
+        offset = (local[:, 0] * ny + local[:, 1]) * nz + local[:, 2]
+        seen = self._weight[slots] > 0
+        return (base[:, None] + offset)[seen], self._tsdf[slots][seen]
+
     def to_dense(self) -> tuple[Tensor, Tensor]:
         """Float[Tensor, "X Y Z"] signed distances (NaN where unobserved) and weights of the whole grid
         (small volumes: tests, plots)."""

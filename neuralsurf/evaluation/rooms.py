@@ -36,11 +36,11 @@ def fused_voxels(frames: DepthFrames, bounds: torch.Tensor, voxel: float, trunca
     voxels and `truncation` (metres), as a unit-frame VoxelSDF of `normalization`: its observed voxels and
     their distances (outside: the truncation)."""
     volume = TSDFVolume(bounds, voxel, truncation, device=device, sparse=True).integrate(frames, progress=False)
-    values, weight = volume.to_dense()
+    linear, values = volume.observed_voxels()
     origin = normalization.to_unit(torch.as_tensor(volume.origin, dtype=torch.float64)[None])[0]
     scale = normalization.scale
-    return VoxelSDF.from_grid(values.cpu().div_(scale), weight.cpu() > 0, origin.tolist(), voxel / scale,
-                              truncation / scale)
+    return VoxelSDF.from_observed(list(volume.grid_shape), linear, values / scale, origin.tolist(), voxel / scale,
+                                  truncation / scale)
 
 
 def voxel_mesh(model: VoxelSDF, normalization: Normalization, slab: int = 64) -> Mesh:

@@ -52,14 +52,27 @@ class VoxelSDF(nn.Module):
         if values.shape != observed.shape or values.dim() != 3:
             raise ConfigError(f"VoxelSDF.from_grid needs values and observed of one shape X Y Z, got "
                               f"{tuple(values.shape)} and {tuple(observed.shape)}")
-        n = int(observed.sum())
-        if not n:
+        linear = observed.reshape(-1).nonzero()[:, 0]
+        if not len(linear):
             raise ConfigError("VoxelSDF.from_grid: no grid point is observed; fuse frames that see the surface first")
-        outside = float(values[observed].max()) if outside is None else float(outside)
-        model = cls(list(values.shape), [float(o) for o in origin], voxel, n, outside)
+        chosen = values.reshape(-1)[linear]
+        outside = float(chosen.max()) if outside is None else float(outside)
+        return cls.from_observed(list(values.shape), linear, chosen, origin, voxel, outside)
+
+    @classmethod
+    def from_observed(cls, shape: list[int], linear: Tensor, values: Tensor, origin, voxel: float,
+                      outside: float) -> VoxelSDF:
+        """The field of a sparse grid of `shape`: values Float[Tensor, "n"] (unit frame) at the grid points of
+        Int64[Tensor, "n"] `linear` indices (i-major, distinct), point (0, 0, 0) at `origin`, spaced `voxel`."""
+        if linear.shape != values.shape or linear.dim() != 1:
+            raise ConfigError(f"VoxelSDF.from_observed needs linear indices and values of one shape n, got "
+                              f"{tuple(linear.shape)} and {tuple(values.shape)}")
+        if not len(linear):
+            raise ConfigError("VoxelSDF.from_observed: no grid point is observed; fuse frames that see the surface first")
+        model = cls(list(shape), [float(o) for o in origin], voxel, len(linear), outside)
         with torch.no_grad():
-            model.values[:, 0] = values[observed].float()
-            model.rows[observed] = torch.arange(n, dtype=torch.int32)
+            model.values[:, 0] = values.float().cpu()
+            model.rows.view(-1)[linear.cpu()] = torch.arange(len(linear), dtype=torch.int32)
         return model
 
     def corners(self, x: Tensor) -> tuple[Tensor, Tensor]:
