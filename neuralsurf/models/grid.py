@@ -1,11 +1,12 @@
 """A signed distance field stored on a sparse voxel grid: values at the grid points of the blocks that
-depth frames observed, trilinearly interpolated (the layout of a sparse TSDF volume, optimised by `fit`).
+depth frames observed, trilinearly interpolated (the layout of a sparse TSDF volume).
 
 Grid point (i, j, k) lies at origin + (i, j, k) * voxel (unit frame); only the observed points hold a
 value (`rows`: each point's row of `values`, -1 where none). A query averages the observed corners of its
 cell with their trilinear weights (so unobserved points, which may lie in free space or behind a surface,
-invent no zero crossing) and reads `outside` where no corner is observed. Initialised from a fused TSDF (`from_grid`), the field
-starts at TSDF's answer and its observed values are then refined by gradient descent.
+invent no zero crossing) and reads `outside` where no corner is observed. Initialised from a fused TSDF
+(`from_observed`), the field starts at TSDF's answer; it is linear in its values (`corners`), so they can be
+fitted by one least-squares solve (`evaluation.rooms.solve_on_rays`) as well as by `fit`.
 """
 
 from __future__ import annotations
