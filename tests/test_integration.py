@@ -102,22 +102,26 @@ def test_bilateral_beats_least_squares_on_every_scene(name, size):
     check(scene_errors(name, size))
 
 
-@pytest.mark.parametrize("direction", [(0.0, 1.0, 0.0), (-1.0, 0.0, 0.0)])
-def test_bilateral_beats_least_squares_on_the_bunny_with_its_ears(direction):
-    """A rendered 128x128 view of the bunny (from above, from the side: ears and legs in front of the
-    body) from noisy 8-bit normals: closer than least squares with one scale for the view, and within
-    half of its error with a scale per piece."""
+def bunny_view(direction: tuple[float, float, float], size: int):
+    """A rendered size x size view (fov 30) of the bunny from `direction` around its centre: the view and
+    its `continuous_pieces`."""
     pytest.importorskip("pymeshlab", reason="the bunny comes with neuralsurf[data]")
     from neuralsurf.scenes import bunny, look_at
     from neuralsurf.scenes.photometric_rig import render_photometric, ring_lights
 
     mesh = bunny()
     lo, hi = mesh.bounds.double()
-    center, unit = (lo + hi) / 2, torch.tensor(direction, dtype=torch.float64)
+    center, unit = (lo + hi) / 2, torch.nn.functional.normalize(torch.tensor(direction, dtype=torch.float64), dim=0)
     pose = look_at(center + 2.5 * float((hi - lo).max()) * unit, center)
-    view = render_photometric(mesh, ring_lights(3, 30.0), cam_to_world=pose, width=128, height=128, fov_deg=30,
+    view = render_photometric(mesh, ring_lights(3, 30.0), cam_to_world=pose, width=size, height=size, fov_deg=30,
                               shadows=False)[0]
-    pieces = continuous_pieces(view.depth, view.normals, view.mask, K=view.K)
+    return view, continuous_pieces(view.depth, view.normals, view.mask, K=view.K)
+
+
+def bunny_errors(direction: tuple[float, float, float], size: int) -> dict[str, tuple[float, float]]:
+    """Per integrator, from noisy 8-bit normals of `bunny_view`: mean |dz| with one scale for the view, and
+    with a scale per piece."""
+    view, pieces = bunny_view(direction, size)
     given = degrade_normals(view.normals, view.mask, 0.01)
     errors = {}
     for integrate in (integrate_least_squares, integrate_bilateral):
@@ -126,8 +130,61 @@ def test_bilateral_beats_least_squares_on_the_bunny_with_its_ears(direction):
             depth_error(depth, view.depth, view.mask, align="scale").mean_abs,
             depth_error(depth, view.depth, view.mask, align="scale", pieces=pieces).mean_abs,
         )
+    return errors
+
+
+@pytest.mark.parametrize("direction", [(0.0, 1.0, 0.0), (-1.0, 0.0, 0.0)])
+def test_bilateral_beats_least_squares_on_the_bunny_with_its_ears(direction):
+    """A 128x128 view of the bunny (from above, from the side: ears and legs in front of the body): closer
+    than least squares with one scale for the view, and within half of its error with a scale per piece."""
+    errors = bunny_errors(direction, 128)
     (ls_view, ls_pieces), (bini_view, bini_pieces) = errors["integrate_least_squares"], errors["integrate_bilateral"]
     assert bini_view <= ls_view and bini_pieces <= 0.5 * ls_pieces, errors
+
+
+SMALL_BUNNY_VIEWS = [
+    pytest.param(
+        size,
+        direction,
+        marks=pytest.mark.xfail(
+            strict=True,
+            reason="from above at 64 pixels the reweighted surface is kept (it explains the normals better, "
+            "and is 0.52x least squares' error with one scale for the view) but is 1.05x least squares' "
+            "error with a scale per piece",
+        ),
+    )
+    if (size, direction) == (64, (0.0, 1.0, 0.0))
+    else (size, direction)
+    for size in (48, 64, 80, 96)
+    for direction in ((0.0, 0.0, 1.0), (0.0, 0.0, -1.0), (1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0),
+                      (0.6, 0.3, 0.75))
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("size", "direction"), SMALL_BUNNY_VIEWS)
+def test_bilateral_is_not_worse_than_least_squares_on_small_bunny_views(size, direction):
+    """The bunny 30-60 pixels across: where the reweighting bends its curved surface more than least
+    squares, the safeguard keeps least squares' surface."""
+    errors = bunny_errors(direction, size)
+    assert errors["integrate_bilateral"][1] <= errors["integrate_least_squares"][1], errors
+
+
+@pytest.mark.parametrize("size", [32, 64])
+def test_bilateral_keeps_least_squares_where_the_normals_show_no_discontinuity(size):
+    """A lone turned box (three faces meeting at creases, no depth discontinuity) from noisy 8-bit normals:
+    the reweighted surface does not explain the normals better than least squares, which is returned."""
+    K = torch.tensor([[size * 1.2, 0, (size - 1) / 2], [0, size * 1.2, (size - 1) / 2], [0, 0, 1]], dtype=torch.float64)
+    c, s = math.cos(math.radians(35.0)), math.sin(math.radians(35.0))
+    tilt = torch.tensor([[1.0, 0, 0], [0, math.cos(0.5), -math.sin(0.5)], [0, math.sin(0.5), math.cos(0.5)]]).double()
+    rotation = tilt @ torch.tensor([[c, 0, s], [0, 1.0, 0], [-s, 0, c]]).double()
+    box = Primitive("box", (0.0, 0.0, 3.0), (0.5, 0.5, 0.5), tuple(map(tuple, rotation.tolist())))
+    depth, normals, mask = raycast_primitives([box], K, size, size)
+    given = degrade_normals(normals, mask, 0.01)
+    least_squares = integrate_least_squares(given, mask, K=K)
+    result = integrate_bilateral(given, mask, K=K)
+    assert result.fallback and torch.allclose(result.depth, least_squares.depth)
+    assert depth_error(result.depth, depth, mask).mean_abs <= depth_error(least_squares.depth, depth, mask).mean_abs
 
 
 def test_conjugate_gradients_match_a_direct_solve():

@@ -35,6 +35,12 @@ class NormalIntegration:
     """Bool[Tensor, "h w"]: pixels integrated."""
     iterations: int
     """Reweighting iterations run (0 for least squares)."""
+    fallback: bool = False
+    """Whether `integrate_bilateral` returned the least-squares surface instead of the reweighted one."""
+
+
+MAX_SLOPE = 50.0
+"""`integrate_least_squares`' default limit on derivatives, in depth units per pixel footprint."""
 
 
 def _gradients(normals: Tensor, mask: Tensor, K: Tensor | None, pixel_size: float, max_slope: float):
@@ -121,14 +127,40 @@ def _solve_factored(matrix, rhs: np.ndarray, refinements: int = 3):
     return solution, factor
 
 
-def _finish(t: np.ndarray, mask: Tensor, K, iterations: int, dtype) -> NormalIntegration:
+def _finish(t: np.ndarray, mask: Tensor, K, iterations: int, dtype, fallback: bool = False) -> NormalIntegration:
     if K is None:
         values = t - t.mean()
     else:
         values = np.exp(t - np.median(t))
     depth = np.zeros(mask.shape)
     depth[mask.numpy()] = values
-    return NormalIntegration(torch.from_numpy(depth).to(dtype), mask, iterations)
+    return NormalIntegration(torch.from_numpy(depth).to(dtype), mask, iterations, fallback)
+
+
+def _least_squares_system(normals: Tensor, mask: Tensor, K, pixel_size: float, max_slope: float):
+    """`integrate_least_squares`' equations, one per pair of neighbouring mask pixels (along u, then v):
+    A [pairs x unknowns] (t_b - t_a), b [pairs] (the mean of the two target derivatives) and, per
+    equation, the factor taking it to pixel footprints."""
+    from scipy.sparse import coo_matrix
+
+    m = mask.numpy()
+    index = _unknown_index(m)
+    p, q, lateral = _gradients(normals, mask, K, pixel_size, max_slope)
+    rows, cols, vals, rhs, scale = [], [], [], [], []
+    count = 0
+    for axis, target in ((1, p.ravel()), (0, q.ravel())):
+        a, b, ia, ib = _pairs(m, index, axis)
+        e = np.arange(count, count + len(a))
+        rows += [e, e]
+        cols += [ib, ia]
+        vals += [np.ones(len(a)), -np.ones(len(a))]
+        rhs.append((target[a] + target[b]) / 2)
+        scale.append(lateral.ravel()[a])
+        count += len(a)
+    A = coo_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(count, int(m.sum()))
+    ).tocsr()
+    return A, np.concatenate(rhs), np.concatenate(scale)
 
 
 def integrate_least_squares(
@@ -136,7 +168,7 @@ def integrate_least_squares(
     mask: Tensor | None = None,
     K: Tensor | None = None,
     pixel_size: float = 1.0,
-    max_slope: float = 50.0,
+    max_slope: float = MAX_SLOPE,
 ) -> NormalIntegration:
     """Depth from a normal map by least squares: for each pair of neighbouring mask pixels, the depth
     difference (log-depth under perspective) should be the mean of their two target derivatives.
@@ -149,28 +181,20 @@ def integrate_least_squares(
     Returns:
         NormalIntegration (depth up to scale under perspective, up to an offset under orthographic).
     """
-    from scipy.sparse import coo_matrix
-
     normals, mask = _check_integration_inputs(normals, mask, K)
-    m = mask.numpy()
-    index = _unknown_index(m)
-    p, q, _ = _gradients(normals, mask, K, pixel_size, max_slope)
-    rows, cols, vals, rhs = [], [], [], []
-    count = 0
-    for axis, target in ((1, p.ravel()), (0, q.ravel())):
-        a, b, ia, ib = _pairs(m, index, axis)
-        e = np.arange(count, count + len(a))
-        rows += [e, e]
-        cols += [ib, ia]
-        vals += [np.ones(len(a)), -np.ones(len(a))]
-        rhs.append((target[a] + target[b]) / 2)
-        count += len(a)
-    A = coo_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(count, int(m.sum()))
-    ).tocsr()
-    b = np.concatenate(rhs)
+    A, b, _ = _least_squares_system(normals, mask, K, pixel_size, max_slope)
     t = _solve((A.T @ A).tocsr(), A.T @ b)
     return _finish(t, mask, K, 0, normals.dtype if normals.is_floating_point() else torch.float32)
+
+
+def _robust_misfits(A, b: np.ndarray, scale: np.ndarray, solutions: list[np.ndarray], outlier: float = 5.0) -> list[float]:
+    """Per solution t [unknowns], the sum over the least-squares equations (`_least_squares_system`) of
+    min(r^2, tau^2), with r = (A t - b) * scale the residual in pixel footprints and tau `outlier` robust
+    standard deviations (1.4826 median |r|) of the first solution's residuals: an equation off by more
+    than tau counts as a discontinuity, at a fixed cost."""
+    residuals = [(A @ t - b) * scale for t in solutions]
+    tau = outlier * 1.4826 * float(np.median(np.abs(residuals[0])))
+    return [float(np.minimum(r * r, tau * tau).sum()) for r in residuals]
 
 
 def _pcg(matrix, rhs: np.ndarray, start: np.ndarray, precondition, rtol: float, steps: int):
@@ -254,6 +278,7 @@ def integrate_bilateral(
     k: float = 2.0,
     iterations: int = 1000,
     tolerance: float = 1e-6,
+    safeguard: bool = True,
 ) -> NormalIntegration:
     """Discontinuity-preserving depth from a normal map: bilateral normal integration (BiNI, Cao et
     al., ECCV 2022).
@@ -278,7 +303,15 @@ def integrate_bilateral(
     models, so `k` = 2 holds at any resolution and focal length. A pixel with one neighbour along an
     axis uses that side alone (weight 1).
 
-    Args: as `integrate_least_squares`, plus the sharpness `k`, `iterations` and `tolerance`.
+    With `safeguard`, the result is checked against the least-squares surface (`integrate_least_squares`)
+    on least squares' own centred equations, which a smooth surface meets to second order where the
+    one-sided ones miss by its curvature: each equation costs its squared residual in pixel footprints,
+    at most that of an outlier (5 robust standard deviations of least squares' residuals: a
+    discontinuity). Where the reweighted surface does not cost less, the normals show no discontinuity
+    that it explains, and the least-squares surface is returned (`fallback`): on small views of curved
+    objects the one-sided tests lean towards the flatter side and bend the surface.
+
+    Args: as `integrate_least_squares`, plus the sharpness `k`, `iterations`, `tolerance` and `safeguard`.
     Returns:
         NormalIntegration.
     """
@@ -345,7 +378,14 @@ def integrate_bilateral(
         energies.append(energy)
         if len(energies) > window and abs(energies[-1 - window] - energy) <= window * tolerance * energy:
             break
-    return _finish(t, mask, K, done, normals.dtype if normals.is_floating_point() else torch.float32)
+    dtype = normals.dtype if normals.is_floating_point() else torch.float32
+    if safeguard:
+        A, b, scale = _least_squares_system(normals, mask, K, pixel_size, MAX_SLOPE)
+        smooth = _solve((A.T @ A).tocsr(), A.T @ b)
+        smooth_misfit, misfit = _robust_misfits(A, b, scale, [smooth, t])
+        if misfit >= smooth_misfit:
+            return _finish(smooth, mask, K, done, dtype, fallback=True)
+    return _finish(t, mask, K, done, dtype)
 
 
 INTEGRATORS = {"least_squares": integrate_least_squares, "bilateral": integrate_bilateral}
