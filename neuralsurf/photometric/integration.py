@@ -5,8 +5,9 @@
 reweighted so that the surface may break at depth discontinuities). Orthographic (no K: depth in units
 of `pixel_size`, up to an offset) or perspective (K: log-depth, depth up to a scale). Both are sparse
 linear least squares: solved directly (SciPy's SuperLU), and for the bilateral method's reweighted
-systems by conjugate gradients preconditioned with an earlier factorisation. Camera frame: x right, y down, z forward;
-normals facing the camera have z < 0.
+systems by conjugate gradients preconditioned with an earlier factorisation; its depth is then
+solved from least squares' equations weighted as the reweighting left them. Camera frame: x right,
+y down, z forward; normals facing the camera have z < 0.
 """
 
 from __future__ import annotations
@@ -35,8 +36,6 @@ class NormalIntegration:
     """Bool[Tensor, "h w"]: pixels integrated."""
     iterations: int
     """Reweighting iterations run (0 for least squares)."""
-    fallback: bool = False
-    """Whether `integrate_bilateral` returned the least-squares surface instead of the reweighted one."""
 
 
 MAX_SLOPE = 50.0
@@ -127,26 +126,25 @@ def _solve_factored(matrix, rhs: np.ndarray, refinements: int = 3):
     return solution, factor
 
 
-def _finish(t: np.ndarray, mask: Tensor, K, iterations: int, dtype, fallback: bool = False) -> NormalIntegration:
+def _finish(t: np.ndarray, mask: Tensor, K, iterations: int, dtype) -> NormalIntegration:
     if K is None:
         values = t - t.mean()
     else:
         values = np.exp(t - np.median(t))
     depth = np.zeros(mask.shape)
     depth[mask.numpy()] = values
-    return NormalIntegration(torch.from_numpy(depth).to(dtype), mask, iterations, fallback)
+    return NormalIntegration(torch.from_numpy(depth).to(dtype), mask, iterations)
 
 
 def _least_squares_system(normals: Tensor, mask: Tensor, K, pixel_size: float, max_slope: float):
     """`integrate_least_squares`' equations, one per pair of neighbouring mask pixels (along u, then v):
-    A [pairs x unknowns] (t_b - t_a), b [pairs] (the mean of the two target derivatives) and, per
-    equation, the factor taking it to pixel footprints."""
+    A [pairs x unknowns] (t_b - t_a) and b [pairs] (the mean of the two target derivatives)."""
     from scipy.sparse import coo_matrix
 
     m = mask.numpy()
     index = _unknown_index(m)
-    p, q, lateral = _gradients(normals, mask, K, pixel_size, max_slope)
-    rows, cols, vals, rhs, scale = [], [], [], [], []
+    p, q, _ = _gradients(normals, mask, K, pixel_size, max_slope)
+    rows, cols, vals, rhs = [], [], [], []
     count = 0
     for axis, target in ((1, p.ravel()), (0, q.ravel())):
         a, b, ia, ib = _pairs(m, index, axis)
@@ -155,12 +153,11 @@ def _least_squares_system(normals: Tensor, mask: Tensor, K, pixel_size: float, m
         cols += [ib, ia]
         vals += [np.ones(len(a)), -np.ones(len(a))]
         rhs.append((target[a] + target[b]) / 2)
-        scale.append(lateral.ravel()[a])
         count += len(a)
     A = coo_matrix(
         (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(count, int(m.sum()))
     ).tocsr()
-    return A, np.concatenate(rhs), np.concatenate(scale)
+    return A, np.concatenate(rhs)
 
 
 def integrate_least_squares(
@@ -182,19 +179,9 @@ def integrate_least_squares(
         NormalIntegration (depth up to scale under perspective, up to an offset under orthographic).
     """
     normals, mask = _check_integration_inputs(normals, mask, K)
-    A, b, _ = _least_squares_system(normals, mask, K, pixel_size, max_slope)
+    A, b = _least_squares_system(normals, mask, K, pixel_size, max_slope)
     t = _solve((A.T @ A).tocsr(), A.T @ b)
     return _finish(t, mask, K, 0, normals.dtype if normals.is_floating_point() else torch.float32)
-
-
-def _robust_misfits(A, b: np.ndarray, scale: np.ndarray, solutions: list[np.ndarray], outlier: float = 5.0) -> list[float]:
-    """Per solution t [unknowns], the sum over the least-squares equations (`_least_squares_system`) of
-    min(r^2, tau^2), with r = (A t - b) * scale the residual in pixel footprints and tau `outlier` robust
-    standard deviations (1.4826 median |r|) of the first solution's residuals: an equation off by more
-    than tau counts as a discontinuity, at a fixed cost."""
-    residuals = [(A @ t - b) * scale for t in solutions]
-    tau = outlier * 1.4826 * float(np.median(np.abs(residuals[0])))
-    return [float(np.minimum(r * r, tau * tau).sum()) for r in residuals]
 
 
 def _pcg(matrix, rhs: np.ndarray, start: np.ndarray, precondition, rtol: float, steps: int):
@@ -278,7 +265,6 @@ def integrate_bilateral(
     k: float = 2.0,
     iterations: int = 1000,
     tolerance: float = 1e-6,
-    safeguard: bool = True,
 ) -> NormalIntegration:
     """Discontinuity-preserving depth from a normal map: bilateral normal integration (BiNI, Cao et
     al., ECCV 2022).
@@ -303,15 +289,14 @@ def integrate_bilateral(
     models, so `k` = 2 holds at any resolution and focal length. A pixel with one neighbour along an
     axis uses that side alone (weight 1).
 
-    With `safeguard`, the result is checked against the least-squares surface (`integrate_least_squares`)
-    on least squares' own centred equations, which a smooth surface meets to second order where the
-    one-sided ones miss by its curvature: each equation costs its squared residual in pixel footprints,
-    at most that of an outlier (5 robust standard deviations of least squares' residuals: a
-    discontinuity). Where the reweighted surface does not cost less, the normals show no discontinuity
-    that it explains, and the least-squares surface is returned (`fallback`): on small views of curved
-    objects the one-sided tests lean towards the flatter side and bend the surface.
+    The weights decide where the surface may break; the depth returned is then solved from least
+    squares' centred equations (`integrate_least_squares`: each pair's difference against the mean of
+    its two target derivatives, which a smooth surface meets to second order), each pair weighted as the
+    reweighting left it (wf nt_a^2 + wb nt_b^2: about 0 across a discontinuity, small at grazing
+    normals). The one-sided equations miss a surface that curves within a pixel by its curvature, and
+    their weights lean towards the flatter side there, which bends small views of curved objects.
 
-    Args: as `integrate_least_squares`, plus the sharpness `k`, `iterations`, `tolerance` and `safeguard`.
+    Args: as `integrate_least_squares`, plus the sharpness `k`, `iterations` and `tolerance`.
     Returns:
         NormalIntegration.
     """
@@ -379,12 +364,10 @@ def integrate_bilateral(
         if len(energies) > window and abs(energies[-1 - window] - energy) <= window * tolerance * energy:
             break
     dtype = normals.dtype if normals.is_floating_point() else torch.float32
-    if safeguard:
-        A, b, scale = _least_squares_system(normals, mask, K, pixel_size, MAX_SLOPE)
-        smooth = _solve((A.T @ A).tocsr(), A.T @ b)
-        smooth_misfit, misfit = _robust_misfits(A, b, scale, [smooth, t])
-        if misfit >= smooth_misfit:
-            return _finish(smooth, mask, K, done, dtype, fallback=True)
+    # the depth: least squares' centred equations, each pair weighted as the reweighting left it
+    A, b = _least_squares_system(normals, mask, K, pixel_size, MAX_SLOPE)
+    pair_weights = np.concatenate([wf * pairs.nt_a**2 + wb * pairs.nt_b**2 for (wf, wb), pairs in zip(weights, blocks)])
+    t = _solve((A.T @ diags(pair_weights) @ A).tocsr(), A.T @ (pair_weights * b))
     return _finish(t, mask, K, done, dtype)
 
 
