@@ -163,7 +163,8 @@ def test_bilateral_is_not_worse_than_least_squares_on_small_bunny_views(size, di
 def test_bilateral_beats_least_squares_on_a_lone_sphere(size):
     """A sphere alone (no depth discontinuity; grazing normals at its rim) from noisy 8-bit normals: the
     rim's pairs weigh little, and nothing else bends the surface."""
-    K = torch.tensor([[size * 1.2, 0, (size - 1) / 2], [0, size * 1.2, (size - 1) / 2], [0, 0, 1]], dtype=torch.float64)
+    c = (size - 1) / 2
+    K = torch.tensor([[size * 1.2, 0, c], [0, size * 1.2, c], [0, 0, 1]], dtype=torch.float64)
     depth, normals, mask = raycast_primitives([Primitive("ball", (0.2, 0.1, 3.0), (0.9, 0.0, 0.0))], K, size, size)
     given = degrade_normals(normals, mask, 0.01)
     errors = [depth_error(integrate(given, mask, K=K).depth, depth, mask).mean_abs
@@ -172,7 +173,8 @@ def test_bilateral_beats_least_squares_on_a_lone_sphere(size):
 
 
 def test_conjugate_gradients_match_a_direct_solve():
-    from scipy.sparse import random as sparse_random, identity
+    from scipy.sparse import identity
+    from scipy.sparse import random as sparse_random
 
     from neuralsurf.photometric.integration import _pcg
 

@@ -366,7 +366,9 @@ def integrate_bilateral(
     dtype = normals.dtype if normals.is_floating_point() else torch.float32
     # the depth: least squares' centred equations, each pair weighted as the reweighting left it
     A, b = _least_squares_system(normals, mask, K, pixel_size, MAX_SLOPE)
-    pair_weights = np.concatenate([wf * pairs.nt_a**2 + wb * pairs.nt_b**2 for (wf, wb), pairs in zip(weights, blocks)])
+    pair_weights = np.concatenate(
+        [wf * pairs.nt_a**2 + wb * pairs.nt_b**2 for (wf, wb), pairs in zip(weights, blocks)]
+    )
     t = _solve((A.T @ diags(pair_weights) @ A).tocsr(), A.T @ (pair_weights * b))
     return _finish(t, mask, K, done, dtype)
 
