@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.io.meshes import vertex_normals
 from neuralsurf.scenes.scanner import intrinsics_from_fov, orbit_cameras
 from neuralsurf.structures import Mesh, PhotometricCapture, check_intrinsics
 
@@ -107,16 +108,6 @@ def checker_albedo(period: float, low: float = 0.3, high: float = 0.9) -> Callab
         return torch.where(parity == 0, low, high).to(points.dtype)
 
     return albedo
-
-
-def vertex_normals(mesh: Mesh) -> Tensor:
-    """Float64[Tensor, "v 3"]: unit vertex normals, the area-weighted mean of the adjacent face normals."""
-    vertices = mesh.vertices.detach().double().cpu()
-    faces = mesh.faces.cpu()
-    a, b, c = vertices[faces].unbind(1)
-    weighted = torch.linalg.cross(b - a, c - a)  # length = twice the area
-    normals = torch.zeros_like(vertices).index_add_(0, faces.reshape(-1), weighted.repeat_interleave(3, 0))
-    return torch.nn.functional.normalize(normals, dim=-1)
 
 
 def _albedo_values(albedo, points: Tensor, faces: Tensor, bary: Tensor, mesh: Mesh) -> Tensor:
@@ -235,7 +226,10 @@ def render_photometric(
         o3d.core.Tensor((vertices - center).float().numpy()), o3d.core.Tensor(faces.numpy().astype(np.uint32))
     )
     face_normals = mesh.face_normals().detach().double().cpu()
-    corner_normals = vertex_normals(mesh)[faces] if smooth else None  # (f, 3, 3)
+    corner_normals = None  # (f, 3, 3)
+    if smooth:
+        corner_normals = torch.from_numpy(vertex_normals(mesh.vertices.detach().double().cpu().numpy(),
+                                                         mesh.faces.cpu().numpy()))[faces]
     size = float((vertices.max(0).values - vertices.min(0).values).norm())
     generator = torch.Generator().manual_seed(int(seed))
     v, u = torch.meshgrid(
