@@ -252,9 +252,9 @@ def boundary_faces(mesh: Mesh, offset: float = 1e-3, **options) -> Tensor:
        0 for a stray one. Patches scored 3/4 or more, or under 1/4, are removed and the rest scored
        again without them, until none is.
     2. Of the faces left, those where the winding number (of the faces left) is at least 1/2 on
-       exactly one side, `offset` (a fraction of the longest side) along the normal from the centroid:
-       faces of closed parts inside others (winding number 2 and 1) are not. Keep `offset` below half
-       the thinnest wall.
+       exactly one side, `offset` (a fraction of the longest side) along the normal from the centroid,
+       or a quarter of the face's height where it is narrower (slivers): faces of closed parts inside
+       others (winding number 2 and 1) are not. Keep `offset` below half the thinnest wall.
     """
     if mesh.is_empty:
         raise InputError("boundary_faces needs a mesh with faces, got an empty mesh")
@@ -266,7 +266,11 @@ def boundary_faces(mesh: Mesh, offset: float = 1e-3, **options) -> Tensor:
     extent = float((vertices.max(0).values - vertices.min(0).values).max().clamp_min(1e-12))
     corners = vertices[faces]
     cross = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    step = offset * extent * torch.nn.functional.normalize(cross, dim=-1)
+    # a face's own jump of 1 is seen only within about its width: a sliver narrower than the offset
+    # (marching cubes makes them on thin rims) is tested at a quarter of its height instead
+    height = cross.norm(dim=-1) / (corners - corners.roll(1, 1)).norm(dim=-1).amax(-1).clamp_min(1e-300)
+    distance = torch.clamp(height / 4, max=offset * extent)
+    step = distance[:, None] * torch.nn.functional.normalize(cross, dim=-1)
     sides = torch.cat([corners.mean(1) + step, corners.mean(1) - step])  # front, back
     wind = winding_number(sides, Mesh(vertices, faces), **options)
     active = torch.ones(patches, dtype=torch.bool)
