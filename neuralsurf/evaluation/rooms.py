@@ -141,8 +141,8 @@ def neural_voxels(scene: Scene, *, voxel_fraction: float = 1 / 512, truncation_v
     VoxelSDF, fitted to the rays of every `pixel_stride`-th pixel (`ray_equations`, `solve_on_rays`), meshed on
     its observed voxels (`voxel_mesh`). `seed`, `run_dir` and `config` are taken as every method takes them; the
     solve is deterministic and writes nothing."""
-    if scene.frames is None or not scene.depth_input:
-        raise NotApplicable("the voxel fit needs depth frames as the input")
+    if scene.frames is None:
+        raise NotApplicable("the voxel fit needs depth frames; this scene is a point cloud")
     device = str(resolve_device(device))
     bounds, size = input_box(scene, margin_fraction)
     voxel = voxel_fraction * size
