@@ -24,7 +24,8 @@ The defaults are sized for a 2-core CPU: 3 x 8 training and 3 x 4 test shapes, a
 repeats; more shapes and steps raise both IoUs. Seed 0 took 15.8 min (peak RSS 0.87 GB) with
 `--threads 1` on the 2-core CPU, busy (load average 7.5, two other evaluations running): labels of
 the damaged caches at most 0.2 % wrong in any class and kind of sample, IoU damaged / clean 0.726 /
-0.718 = 1.012 (repeats 1.030, 1.003, 1.003). The figures of every seed are in docs/benchmarks.md.
+0.718 = 1.012 (repeats 1.030, 1.003, 1.003); seeds 1 and 2: 1.013 and 0.999 in 15.0 and 16.2 min
+(single runs 0.939-1.119). The tables are in docs/benchmarks.md ("Priors from damaged meshes").
 """
 
 from __future__ import annotations
