@@ -44,7 +44,7 @@ from neuralsurf.geometry import (
 )
 from neuralsurf.losses import eikonal_loss
 from neuralsurf.observations.base import NotObserved, Observation, Sampler, check_weights
-from neuralsurf.observations.observed import ObservedSurface, frame_readings, observed_points, stride_frames
+from neuralsurf.observations.observed import ObservedSurface, frame_readings, observed_points
 from neuralsurf.sampling import cloud_spacing, point_areas, winding_number
 from neuralsurf.strategies import choose, names, register
 from neuralsurf.structures import DepthFrames, Normalization
@@ -85,23 +85,27 @@ class Rays:
 
 
 def depth_rays(frames: DepthFrames, sigma_of_depth=kinect_sigma, max_depth_jump: float = 0.05,
-               chunk: int = 8) -> Rays:
-    """World-frame rays of the valid pixels of `frames`, ordered by frame, row, column.
+               chunk: int = 8, pixel_stride: int = 1) -> Rays:
+    """World-frame rays of the valid pixels of `frames` at every `pixel_stride`-th row and column, ordered
+    by frame, row, column.
 
     The measured z-depth becomes a distance along the ray (z |d| for the camera-frame direction
     d = K^-1 (u, v, 1)); `sigma_of_depth` maps z-depth to the axial noise sigma (metres), scaled
-    the same way. `chunk` frames are processed at once (bounds memory, same result). Raises
-    InputError when no pixel is valid.
+    the same way. Normals and their confidence come from the full-resolution depth map (neighbours one
+    pixel away, `geometry._depth_normals`) whatever the stride. `chunk` frames are processed at once
+    (bounds memory, same result). Raises InputError when no pixel is valid.
     """
     if not (frames.depth > 0).any():
         raise InputError(f"all {frames.depth.numel()} depth pixels of the {len(frames)} frames are missing (0); "
                          f"nothing to fit: check the depth scale (metres) and the invalid-value code")
+    s = pixel_stride
     parts = []
     for start in range(0, len(frames), chunk):
-        depth, K = frames.depth[start : start + chunk], frames.K[start : start + chunk]
+        full, K = frames.depth[start : start + chunk], frames.K[start : start + chunk]
+        normals, has_normal = _depth_normals(backproject_depth_to_camera(full, K), max_depth_jump, s)
+        depth = full[:, ::s, ::s]
         valid = depth > 0
-        normals, has_normal = _depth_normals(backproject_depth_to_camera(depth, K), max_depth_jump)
-        unit_depth = backproject_depth_to_camera(torch.ones_like(depth), K)  # camera-frame rays at z = 1
+        unit_depth = backproject_depth_to_camera(torch.ones_like(full), K)[:, ::s, ::s]  # camera rays at z = 1
         length = unit_depth.norm(dim=-1)  # ray length per unit z-depth
         directions = unit_depth / length[..., None]
         cosine = torch.where(has_normal, (normals * directions).sum(-1).abs(), torch.ones_like(length))
@@ -396,9 +400,10 @@ class DepthRays(Observation):
     surface, and their neighbours (`observed.ObservedSurface`; thin gaps and silhouettes get labelled points,
     not only the empty box); 0: the whole pool uniform in the box."""
     pixel_stride: int = 1
-    """Rays of every this-many-th pixel along both image axes only (`stride_frames`): a room's frames overlap,
-    so 1 / stride^2 of the pixels still cover it, and building and denoising the rays costs that much less
-    time and memory. A larger stride is taken where the rays would exceed `max_rays`."""
+    """Rays of every this-many-th pixel along both image axes only (`depth_rays`; their normals from the
+    full-resolution depth map): a room's frames overlap, so 1 / stride^2 of the pixels still cover it, and
+    building and denoising the rays costs that much less time and memory. A larger stride is taken where the
+    rays would exceed `max_rays`."""
     noise_model: str | Callable = "kinect"
     """Noise sigma of a depth reading, a "depth sigma" strategy: "kinect" (Nguyen et al. 2012: 1.2 mm at
     0.4 m, growing with the square of the depth), "constant" (`sigma` metres), or a function (z, sigma) -> sigma."""
@@ -457,11 +462,11 @@ class DepthRays(Observation):
                           f"{strided_count(self.frames.depth, self.pixel_stride):,} valid pixels at pixel_stride="
                           f"{self.pixel_stride}, more than max_rays={self.max_rays:,}: fitting the rays at "
                           f"pixel_stride={stride} ({strided_count(self.frames.depth, stride):,} rays); "
-                          f"raise max_rays (memory grows with it) or set pixel_stride to choose", stacklevel=2)
+                          f"raise max_rays (memory grows with it) or set pixel_stride to choose", stacklevel=3)
         return stride
 
     def _world_rays(self) -> Rays:
-        return depth_rays(stride_frames(self.frames.to("cpu"), self.stride), self._sigma_of_depth())
+        return depth_rays(self.frames.to("cpu"), self._sigma_of_depth(), pixel_stride=self.stride)
 
     def bounds(self) -> Tensor:
         return hit_bounds(self._world_rays())
