@@ -227,17 +227,17 @@ def parity_caches(collection: FolderCollection, out: Path, n_sdf: int, seed: int
         mesh = read_mesh(entry.path)
         mesh = Normalization.from_points(mesh.vertices).mesh_to_unit(mesh)
         generator = torch.Generator().manual_seed(seed + record.index)
-        n_volume = round(n_sdf * recipe.volume_fraction)
-        surface, _ = sample_mesh_surface(mesh, n_sdf - n_volume, generator)
+        surface, _ = sample_mesh_surface(mesh, n_sdf - recipe.n_volume, generator)
         sigmas = torch.tensor(recipe.near_sigmas, dtype=torch.float64)[torch.arange(len(surface)) % 2]
         near = surface + sigmas[:, None] * torch.randn(surface.shape, dtype=torch.float64, generator=generator)
-        volume = (2 * torch.rand(n_volume, 3, dtype=torch.float64, generator=generator) - 1) * (0.5 + recipe.padding)
+        volume = (2 * torch.rand(recipe.n_volume, 3, dtype=torch.float64, generator=generator) - 1) * (0.5 + recipe.padding)
         points = torch.cat([near, volume])
         distance = point_to_mesh_distance(points, mesh)
         values = torch.where(mesh_contains(points, mesh), -distance, distance)
         write_npz(path, {"sdf_points": points.float().numpy(), "sdf_values": values.float().numpy()})
     write_manifest(out, collection.records("train"), recipe)
     return out
+
 
 if __name__ == "__main__":
     main()

@@ -268,16 +268,18 @@ def boundary_faces(mesh: Mesh, offset: float = 1e-3, **options) -> Tensor:
     cross = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     # a face's own jump of 1 is seen only within about its width: a sliver narrower than the offset
     # (marching cubes makes them on thin rims) is tested at a quarter of its height instead
-    height = cross.norm(dim=-1) / (corners - corners.roll(1, 1)).norm(dim=-1).amax(-1).clamp_min(1e-300)
+    area = cross.norm(dim=-1)  # twice each face's area
+    height = area / (corners - corners.roll(1, 1)).norm(dim=-1).amax(-1).clamp_min(1e-300)
     distance = torch.clamp(height / 4, max=offset * extent)
     step = distance[:, None] * torch.nn.functional.normalize(cross, dim=-1)
-    sides = torch.cat([corners.mean(1) + step, corners.mean(1) - step])  # front, back
+    centroid = corners.mean(1)
+    sides = torch.cat([centroid + step, centroid - step])  # front, back
     wind = winding_number(sides, Mesh(vertices, faces), **options)
     active = torch.ones(patches, dtype=torch.bool)
     while True:
         front, back = wind.chunk(2)
-        score = _weighted_median((front + back)[active[patch]] / 2, cross.norm(dim=-1)[active[patch]],
-                                 patch[active[patch]], patches)
+        kept = active[patch]
+        score = _weighted_median((front + back)[kept] / 2, area[kept], patch[kept], patches)
         sheet = active & candidate & ((score >= 0.75) | (score < 0.25))
         if not sheet.any():
             break

@@ -354,11 +354,11 @@ def integrate_bilateral(
             part = pairs.D.T @ diags(weight) @ pairs.D
             system = part if system is None else system + part
             rhs -= pairs.D.T @ (wf * pairs.nt_a * pairs.m_a + wb * pairs.nt_b * pairs.m_b)
-            weights.append((wf, wb))
+            weights.append((wf, wb, weight))
         t, factor = _solve_reweighted(system.tocsr(), rhs, t, factor)
         jumps = [pairs.D @ t for pairs in blocks]
         energy = 0.0
-        for jump, (wf, wb), pairs in zip(jumps, weights, blocks):
+        for jump, (wf, wb, _), pairs in zip(jumps, weights, blocks):
             energy += float((wf * (pairs.nt_a * jump + pairs.m_a) ** 2 + wb * (pairs.nt_b * jump + pairs.m_b) ** 2).sum())
         energies.append(energy)
         if len(energies) > window and abs(energies[-1 - window] - energy) <= window * tolerance * energy:
@@ -366,9 +366,7 @@ def integrate_bilateral(
     dtype = normals.dtype if normals.is_floating_point() else torch.float32
     # the depth: least squares' centred equations, each pair weighted as the reweighting left it
     A, b = _least_squares_system(normals, mask, K, pixel_size, MAX_SLOPE)
-    pair_weights = np.concatenate(
-        [wf * pairs.nt_a**2 + wb * pairs.nt_b**2 for (wf, wb), pairs in zip(weights, blocks)]
-    )
+    pair_weights = np.concatenate([weight for *_, weight in weights])
     t = _solve((A.T @ diags(pair_weights) @ A).tocsr(), A.T @ (pair_weights * b))
     return _finish(t, mask, K, done, dtype)
 
