@@ -22,6 +22,7 @@ import hydra
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from neuralsurf.baselines import register_meshes
 from neuralsurf.devices import resolve_device
 from neuralsurf.distributed import (
     barrier,
@@ -40,11 +41,12 @@ from neuralsurf.evaluation.runner import environment, seed_everything
 from neuralsurf.evaluation.store import cached_scene, rebuild_report, settings_key
 from neuralsurf.io import read_mesh, write_mesh
 from neuralsurf.io.meshes import mesh_format
-from neuralsurf.metrics import depth_metrics, evaluate_mesh
+from neuralsurf.metrics import box_overlap, depth_metrics, evaluate_mesh, json_ready
 from neuralsurf.models import AutoDecoder
 from neuralsurf.priors import ShapeCollection, score_completions, train_prior
 from neuralsurf.priors.folders import FolderCollection
 from neuralsurf.runlock import busy_message, run_lock
+from neuralsurf.structures import Mesh
 from neuralsurf.training import CHECKPOINT_NAME, fit, load_checkpoint
 
 log = logging.getLogger("neuralsurf")
@@ -179,7 +181,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
             metrics.update(depth_metrics(mesh, scene.held_out))
         metrics = {**metrics, "watertight": mesh.is_watertight, "fit_seconds": result.seconds,
                    "extract_seconds": extract_seconds, "steps": result.steps}
-        (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
+        (run_dir / "metrics.json").write_text(json.dumps(json_ready(metrics), indent=2, default=float,
+                                                         allow_nan=False))
         _log_hparams(run_dir, cfg, metrics)
         log.info("scene %s: mesh written to %s\n%s", scene.name, mesh_path.resolve(), metrics_table(metrics))
         return metrics
@@ -225,7 +228,8 @@ def train_collection(cfg: DictConfig, collection: ShapeCollection | FolderCollec
         interpolation_picture(result.model, 0, len(result.model.codes) - 1, run_dir / "interpolation.png",
                               resolution=cfg.extract.resolution)
     metrics = {**means, "fit_seconds": result.seconds, "steps": result.steps}
-    (run_dir / "metrics.json").write_text(json.dumps({**metrics, "per_shape": per_shape}, indent=2, default=float))
+    (run_dir / "metrics.json").write_text(json.dumps(json_ready({**metrics, "per_shape": per_shape}), indent=2,
+                                                     default=float, allow_nan=False))
     _log_hparams(run_dir, cfg, metrics)
     log.info("%s: %d test shapes completed from %s noisy points; mesh of %s in %s\n%s", collection.name,
              len(per_shape), score.get("n_points", 3000), per_shape[0]["shape"], run_dir.resolve(),
@@ -236,6 +240,7 @@ def train_collection(cfg: DictConfig, collection: ShapeCollection | FolderCollec
 def _log_hparams(run_dir: Path, cfg: DictConfig, metrics: dict) -> None:
     """Final metrics beside the flattened hyper-parameters, in TensorBoard's HPARAMS tab."""
     from torch.utils.tensorboard import SummaryWriter
+    from torch.utils.tensorboard.summary import hparams as hparams_summary
 
     flat = json.loads(json.dumps(OmegaConf.to_container(cfg, resolve=True), default=str))
     hparams = {}
@@ -249,8 +254,12 @@ def _log_hparams(run_dir: Path, cfg: DictConfig, metrics: dict) -> None:
 
     walk("", flat)
     scores = {f"metric/{k}": float(v) for k, v in metrics.items() if isinstance(v, (int, float))}
+    # add_hparams would write into a sub-run of its own: the run would be listed twice
     with SummaryWriter(str(run_dir / "tensorboard")) as writer:
-        writer.add_hparams(hparams, scores, run_name="hparams")
+        for summary in hparams_summary(hparams, scores):
+            writer.file_writer.add_summary(summary)
+        for name, value in scores.items():
+            writer.add_scalar(name, value)
 
 
 def evaluate(cfg: DictConfig) -> list[dict]:
@@ -373,6 +382,27 @@ def check_run_dir_argument(argv: list[str]) -> None:
                          f"({error.strerror or error}); choose a folder you can write to")
 
 
+def check_override_keys(argv: list[str], config_name: str) -> None:
+    """Exit with the config groups and options when an override's first key names none of them
+    (`dat=file`): Hydra would suggest `+dat=file`, which adds a key nothing reads."""
+    configs = Path(__file__).parent / "configs"
+    primary = OmegaConf.load(configs / f"{config_name}.yaml")
+    groups = [next(iter(entry)) for entry in primary.defaults if isinstance(entry, DictConfig)
+              and "@" not in next(iter(entry))]
+    options = [key for key in primary if key not in ("defaults", "hydra")]
+    known = {"hydra", *options, *(path.name for path in configs.iterdir() if path.is_dir())}
+    for path in configs.glob("*/*.yaml"):  # keys that options of a group add at the top level
+        if "@package _global_" in path.read_text().split("\n", 1)[0]:
+            known.update(key for key in OmegaConf.load(path) if key != "defaults")
+    for argument in argv:
+        if argument.startswith(("-", "+", "~")) or "=" not in argument:
+            continue
+        first = argument.split("=", 1)[0].replace("/", ".").replace("@", ".").split(".")[0]
+        if first not in known:
+            sys.exit(f"error: {argument}: {first!r} is not a config group or option. Config groups: "
+                     f"{', '.join(groups)}; options: {', '.join(options)} (docs/configs.md lists them all)")
+
+
 def target_error(error: BaseException) -> BaseException:
     """The error a config's target raised, behind Hydra's "Error in call to target" wrappers."""
     from hydra.errors import InstantiationException
@@ -427,6 +457,7 @@ def reporting_errors(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig]
 def _hydra_main(task: Callable[[DictConfig], Any], config_name: str) -> None:
     """Hydra's command line around `task`, with Python's warnings in the run's log."""
     check_run_dir_argument(sys.argv[1:])
+    check_override_keys(sys.argv[1:], config_name)
     logging.captureWarnings(True)
     hydra.main(version_base="1.3", config_path="configs", config_name=config_name)(reporting_errors(task))()
 
@@ -459,11 +490,28 @@ def score_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--samples", type=int, default=100_000, help="surface samples per mesh (default 100000)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the surface samples (default 0)")
     parser.add_argument("--json", action="store_true", help="print JSON instead of a Markdown table")
+    parser.add_argument("--align", action="store_true",
+                        help="first move PRED onto GT rigidly (neuralsurf.baselines.register_meshes: box centres "
+                             "matched, then ICP of surface samples); for meshes in different frames")
     args = parser.parse_args(argv)
     try:
-        metrics = evaluate_mesh(read_mesh(args.pred), read_mesh(args.gt), n_samples=args.samples, seed=args.seed)
+        pred, gt = read_mesh(args.pred), read_mesh(args.gt)
+        if args.align:
+            registration = register_meshes(pred, gt, seed=args.seed)
+            rotation, translation = registration.transform[:3, :3], registration.transform[:3, 3]
+            moved = (pred.vertices.double() @ rotation.T + translation).to(pred.vertices.dtype)
+            pred = Mesh(moved, pred.faces, pred.vertex_colors)
+            print(f"neuralsurf-score: aligned {args.pred} to {args.gt} (ICP fitness {registration.fitness:.3f}, "
+                  f"inlier RMSE {registration.inlier_rmse:.3g}); transform:\n{registration.transform.numpy()}",
+                  file=sys.stderr)
+        overlap = box_overlap(pred, gt)
+        if overlap < 0.5:
+            print(f"neuralsurf-score: warning: the bounding boxes of {args.pred} and {args.gt} overlap by only "
+                  f"{overlap:.0%}: the meshes are likely in different frames or units, and the scores measure "
+                  f"that offset; --align registers PRED to GT first", file=sys.stderr)
+        metrics = evaluate_mesh(pred, gt, n_samples=args.samples, seed=args.seed)
     except NeuralsurfError as error:
         print(f"neuralsurf-score: {error}", file=sys.stderr)
         return 1
-    print(json.dumps(metrics, indent=2) if args.json else metrics_table(metrics))
+    print(json.dumps(json_ready(metrics), indent=2, allow_nan=False) if args.json else metrics_table(metrics))
     return 0

@@ -34,6 +34,7 @@ from neuralsurf.structures import Mesh, Normalization, PointCloud
 
 __all__ = [
     "NearestNeighbours",
+    "box_overlap",
     "chamfer_distances",
     "chamfer_l1",
     "chamfer_l2",
@@ -45,6 +46,7 @@ __all__ = [
     "fscore_key",
     "hausdorff",
     "iou",
+    "json_ready",
     "normal_consistency",
 ]
 
@@ -400,3 +402,48 @@ def depth_metrics(mesh: Mesh, frames, threshold: float = 0.05) -> dict[str, floa
         "depth_error_median": float(error.median()) if len(error) else math.nan,
         "depth_completeness": float((seen & ((rendered - measured).abs() < threshold)).sum() / valid.sum().clamp_min(1)),
     }
+
+
+def box_overlap(a: Mesh, b: Mesh) -> float:
+    """How much the bounding boxes of two meshes overlap: the product over the axes of the length of
+    their common interval over the shorter of the two intervals (1 when one box holds the other, 0 when
+    they are apart). Meshes in different frames or units score near 0."""
+    share = 1.0
+    for lo_a, hi_a, lo_b, hi_b in zip(*a.vertices.double().aminmax(dim=0), *b.vertices.double().aminmax(dim=0)):
+        shorter = min(float(hi_a - lo_a), float(hi_b - lo_b))
+        common = max(0.0, min(float(hi_a), float(hi_b)) - max(float(lo_a), float(lo_b)))
+        longest = max(float(hi_a), float(hi_b)) - min(float(lo_a), float(lo_b))
+        if shorter > 1e-9 * max(longest, 1e-30):  # a flat axis: its intervals touch or they do not
+            share *= min(common / shorter, 1.0)
+        elif common == 0.0 and longest > 0.0:
+            return 0.0
+    return share
+
+
+UNDEFINED_REASONS = {
+    "iou": "volumetric IoU needs two watertight meshes (see pred_watertight, gt_watertight)",
+    "depth_error_mean": "the mesh is seen at no valid pixel of the held-out frames",
+    "depth_error_median": "the mesh is seen at no valid pixel of the held-out frames",
+}
+"""Why a metric of `evaluate_mesh` or `depth_metrics` can be NaN."""
+
+
+def json_ready(metrics: dict) -> dict:
+    """`metrics` with only valid JSON numbers: each NaN or infinite float becomes None and its name
+    is listed with the reason under "undefined" ({name: reason}); nested dicts and lists likewise."""
+    undefined: dict[str, str] = {}
+
+    def clean(value, name: str):
+        if isinstance(value, dict):
+            return {key: clean(item, key) for key, item in value.items()}
+        if isinstance(value, (list, tuple)):
+            return [clean(item, name) for item in value]
+        if hasattr(value, "item") and getattr(value, "ndim", None) == 0:  # a numpy or torch scalar
+            value = value.item()
+        if isinstance(value, float) and not math.isfinite(value):
+            undefined[name] = UNDEFINED_REASONS.get(name, f"not a finite number ({value})")
+            return None
+        return value
+
+    cleaned = clean(dict(metrics), "")
+    return {**cleaned, "undefined": undefined} if undefined else cleaned

@@ -8,6 +8,7 @@ import torch
 from neuralsurf.errors import InputError
 from neuralsurf.geometry import closest_on_mesh, cloud_from_mesh, point_to_mesh_distance
 from neuralsurf.metrics import (
+    box_overlap,
     chamfer_distances,
     chamfer_l1,
     chamfer_l2,
@@ -18,6 +19,7 @@ from neuralsurf.metrics import (
     fscore_key,
     hausdorff,
     iou,
+    json_ready,
     normal_consistency,
 )
 from neuralsurf.scenes.analytic import Box, Sphere, Torus
@@ -356,3 +358,27 @@ def test_empty_or_degenerate_meshes_raise_input_error():
         evaluate_mesh(flat, gt, n_samples=100)
     with pytest.raises(InputError, match="n_samples"):
         evaluate_mesh(gt, gt, n_samples=0)
+
+
+def test_json_ready_writes_nan_as_null_with_its_reason():
+    import json
+
+    metrics = {"iou": math.nan, "chamfer_l1": 0.5, "per_shape": [{"depth_error_mean": float("inf"), "n": 3}],
+               "count": torch.tensor(2.0)}
+    ready = json_ready(metrics)
+    text = json.dumps(ready, allow_nan=False)  # raises on a bare NaN
+    assert json.loads(text) == {"iou": None, "chamfer_l1": 0.5, "per_shape": [{"depth_error_mean": None, "n": 3}],
+                                "count": 2.0, "undefined": ready["undefined"]}
+    assert "watertight" in ready["undefined"]["iou"] and "held-out" in ready["undefined"]["depth_error_mean"]
+    assert json_ready({"a": 1.0}) == {"a": 1.0}  # nothing undefined: no extra key
+
+
+def test_box_overlap_is_one_for_nested_boxes_and_zero_for_boxes_apart():
+    box = Box(half_extents=(0.3, 0.2, 0.25)).mesh()
+
+    def moved(mesh, shift):
+        return Mesh(mesh.vertices + torch.tensor(shift, dtype=mesh.vertices.dtype), mesh.faces)
+
+    assert box_overlap(box, Box(half_extents=(0.1, 0.1, 0.1)).mesh()) == pytest.approx(1.0)
+    assert box_overlap(box, moved(box, [0.3, 0.0, 0.0])) == pytest.approx(0.5)  # half of x shared
+    assert box_overlap(box, moved(box, [2.0, 0.0, 0.0])) == 0.0

@@ -1,12 +1,14 @@
 """The installed package: console scripts, `python -m neuralsurf`, configs shipped inside the package."""
 
 import json
+import math
 import subprocess
 import sys
 import venv
 from pathlib import Path
 
 import pytest
+import torch
 
 from neuralsurf.cli import score_main
 from neuralsurf.io import write_mesh
@@ -77,3 +79,45 @@ def test_one_version_everywhere_and_a_public_api():
     assert f"\n## {neuralsurf.__version__}\n" in (REPO / "CHANGELOG.md").read_text()
     assert all(hasattr(neuralsurf, name) for name in neuralsurf.__all__)
     assert (Path(neuralsurf.__file__).parent / "py.typed").is_file()
+
+
+def test_score_warns_when_the_meshes_barely_overlap_and_align_moves_pred_onto_gt(tmp_path, capsys):
+    from neuralsurf.scenes.analytic import Box
+    from neuralsurf.structures import Mesh
+
+    gt = Box(half_extents=(0.3, 0.2, 0.25)).mesh()
+    angle = math.radians(8.0)
+    rotation = torch.tensor([[math.cos(angle), -math.sin(angle), 0], [math.sin(angle), math.cos(angle), 0], [0, 0, 1]])
+    moved = Mesh(gt.vertices @ rotation.T.to(gt.vertices) + torch.tensor([2.0, 1.0, 0.0]).to(gt.vertices), gt.faces)
+    write_mesh(tmp_path / "gt.ply", gt)
+    write_mesh(tmp_path / "pred.ply", moved)
+    files = [str(tmp_path / "pred.ply"), str(tmp_path / "gt.ply"), "--samples", "5000", "--json"]
+    assert score_main(files) == 0
+    out, err = capsys.readouterr()
+    assert "overlap by only 0%" in err and "--align" in err and json.loads(out)["fscore_1%"] == 0
+    assert score_main([*files, "--align"]) == 0
+    out, err = capsys.readouterr()
+    assert "overlap by only" not in err and "aligned" in err
+    assert json.loads(out)["chamfer_l1_exact"] < 1e-3  # fractions of the box's longest side
+
+
+@pytest.mark.subprocess
+def test_python_dash_m_help_exits_0():
+    done = subprocess.run([sys.executable, "-m", "neuralsurf", "--help"], capture_output=True, text=True, cwd=REPO,
+                          check=False)
+    assert done.returncode == 0 and "export" in done.stdout and "train,evaluate,score" in done.stdout
+
+
+def test_a_mistyped_config_group_is_answered_with_the_groups(monkeypatch):
+    from neuralsurf.cli import check_override_keys
+
+    with pytest.raises(SystemExit) as exit_:
+        check_override_keys(["dat=file", "data.path=scan.ply"], "train")
+    message = str(exit_.value.code)
+    assert "'dat' is not a config group or option" in message
+    assert "data, model, optimizer, trainer, extract, experiment" in message.replace("observation, ", "")
+    check_override_keys(["experiment=shapes_deepsdf", "score.latent_steps=5", "data.path=x", "+extra=1", "-m",
+                         "hydra.run.dir=out", "hydra/launcher=joblib", "seed=1", "observation.rays.n_rays=8"], "train")
+    check_override_keys(["suite=quick", "methods=[tsdf]", "method.tsdf.device=cpu", "results_dir=x"], "evaluate")
+    with pytest.raises(SystemExit, match="'suit' is not a config group or option.*suite"):
+        check_override_keys(["suit=quick"], "evaluate")

@@ -5,6 +5,7 @@ from neuralsurf.baselines.icp import (
     evaluate_registration,
     register_global,
     register_icp,
+    register_meshes,
     register_multiway,
 )
 from neuralsurf.baselines.poisson import reconstruct_poisson
@@ -18,5 +19,6 @@ __all__ = [
     "reconstruct_poisson",
     "register_global",
     "register_icp",
+    "register_meshes",
     "register_multiway",
 ]

@@ -32,7 +32,7 @@ from neuralsurf import geometry
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.progress import progress_bar
 from neuralsurf.strategies import choose, register
-from neuralsurf.structures import PointCloud
+from neuralsurf.structures import Mesh, PointCloud
 
 __all__ = [
     "Registration",
@@ -528,6 +528,25 @@ def register_icp(
                          _open3d_device(device))
     transform, fitness, rmse, iterations = run(problem)
     return Registration(torch.from_numpy(transform), fitness, rmse, iterations)
+
+
+def register_meshes(source: Mesh, target: Mesh, n_points: int = 20_000, seed: int = 0,
+                    max_distance_fraction: float = 0.02, max_iterations: int = 50) -> Registration:
+    """The rigid motion of `source` onto `target` (meshes in different frames, not too different in pose):
+    the centre of source's bounding box moved onto target's, then point-to-plane `register_icp` of
+    `n_points` surface samples of each, coarse to fine (voxels of 4, 2 and 1 % of target's longest side,
+    correspondences within `max_distance_fraction` of it at the finest level, twice and four times that
+    at the coarser ones). `seed` draws the samples. Returns the whole motion (centring included)."""
+    generator = torch.Generator().manual_seed(seed)
+    clouds = [PointCloud(*geometry.sample_mesh_surface(mesh, n_points, generator)) for mesh in (source, target)]
+    (source_lo, source_hi), (lo, hi) = source.vertices.double().aminmax(dim=0), target.vertices.double().aminmax(dim=0)
+    size = float((hi - lo).max())
+    init = torch.eye(4, dtype=torch.float64)
+    init[:3, 3] = ((lo + hi) - (source_lo + source_hi)).cpu() / 2
+    voxel = max_distance_fraction * size / 2
+    return register_icp(clouds[0], clouds[1], max_distance=max_distance_fraction * size, init=init,
+                        method="point_to_plane", voxel_sizes=(4 * voxel, 2 * voxel, voxel),
+                        max_iterations=max_iterations)
 
 
 @dataclass

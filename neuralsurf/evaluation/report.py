@@ -16,6 +16,7 @@ from typing import Any
 from neuralsurf.evaluation.distances import PERCENTILE, write_error_views
 from neuralsurf.evaluation.render import bar_chart, css_gradient, scatter_plot
 from neuralsurf.locks import replaced, write_atomic
+from neuralsurf.metrics import json_ready
 
 TABLE_COLUMNS = [("method", "method"), ("scene", "scene"), ("status", "status"),
                  ("chamfer_l1", "Chamfer-L1"), ("chamfer_l1_exact", "Chamfer-L1 exact"),
@@ -72,8 +73,7 @@ def write_tables(rows: list[dict[str, Any]], run_dir: Path, extra: dict[str, Any
         writer = csv.DictWriter(handle, fieldnames=columns, extrasaction="ignore")
         writer.writeheader()
         writer.writerows(rows)
-    clean = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
-             for row in rows]
+    clean = [json_ready(row) for row in rows]  # NaN as null, with the reason under "undefined"
     write_atomic(run_dir / "results.json", json.dumps({"rows": clean, **(extra or {})}, indent=2, default=str))
 
 

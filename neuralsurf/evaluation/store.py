@@ -26,6 +26,7 @@ from typing import Any
 from neuralsurf.evaluation.filenames import row_stem, safe_name
 from neuralsurf.evaluation.report import write_report
 from neuralsurf.locks import file_lock, replaced, write_atomic
+from neuralsurf.metrics import json_ready
 
 ROWS = "rows"
 """The folder of the row files inside a results folder."""
@@ -56,7 +57,7 @@ def store_row(results_dir: str | Path, row: dict[str, Any], key: str | None, set
     """Write one row (a dict with "scene" and "method") atomically; `final` rows with a `key` are reused
     by later runs with the same key. Returns the row file's path."""
     path = row_path(results_dir, row["scene"], row["method"])
-    record = {"key": key, "settings": settings, "final": bool(final), "row": row}
+    record = {"key": key, "settings": settings, "final": bool(final), "row": json_ready(row)}  # NaN: null + reason
     return write_atomic(path, json.dumps(record, indent=1, default=_plain))
 
 
@@ -67,6 +68,9 @@ def _read(path: Path) -> dict[str, Any] | None:
     except (OSError, ValueError) as error:
         log.warning("ignoring %s: not a readable row file (%s); delete it", path, error)
         return None
+    row = record.get("row") if isinstance(record, dict) else None
+    if isinstance(row, dict) and isinstance(row.get("undefined"), dict):  # written as null by store_row
+        row.update({name: math.nan for name in row.pop("undefined") if row.get(name) is None})
     if not (isinstance(record, dict) and isinstance(record.get("row"), dict)
             and {"scene", "method", "status"} <= set(record["row"])):
         log.warning("ignoring %s: not a row file written by neuralsurf evaluate; delete it", path)
