@@ -1,17 +1,22 @@
 #!/usr/bin/env bash
 # Install neuralsurf into a project virtual environment on a Debian/Ubuntu machine with Python 3.11.
-#   ./install.sh        the library, its dependencies and the sample data (the Stanford bunny)
+#   ./install.sh        the library, its dependencies and the sample data (the Stanford bunny, from the GPL-3
+#                       pymeshlab wheel: the `data` extra, which the demo experiment=bunny_sdf needs)
 #   ./install.sh dev    the same plus the test tools
+#   ./install.sh lean   the library and its dependencies only: no GPL code, no bunny
 # Uses the active virtual environment if there is one, else makes ./.venv with python3 (PEP 668
 # systems refuse pip on the system interpreter). PYTHON chooses the interpreter that makes .venv.
 # Safe to run again.
 set -euo pipefail
 cd "$(dirname "$(readlink -f "$0")")"
 PYTHON="${PYTHON:-python3}"
-extras="data"
-[ "${1:-}" = "dev" ] && extras="data,dev"
-
 fail() { echo "install.sh: $*" >&2; exit 1; }
+case "${1:-}" in
+  "") extras="[data]" ;;
+  dev) extras="[data,dev]" ;;
+  lean) extras="" ;;
+  *) fail "unknown argument '$1': run ./install.sh, ./install.sh dev or ./install.sh lean" ;;
+esac
 command -v "$PYTHON" >/dev/null || fail "no $PYTHON found; install Python 3.11 (Debian/Ubuntu: apt-get install python3) or set PYTHON"
 "$PYTHON" -c "import sys; sys.exit(sys.version_info < (3, 11))" \
   || fail "$("$PYTHON" --version 2>&1) is too old; neuralsurf needs Python 3.11 or newer (set PYTHON=python3.11)"
@@ -56,7 +61,7 @@ if ! "$python" -c "import torch" 2>/dev/null; then
   command -v nvidia-smi >/dev/null || cpu_index=(--extra-index-url https://download.pytorch.org/whl/cpu)
   "$python" -m pip install "torch==2.13.0" "${cpu_index[@]}" || fail "pip could not install torch==2.13.0 (see above)"
 fi
-"$python" -m pip install -e ".[$extras]" || fail "pip could not install neuralsurf[$extras] (see above)"
+"$python" -m pip install -e ".$extras" || fail "pip could not install neuralsurf$extras (see above)"
 
 if [ -z "${VIRTUAL_ENV:-}" ]; then
   echo "install.sh: neuralsurf is installed in $(pwd)/.venv: run .venv/bin/python train.py ..., or" \

@@ -241,7 +241,9 @@ def _import_viser():
     try:
         import viser
     except ImportError:
-        raise MissingDependencyError("neuralsurf-view needs viser: pip install 'neuralsurf[view]'") from None
+        raise MissingDependencyError("neuralsurf-view needs viser, the view extra: pip install -e '.[view]' "
+                                     "in a clone of neuralsurf (pip install 'neuralsurf[view]' from a "
+                                     "package index)") from None
     return viser
 
 

@@ -121,3 +121,36 @@ def test_a_mistyped_config_group_is_answered_with_the_groups(monkeypatch):
     check_override_keys(["suite=quick", "methods=[tsdf]", "method.tsdf.device=cpu", "results_dir=x"], "evaluate")
     with pytest.raises(SystemExit, match="'suit' is not a config group or option.*suite"):
         check_override_keys(["suit=quick"], "evaluate")
+
+
+def test_install_sh_names_its_choices_for_an_unknown_argument():
+    done = subprocess.run(["bash", str(REPO / "install.sh"), "--lean"], capture_output=True, text=True, check=False)
+    assert done.returncode == 1 and "./install.sh lean" in done.stderr and "./install.sh dev" in done.stderr
+
+
+def test_the_bunny_without_pymeshlab_says_how_to_add_it(monkeypatch):
+    import importlib
+
+    from neuralsurf.errors import MissingDependencyError
+
+    bunny = importlib.import_module("neuralsurf.scenes.bunny")
+
+    monkeypatch.setattr(bunny, "find_spec", lambda name: None)
+    with pytest.raises(MissingDependencyError, match=r"pip install -e '\.\[data\]' in a clone"):
+        bunny.bunny_path()
+
+
+def test_every_imported_package_is_declared():
+    import importlib.metadata
+    import re
+
+    declared = {re.split(r"[<>=\[ ]", requirement)[0].lower().replace("_", "-")
+                for requirement in importlib.metadata.requires("neuralsurf") or []}
+    imported = set()
+    for path in (REPO / "neuralsurf").rglob("*.py"):
+        imported |= set(re.findall(r"^\s*(?:import|from) ([a-zA-Z_]\w*)", path.read_text(), re.MULTILINE))
+    distributions = importlib.metadata.packages_distributions()
+    third_party = {name for name in imported if name in distributions and name != "neuralsurf"}
+    undeclared = {name for name in third_party
+                  if not {d.lower().replace("_", "-") for d in distributions[name]} & declared}
+    assert not undeclared, f"imported but not declared in pyproject.toml: {sorted(undeclared)}"

@@ -131,6 +131,8 @@ def with_tiny_settings(command: str, cwd: Path | None = None) -> str:
             extra = TINY_TRAIN + (tiny_overrides(call, cwd) if cwd is not None else [])
         elif re.search(r"(evaluate\.py|neuralsurf-evaluate|-m neuralsurf evaluate)(\s|$)", call):
             extra = TINY_EVALUATE
+        elif re.search(r"(neuralsurf-export|-m neuralsurf export)(\s|$)", call):
+            return re.sub(r"--resolution \d+", "--resolution 32", call)
         else:
             return call
         return f"{call.rstrip()} {' '.join(extra)}"
@@ -196,6 +198,13 @@ def test_readme_command_runs(command, workspace):
         pytest.importorskip("viser", reason="the view extra is not installed: pip install -e '.[view]'")
         if not (Path(sys.executable).parent / "neuralsurf-view").is_file():
             pytest.skip("the neuralsurf-view script is not installed in this environment: run ./install.sh again")
+    if command.split()[0] == "neuralsurf-export":
+        if not (Path(sys.executable).parent / "neuralsurf-export").is_file():
+            pytest.skip("the neuralsurf-export script is not installed in this environment: run ./install.sh again")
+        run_dir = workspace / command.split()[1]
+        if not (run_dir / "checkpoints" / "last.pt").is_file():  # the README's run before it was left out
+            done = run(with_tiny_settings(f"python train.py experiment=sphere_sdf hydra.run.dir={run_dir}"), workspace)
+            assert done.returncode == 0, done.stderr[-3000:]
     if command.split()[0] in ("tensorboard", "neuralsurf-view"):
         serves(command, workspace)
         return
@@ -224,6 +233,8 @@ def test_tiny_settings_go_after_every_train_and_evaluate_call():
     assert command.endswith("experiment=bunny_sdf " + " ".join(TINY_TRAIN))
     assert with_tiny_settings("python evaluate.py suite=depth").endswith("suite=depth suite=tiny render_size=64")
     assert with_tiny_settings("neuralsurf-score mesh.ply gt.ply") == "neuralsurf-score mesh.ply gt.ply"
+    assert with_tiny_settings("neuralsurf-export run --resolution 512 --format glb") == \
+        "neuralsurf-export run --resolution 32 --format glb"
 
 
 @pytest.mark.subprocess

@@ -16,8 +16,9 @@ def bunny_path() -> Path:
     spec = find_spec("pymeshlab")
     if spec is None or not spec.submodule_search_locations:
         raise MissingDependencyError(
-            "the Stanford bunny comes from the pymeshlab wheel, which is not installed; "
-            "install the sample-data extra: pip install 'neuralsurf[data]'"
+            "the Stanford bunny comes from the pymeshlab wheel (GPL-3), which is not installed; install the "
+            "sample-data extra: ./install.sh (not lean), or pip install -e '.[data]' in a clone of neuralsurf "
+            "(pip install 'neuralsurf[data]' from a package index)"
         )
     path = Path(next(iter(spec.submodule_search_locations))) / "tests" / "sample_meshes" / "bunny.obj"
     if not path.is_file():
