@@ -134,3 +134,15 @@ def test_console_script_and_python_dash_m(run, tmp_path):
     done = subprocess.run([sys.executable, "-m", "neuralsurf", "export", "--help"], capture_output=True, text=True,
                           check=False)
     assert done.returncode == 0 and "--resolution" in done.stdout and "--box" in done.stdout
+
+
+def test_a_room_is_meshed_near_its_input_and_an_object_everywhere():
+    from neuralsurf.export import meshed_near_input
+
+    rgbd = compose("train", ["~experiment", "data=rgbd", "data.path=x"])
+    assert meshed_near_input(OmegaConf.to_container(rgbd.data), {})  # rgbd_scene's near_distance default: 5 cm
+    assert not meshed_near_input({**OmegaConf.to_container(rgbd.data), "near_distance": None}, {})
+    sphere = OmegaConf.to_container(compose("train", ["~experiment", "data=sphere"]).data)
+    assert not meshed_near_input(sphere, {"resolution": 64})
+    assert meshed_near_input(sphere, {"observed_voxel": 0.04})
+    assert meshed_near_input(None, {"near_distance": 0.05})
