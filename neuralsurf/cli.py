@@ -23,6 +23,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from neuralsurf.baselines import register_meshes
+from neuralsurf.config_checks import check_config, check_sweep_arguments
 from neuralsurf.devices import resolve_device
 from neuralsurf.distributed import (
     barrier,
@@ -442,6 +443,7 @@ def reporting_errors(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig]
     @functools.wraps(task)
     def run(cfg: DictConfig) -> Any:
         try:
+            check_config(OmegaConf.to_container(cfg, resolve=True))  # before anything is built
             return task(cfg)
         except Exception as error:
             known = user_error(error)
@@ -458,6 +460,10 @@ def _hydra_main(task: Callable[[DictConfig], Any], config_name: str) -> None:
     """Hydra's command line around `task`, with Python's warnings in the run's log."""
     check_run_dir_argument(sys.argv[1:])
     check_override_keys(sys.argv[1:], config_name)
+    try:
+        check_sweep_arguments(sys.argv[1:])  # before a multirun launches any job
+    except ConfigError as error:
+        sys.exit(f"error: {error}")
     logging.captureWarnings(True)
     hydra.main(version_base="1.3", config_path="configs", config_name=config_name)(reporting_errors(task))()
 

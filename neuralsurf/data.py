@@ -132,10 +132,21 @@ def _unpack_bunny(archive: Path, folder: Path) -> None:
                 members.append(member)
         if not any(m.name.endswith("bun.conf") for m in members):
             raise FileFormatError(f"{str(archive)!r} holds no bunny/data/bun.conf; it is not Stanford's bunny archive")
-        if hasattr(tarfile, "data_filter"):  # Python >= 3.11.4: also drops special permission bits
-            tar.extractall(folder, members=members, filter="data")
-        else:  # regular files and folders only, inside `folder` (checked above)
-            tar.extractall(folder, members=members)
+        _extract(tar, folder, members)
+
+
+def _extract(tar: tarfile.TarFile, folder: Path, members: list[tarfile.TarInfo]) -> None:
+    """Extract `members` (regular files and folders inside `folder`, checked by the caller) with tarfile's
+    "data" filter; where Python lacks it (before 3.11.4), the same done here: special and group/other
+    write permission bits dropped, owned by the current user."""
+    if hasattr(tarfile, "data_filter"):
+        tar.extractall(folder, members=members, filter="data")
+        return
+    for member in members:
+        member.mode = (member.mode & 0o755) | (0o700 if member.isdir() else 0o600)
+        member.uid, member.gid = getattr(os, "getuid", int)(), getattr(os, "getgid", int)()
+        member.uname = member.gname = ""
+    tar.extractall(folder, members=members, numeric_owner=True)
 
 
 TUM_LISTS = ("rgb.txt", "depth.txt", "groundtruth.txt")
@@ -167,10 +178,7 @@ def _unpack_tum(archive: Path, folder: Path, sequence: str = "rgbd_dataset_freib
             if missing:
                 raise FileFormatError(f"{str(archive)!r}: {listed} names {len(missing)} images the archive does not "
                                       f"hold (first {missing[0]!r}); the archive is incomplete")
-        if hasattr(tarfile, "data_filter"):  # Python >= 3.11.4: also drops special permission bits
-            tar.extractall(folder, members=members, filter="data")
-        else:  # regular files and folders only, inside `folder` (checked above)
-            tar.extractall(folder, members=members)
+        _extract(tar, folder, members)
 
 
 def _manifest(name: str) -> dict[str, str]:

@@ -23,7 +23,7 @@ from neuralsurf.errors import CheckpointError, ConfigError, ExtractionError, Inp
 from neuralsurf.extract import extract_mesh, field_slice, slice_image
 from neuralsurf.graphs import GraphedStep, graphable
 from neuralsurf.models.field import NormalizedField
-from neuralsurf.models.spec import REBUILDABLE, build_checked, check_weights, model_spec
+from neuralsurf.models.spec import REBUILDABLE, build_checked, check_tensors, check_weights, model_spec
 from neuralsurf.observations import Observation, PointSamples, union_bounds
 from neuralsurf.structures import Normalization, PointCloud
 
@@ -57,6 +57,7 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
     if not isinstance(state, dict):
         raise CheckpointError(f"{path} holds a {type(state).__name__}, not a neuralsurf checkpoint (a dict of "
                               f"'model', 'model_spec', ...); pass the last.pt of a run or a file of FitResult.save")
+    check_tensors(state, str(path))
     return state
 
 
@@ -70,12 +71,16 @@ def stored_class(state: dict[str, Any]) -> str | None:
     return spec.get("class") if isinstance(spec, dict) and isinstance(spec.get("class"), str) else None
 
 
+MAX_MARGIN = 10.0
+"""The largest box margin a checkpoint may carry (unit-cube widths on each side of the data)."""
+
+
 def stored_margin(state: dict[str, Any], path: Path) -> float:
-    """A checkpoint's box margin: a finite number >= 0, else a CheckpointError naming `path`."""
+    """A checkpoint's box margin: a number in 0..MAX_MARGIN, else a CheckpointError naming `path`."""
     margin = state["margin"]
-    if isinstance(margin, bool) or not isinstance(margin, (int, float)) or not 0 <= margin < math.inf:
-        raise CheckpointError(f"{path}: margin is {margin!r:.60}, not a finite number >= 0; the checkpoint was "
-                              f"tampered with or is damaged")
+    if isinstance(margin, bool) or not isinstance(margin, (int, float)) or not 0 <= margin <= MAX_MARGIN:
+        raise CheckpointError(f"{path}: margin is {margin!r:.60}, not a number in 0..{MAX_MARGIN:g} (unit-cube "
+                              f"widths around the data); the checkpoint was tampered with or is damaged")
     return float(margin)
 
 
@@ -161,6 +166,9 @@ def load_field(path: str | Path, model: nn.Module | None = None, device: str | t
         normalization = Normalization.from_state_dict(state["normalization"])
     except (RuntimeError, KeyError, TypeError, ValueError, AttributeError) as error:
         raise CheckpointError(f"{path}: its normalization is not readable: {error}") from None
+    if not bool(torch.isfinite(normalization.center).all()):
+        raise CheckpointError(f"{path}: its normalization centre is {normalization.center.tolist()}, not finite; the "
+                              f"checkpoint was tampered with or is damaged")
     return NormalizedField(model, normalization, margin=margin).to(resolve_device(device)).eval()
 
 

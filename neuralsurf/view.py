@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import time
 from collections.abc import Sequence
@@ -26,11 +27,13 @@ from typing import Any
 
 import numpy as np
 
-from neuralsurf.errors import InputError, MissingDependencyError, NeuralsurfError
-from neuralsurf.evaluation.distances import colours_path, error_meshes
-from neuralsurf.evaluation.filenames import safe_name
-from neuralsurf.evaluation.store import load_scene, read_rows
+from neuralsurf.errors import FileFormatError, InputError, MissingDependencyError, NeuralsurfError
+from neuralsurf.evaluation.distances import colours_path, error_meshes, read_distances
+from neuralsurf.evaluation.filenames import NPZ, safe_name, stored_file
+from neuralsurf.evaluation.store import load_scene, read_rows, row_problem
 from neuralsurf.io import read_mesh
+
+log = logging.getLogger("neuralsurf")
 
 MESH_SUFFIXES = (".ply", ".obj", ".off", ".stl", ".glb")
 """Files read as meshes (`neuralsurf.io.read_mesh`)."""
@@ -116,10 +119,14 @@ def run_rows(folder: Path) -> list[dict[str, Any]]:
 
     if (folder / "results.json").is_file():  # the suite's order, rewritten after every row
         try:
-            return json.loads((folder / "results.json").read_text()).get("rows", [])
+            results = json.loads((folder / "results.json").read_text())
         except ValueError as error:
             raise InputError(f"{folder / 'results.json'} is not JSON ({error}); rebuild it: python evaluate.py "
                              f"report={folder}") from None
+        if not isinstance(results, dict) or not isinstance(results.get("rows", []), list):
+            raise InputError(f"{folder / 'results.json'} is not a results file of evaluate.py (an object with a list "
+                             f"of rows); rebuild it: python evaluate.py report={folder}")
+        return results.get("rows", [])
     return read_rows(folder)
 
 
@@ -160,27 +167,39 @@ def run_groups(folder: Path) -> list[Group]:
 
     groups: dict[str, Group] = {}
     for row in run_rows(folder):
-        if row.get("status") != "ok" or not row.get("mesh") or not (folder / row["mesh"]).is_file():
+        problem = row_problem(row) if isinstance(row, dict) and {"scene", "method", "status"} <= set(row) else \
+            "not a row of scene, method and status"
+        if problem is not None:
+            log.warning("%s: skipping the row %.80s: %s", folder, row, problem)
+            continue
+        mesh = stored_file(folder, row["mesh"], "mesh") if row["status"] == "ok" and row.get("mesh") else None
+        if mesh is None:
             continue
         group = groups.setdefault(row["scene"], Group(row["scene"]))
         coloured = error_meshes(row["scene"], row["method"])
-        group.items.append(_mesh_item(row["method"], folder / row["mesh"], folder / coloured["prediction"]))
-        missed = folder / coloured["ground truth"]
-        if missed.is_file():
+        group.items.append(_mesh_item(row["method"], mesh, _present(folder, coloured["prediction"])))
+        missed = _present(folder, coloured["ground truth"])
+        if missed is not None:
             vertices, faces, colours = _mesh_arrays(missed)
             group.items.append(Item(f"missed by {row['method']}", vertices, faces,
                                     (vertices, faces, colours) if colours is not None else None, visible=False))
-        if row.get("distances") and not any(item.label == GROUND_TRUTH for item in group.items):
+        distances = stored_file(folder, row["distances"], "distances", signature=NPZ) if row.get("distances") else None
+        if distances is not None and not any(item.label == GROUND_TRUTH for item in group.items):
             try:
-                with np.load(folder / row["distances"]) as arrays:
-                    group.items.insert(0, Item(GROUND_TRUTH, arrays["gt_vertices"].astype(np.float32),
-                                               arrays["gt_faces"].astype(np.int64)))
-            except (OSError, KeyError, ValueError):
-                pass  # the distances file is gone or damaged: no ground truth shown
+                arrays = read_distances(distances)
+                group.items.insert(0, Item(GROUND_TRUTH, arrays["gt_vertices"].astype(np.float32),
+                                           arrays["gt_faces"].astype(np.int64)))
+            except FileFormatError as error:  # the distances file is damaged: no ground truth shown
+                log.warning("%s", error)
     for name, group in groups.items():
         group.items += _scene_input(folder, name)
         group.scale = _scene_scale(folder, name)
     return list(groups.values())
+
+
+def _present(folder: Path, name: str) -> Path | None:
+    """`folder / name` when it exists and is a regular file inside `folder` (`stored_file`), else None."""
+    return stored_file(folder, name, "mesh") if (folder / name).exists() else None
 
 
 def _scene_scale(folder: Path, scene: str) -> float | None:
@@ -406,13 +425,24 @@ class Viewer:
         self.server.stop()
 
 
+def port_number(text: str) -> int:
+    """A TCP port given on the command line: an integer in 0..65535 (argparse's error otherwise)."""
+    try:
+        port = int(text)
+    except ValueError:
+        port = -1
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number; give an integer in 0..65535")
+    return port
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``neuralsurf-view PATH [PATH ...] [--host H] [--port P] [--up +y]``: serve until Ctrl+C."""
 
     parser = argparse.ArgumentParser(prog="neuralsurf-view", description=__doc__.split("\n\n")[0])
     parser.add_argument("paths", nargs="+", help="a run folder of evaluate.py, folders of meshes or mesh files")
     parser.add_argument("--host", default="127.0.0.1", help="address to serve on (0.0.0.0: every interface)")
-    parser.add_argument("--port", type=int, default=8080)
+    parser.add_argument("--port", type=port_number, default=8080, help="port to serve on, 0..65535 (default 8080)")
     parser.add_argument("--up", default="+y", choices=UP_DIRECTIONS, help="the scenes' up axis (default +y)")
     args = parser.parse_args(argv)
     try:

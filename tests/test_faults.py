@@ -92,8 +92,11 @@ def test_a_file_that_is_not_a_checkpoint_dict_is_a_checkpoint_error(tmp_path, co
 
 FIELD_TAMPERING = {
     "width_text": (set_argument("width", "abc"), r"SDFMLP cannot be built from the stored arguments"),
-    "margin_text": (lambda s: s.__setitem__("margin", "abc"), r"margin is 'abc', not a finite number"),
-    "margin_nan": (lambda s: s.__setitem__("margin", math.nan), r"margin is nan, not a finite number"),
+    "margin_text": (lambda s: s.__setitem__("margin", "abc"), r"margin is 'abc', not a number in 0\.\.10"),
+    "margin_nan": (lambda s: s.__setitem__("margin", math.nan), r"margin is nan, not a number in 0\.\.10"),
+    "margin_huge": (lambda s: s.__setitem__("margin", 1e300), r"margin is 1e\+300, not a number in 0\.\.10 \(unit-cube"),
+    "centre_nan": (lambda s: s["normalization"]["center"].fill_(math.nan),
+                   r"its normalization centre is \[nan, nan, nan\], not finite"),
     "weights_text": (lambda s: s.__setitem__("model", "x"), r"the weights are a str, not a dict of tensors"),
     "weights_nan": (lambda s: s["model"]["layers.0.weight"].fill_(math.nan),
                     r"weight 'layers.0.weight' holds 112 NaN or inf"),
@@ -299,3 +302,396 @@ def test_extracting_a_constant_field_names_a_diverged_fit():
     with pytest.raises(ExtractionError, match=r"no 0-level set.*constant there, as a diverged fit leaves it"):
         extract_mesh(lambda x: torch.full(x.shape[:-1], 2.8e8, dtype=x.dtype), resolution=8, bounds=bounds,
                      progress=False)
+
+
+# ----------------------------------------------------------------------------- stored files and rows
+
+def expanded_weights(path, width):
+    """A copy of the checkpoint at `path` whose spec says `width` and whose every weight is a stride-0 view
+    of one stored value (`torch.zeros(()).expand(shape)`): a few KB on disk for any model size."""
+    from neuralsurf.models.spec import build_model
+
+    state = load_checkpoint(path)
+    state["model_spec"]["arguments"]["width"] = width
+    with torch.device("meta"):
+        skeleton = build_model(state["model_spec"]).state_dict()
+    state["model"] = {name: torch.zeros((), dtype=value.dtype).expand(value.shape) for name, value in skeleton.items()}
+    out = path.with_name("expanded.pt")
+    torch.save(state, out)
+    return out
+
+
+def test_expanded_weights_cannot_pass_for_a_large_stored_model(field_path):
+    path = expanded_weights(field_path, 2000)
+    assert path.stat().st_size < 64 * 1024
+    with pytest.raises(CheckpointError, match=r"expanded\.pt\['model'\]\['.*'\]: a tensor of shape .* stores 4 bytes "
+                                              r"for its \d+ \(an expanded or non-contiguous view\); the checkpoint was "
+                                              r"tampered with"):
+        load_field(path)
+    started = time.perf_counter()
+    with pytest.raises(CheckpointError, match="expanded or non-contiguous"):
+        load_field(expanded_weights(field_path, 40_000))  # 1.6e9 values described, none allocated
+    assert time.perf_counter() - started < 5.0
+
+
+def test_a_non_contiguous_weight_is_refused_and_sizes_count_stored_bytes(field_path):
+    from neuralsurf.models.spec import check_weights, stored_elements
+
+    def transpose(state):
+        name = next(k for k, v in state["model"].items() if v.ndim == 2 and v.shape[0] != v.shape[1])
+        state["model"][name] = state["model"][name].t().contiguous().t()
+
+    with pytest.raises(CheckpointError, match="non-contiguous"):
+        load_field(tampered(field_path, transpose))
+    shared = torch.arange(10.0)
+    weights = {"a": shared[:6], "b": shared[4:]}  # one storage of 10 values seen twice
+    assert stored_elements(check_weights(weights, "w")) == 10
+    with pytest.raises(CheckpointError, match=r"w: weight 'c'.*stores 4 bytes for its 400"):
+        check_weights({"c": torch.ones(1).expand(100)}, "w")
+
+
+def png_bytes(colour=(255, 0, 0)):
+    import io
+
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.new("RGB", (4, 4), colour).save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def ok_row(**entries):
+    return {"scene": "sphere", "method": "poisson", "status": "ok", "reason": "", "seconds": 1.0, **entries}
+
+
+@pytest.fixture
+def results(tmp_path):
+    """A results folder with renders/good.png, beside a PNG file outside it (tmp_path/secret.png)."""
+    folder = tmp_path / "results"
+    (folder / "renders").mkdir(parents=True)
+    (folder / "renders" / "good.png").write_bytes(png_bytes())
+    (tmp_path / "secret.png").write_bytes(png_bytes((0, 0, 255)) + b"SECRET")
+    return folder
+
+
+@pytest.mark.parametrize("where", ["absolute", "dot-dot", "symlink"])
+def test_a_row_cannot_embed_a_file_outside_its_results_folder(results, where, caplog):
+    import base64
+
+    from neuralsurf.evaluation.store import rebuild_report, store_row
+
+    secret = results.parent / "secret.png"
+    if where == "symlink":
+        (results / "renders" / "link.png").symlink_to(secret)
+    render = {"absolute": str(secret), "dot-dot": "../secret.png", "symlink": "renders/link.png"}[where]
+    store_row(results, ok_row(render=render, held_out_render=render), "key", {}, True)
+    store_row(results, ok_row(method="tsdf", render="renders/good.png"), "key", {}, True)
+    rows, _ = rebuild_report(results)
+    page = (results / "report.html").read_text()
+    assert len(rows) == 2 and base64.b64encode(png_bytes()).decode() in page
+    assert base64.b64encode(secret.read_bytes()).decode() not in page
+    assert re.search(r"skipping image .*(lies outside|results)", caplog.text)
+
+
+def test_only_regular_png_files_under_the_cap_are_read_from_a_results_folder(results, caplog):
+    import os
+
+    from neuralsurf.evaluation.filenames import read_stored, stored_file
+
+    (results / "renders" / "text.png").write_bytes(b"not an image")
+    os.mkfifo(results / "renders" / "fifo.png")  # a read would block forever
+    (results / "renders" / "device.png").symlink_to("/dev/zero")
+    assert read_stored(results, "renders/good.png", "render") == png_bytes()
+    for name, reason in [("renders/text.png", "is not a PNG image"), ("renders/fifo.png", "not a regular file"),
+                         ("renders/device.png", "lies outside"), ("renders/none.png", "cannot be read"),
+                         (17, "not a path"), ("renders", "not a regular file")]:
+        assert read_stored(results, name, "render") is None
+        assert reason in caplog.text.splitlines()[-1]
+    assert read_stored(results, "renders/good.png", "render", max_bytes=10) is None
+    assert "more than 10" in caplog.text.splitlines()[-1]
+    assert stored_file(results, "renders/good.png", "mesh") == (results / "renders" / "good.png").resolve()
+
+
+def test_rows_naming_files_outside_the_folder_are_computed_again_and_get_no_error_view(results, caplog):
+    import numpy as np
+
+    from neuralsurf.evaluation.distances import write_error_views
+    from neuralsurf.evaluation.store import reusable_row, store_row
+
+    outside = results.parent / "distances.npz"
+    np.savez(outside, vertices=np.zeros((3, 3)), faces=np.zeros((1, 3), np.int32), gt_vertices=np.zeros((3, 3)),
+             gt_faces=np.zeros((1, 3), np.int32), to_gt=np.zeros(3), to_mesh=np.zeros(3), render_size=np.int64(8))
+    row = ok_row(render="renders/good.png", distances="../distances.npz")
+    store_row(results, row, "key", {}, True)
+    assert reusable_row(results, "sphere", "poisson", "key") is None
+    assert write_error_views([row], results) == {}
+    assert "distances '../distances.npz' lies outside" in caplog.text
+    store_row(results, ok_row(render="renders/good.png"), "key", {}, True)
+    assert reusable_row(results, "sphere", "poisson", "key")["render"] == "renders/good.png"
+
+
+def test_a_damaged_distances_file_costs_its_view_not_the_report(results, caplog):
+    import numpy as np
+
+    from neuralsurf.evaluation.store import rebuild_report, store_row
+
+    (results / "distances").mkdir()
+    np.savez(results / "distances" / "objects.npz", vertices=np.array([None, 1], dtype=object))
+    np.savez(results / "distances" / "partial.npz", vertices=np.zeros((3, 3)))
+    store_row(results, ok_row(distances="distances/objects.npz"), "key", {}, True)
+    store_row(results, ok_row(method="tsdf", distances="distances/partial.npz"), "key", {}, True)
+    rows, _ = rebuild_report(results)
+    assert len(rows) == 2 and (results / "report.html").is_file()
+    assert "objects.npz: array 'vertices' has dtype object, not plain numbers" in caplog.text
+    assert "partial.npz lacks" in caplog.text
+
+
+def test_a_killed_row_write_or_a_copied_row_file_is_not_a_second_row(results):
+    import shutil
+
+    from neuralsurf.evaluation.store import read_rows, store_row
+
+    path = store_row(results, ok_row(), "key", {}, True)
+    shutil.copy(path, path.with_name(f".{path.stem}.123-456.tmp.json"))  # left by a kill before the rename
+    shutil.copy(path, path.with_name("copy.json"))
+    assert [(r["scene"], r["method"]) for r in read_rows(results)] == [("sphere", "poisson")]
+
+
+def test_a_malformed_row_is_skipped_with_a_warning_and_the_report_goes_on(results, caplog):
+    import json
+
+    from neuralsurf.evaluation.store import ROWS, rebuild_report, store_row
+
+    store_row(results, ok_row(), "key", {}, True)
+    bad = {"sphere__no_seconds": ok_row(method="no_seconds", seconds=None),
+           "sphere__text_metric": ok_row(method="text_metric", chamfer_l1="small"),
+           "3__number_scene": ok_row(scene=3, method="number_scene"),
+           "sphere__odd_status": ok_row(method="odd_status", status="great"),
+           "sphere__list_render": ok_row(method="list_render", render=["a"])}
+    for stem, row in bad.items():
+        (results / ROWS / f"{stem}.json").write_text(json.dumps({"key": "key", "final": True, "row": row}))
+    rows, table = rebuild_report(results)
+    assert [r["method"] for r in rows] == ["poisson"] and "poisson" in table
+    for reason in ["an ok row without its seconds", "chamfer_l1 is 'small', not a number", "scene is 3, not a name",
+                   "status is 'great'", "render is ['a'], not text"]:
+        assert reason in caplog.text
+
+
+def test_the_viewer_skips_rows_that_are_not_rows_and_meshes_outside_the_folder(tmp_path, caplog):
+    import json
+
+    from neuralsurf.io import write_mesh
+    from neuralsurf.scenes import Sphere
+    from neuralsurf.view import run_groups
+
+    folder = tmp_path / "run"
+    (folder / "meshes").mkdir(parents=True)
+    mesh = Sphere(radius=0.3).mesh(1)
+    write_mesh(folder / "meshes" / "sphere__poisson.ply", mesh)
+    write_mesh(tmp_path / "outside.ply", mesh)
+    rows = [3, ["sphere"], {"method": "m"}, ok_row(method="outside", mesh="../outside.ply"),
+            ok_row(mesh="meshes/sphere__poisson.ply")]
+    (folder / "results.json").write_text(json.dumps({"rows": rows}))
+    groups = run_groups(folder)
+    assert [[item.label for item in g.items] for g in groups] == [["poisson"]]
+    assert "mesh '../outside.ply' lies outside" in caplog.text and "not a row of scene, method and status" in caplog.text
+
+
+def test_the_viewer_refuses_a_port_outside_0_to_65535(capsys):
+    from neuralsurf.view import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["mesh.ply", "--port", "99999"])
+    assert exit_.value.code == 2
+    assert "argument --port: '99999' is not a port number; give an integer in 0..65535" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- readers and writers
+
+def trajectory(ids):
+    return "".join(f"{i} {i} {k + 1}\n" + "1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n" for k, i in enumerate(ids))
+
+
+@pytest.mark.parametrize("ids, frames, message", [
+    ([0, -1], 3, r"line 6 names frame -1; ids must be distinct, >= 0 and below 3"),
+    ([0, 1, 1], 3, r"line 11 names frame 1; ids must be distinct"),
+    ([0, 3], 3, r"line 6 names frame 3; ids must be distinct, >= 0 and below 3 \(the depth images in depth/\)"),
+    ([2, -5], None, r"line 6 names frame -5; ids must be distinct, >= 0$"),
+])
+def test_redwood_trajectory_ids_must_name_distinct_depth_images(tmp_path, ids, frames, message):
+    from neuralsurf.errors import FileFormatError
+    from neuralsurf.io.rgbd import read_trajectory_log
+
+    (tmp_path / "traj.log").write_text(trajectory(ids))
+    with pytest.raises(FileFormatError, match=message):
+        read_trajectory_log(tmp_path / "traj.log", frames=frames)
+    (tmp_path / "good.log").write_text(trajectory([2, 0, 1]))
+    assert read_trajectory_log(tmp_path / "good.log", frames=3)[0].tolist() == [2, 0, 1]
+
+
+@pytest.mark.parametrize("quaternion", ["0 0 0 0", "0 0 nan 1"])
+def test_a_tum_pose_without_a_rotation_is_an_input_error_naming_the_file(tmp_path, quaternion):
+    from neuralsurf.errors import InputError
+    from neuralsurf.io import read_rgbd_folder
+
+    (tmp_path / "depth.txt").write_text("1.000000 depth/1.png\n")
+    (tmp_path / "groundtruth.txt").write_text(f"1.0000 0 0 0 {quaternion}\n")
+    with pytest.raises(InputError, match=r"groundtruth\.txt'?: quaternion \(x y z w\) \[.*\] is not a rotation "
+                                         r"\(zero length, NaN or not 4 numbers\); correct the pose"):
+        read_rgbd_folder(tmp_path, with_color=False, progress=False)
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs a /proc file system")
+@pytest.mark.parametrize("suffix", [".ply", ".obj", ".off", ".stl", ".glb"])
+def test_write_mesh_into_a_folder_that_cannot_be_written_is_a_file_format_error(suffix):
+    from neuralsurf.errors import FileFormatError
+    from neuralsurf.io import write_mesh
+    from neuralsurf.scenes import Sphere
+
+    with pytest.raises(FileFormatError, match=rf"cannot write mesh file '/proc/mesh{suffix}': .*; check that its "
+                                              rf"folder is writable"):
+        write_mesh(f"/proc/mesh{suffix}", Sphere(radius=0.3).mesh(0))
+
+
+def test_the_fallback_extraction_drops_special_modes_and_owners(tmp_path, monkeypatch):
+    import io
+    import os
+    import stat
+    import tarfile
+
+    from neuralsurf import data
+
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w") as tar:
+        member = tarfile.TarInfo("data/tool")
+        member.mode, member.uid, member.gid, member.uname, member.size = 0o6777, 12345, 12345, "nobody", 2
+        tar.addfile(member, io.BytesIO(b"hi"))
+    monkeypatch.delattr(tarfile, "data_filter", raising=False)  # Python before 3.11.4
+    buffer.seek(0)
+    with tarfile.open(fileobj=buffer) as tar:
+        data._extract(tar, tmp_path, tar.getmembers())
+    status = (tmp_path / "data" / "tool").stat()
+    assert stat.S_IMODE(status.st_mode) == 0o755 and (status.st_uid, status.st_gid) == (os.getuid(), os.getgid())
+
+
+def npz_with(tmp_path, name, header_shape, dtype="<f4", payload=b"\0" * 12):
+    """An .npz whose member `name` declares `header_shape` of `dtype` but stores `payload`."""
+    import zipfile
+
+    header = repr({"descr": dtype, "fortran_order": False, "shape": header_shape}).encode()
+    header += b" " * (63 - (10 + len(header)) % 64) + b"\n"
+    array = b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header + payload
+    path = tmp_path / f"{name}.npz"
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr(f"{name}.npy", array)
+    return path
+
+
+def test_array_headers_are_checked_against_the_file_before_reading(tmp_path):
+    import numpy as np
+
+    from neuralsurf.errors import FileFormatError
+    from neuralsurf.io.npz import read_npz
+    from neuralsurf.io.shape_folders import read_occupancy_shape
+
+    with pytest.raises(FileFormatError, match=r"points\.npz: array 'points' declares shape \(100000000000, 3\) "
+                                              r"\(float32\), more than its \d+ bytes hold"):
+        read_npz(npz_with(tmp_path, "points", (10**11, 3)))
+    assert read_npz(npz_with(tmp_path, "small", (1, 3)))["small"].shape == (1, 3)
+    shape = tmp_path / "class" / "shape"
+    shape.mkdir(parents=True)
+    np.savez(shape / "points.npz", points=np.array([["a", "b", "c"]]), occupancies=np.ones(1, bool))
+    np.savez(shape / "pointcloud.npz", points=np.zeros((1, 3), np.float32))
+    with pytest.raises(FileFormatError, match=r"points\.npz: array 'points' has dtype <U1, not plain numbers"):
+        read_occupancy_shape(shape)
+
+
+# ----------------------------------------------------------------------------- config values
+
+@pytest.mark.parametrize("key, value, allowed", [
+    ("optimizer.lr", "abc", "a finite number > 0"), ("optimizer.lr", -1, "a finite number > 0"),
+    ("model.width", "abc", r"an integer in 1\.\.16384"), ("model.width", 40_000, r"an integer in 1\.\.16384"),
+    ("seed", "abc", r"an integer in 0\.\.4294967295 or null"), ("data.n_points", -5, r"an integer in 1\.\.1000000000"),
+    ("trainer.steps", 2.5, "an integer >= 0"), ("extract.resolution", 1, r"an integer in 2\.\.65536"),
+    ("method.neural_sdf.optimizer.lr", float("nan"), "a finite number > 0"),
+    ("scene.sphere.n_points", 0, r"an integer in 1\.\.1000000000"), ("model.depth", True, r"an integer in 1\.\.256"),
+])
+def test_a_config_value_of_the_wrong_type_or_range_is_one_config_error(key, value, allowed):
+    from omegaconf import OmegaConf
+
+    from neuralsurf.config_checks import check_config
+    from neuralsurf.errors import ConfigError
+
+    config = OmegaConf.to_container(OmegaConf.from_dotlist([f"{key}=0"]))
+    OmegaConf.update(cfg := OmegaConf.create(config), key, value)
+    with pytest.raises(ConfigError, match=rf"^{re.escape(key)}=.*: expected {allowed}; set {re.escape(key)}=<value> "
+                                          rf"in that range$"):
+        check_config(OmegaConf.to_container(cfg), memory=2**40)
+
+
+def test_an_extraction_grid_larger_than_the_memory_is_refused_with_the_largest_that_fits():
+    from neuralsurf.config_checks import check_config
+    from neuralsurf.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"^extract\.resolution=4096: its extraction grid needs at least 320\.2 GiB, "
+                                          r"more than the 6\.0 GiB available; use extract\.resolution=1087 or less$"):
+        check_config({"extract": {"resolution": 4096}}, memory=6 * 2**30)
+    check_config({"extract": {"resolution": 1087}}, memory=6 * 2**30)
+    with pytest.raises(ConfigError, match="use extract.resolution=1087 or less"):
+        check_config({"extract": {"resolution": 1088}}, memory=6 * 2**30)
+
+
+@pytest.mark.parametrize("argv, bad", [(["-m", "shard=range(3)", "shards=2"], "shard=2 shards=2"),
+                                       (["-m", "shard=0,1", "shards=1"], "shard=1 shards=1"),
+                                       (["-m", "shard=0", "shards=0"], "shard=0 shards=0")])
+def test_a_shard_sweep_out_of_range_is_refused_before_any_job(argv, bad):
+    from neuralsurf.config_checks import check_config, check_sweep_arguments
+    from neuralsurf.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=rf"^{bad}: expected integers with shards >= 1 and 0 <= shard < shards"):
+        check_sweep_arguments(argv)
+    check_sweep_arguments(["-m", "shard=range(4)", "shards=4", "seed=1"])
+    with pytest.raises(ConfigError, match="shard='a'"):
+        check_config({"shard": "a", "shards": 2})
+
+
+def test_every_shipped_config_passes_the_checks():
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from neuralsurf.config_checks import check_config
+
+    configs = Path(__file__).resolve().parents[1] / "neuralsurf" / "configs"
+    with initialize_config_dir(str(configs), version_base="1.3"):
+        for experiment in sorted(p.stem for p in (configs / "experiment").glob("*.yaml")):
+            cfg = compose("train", overrides=[f"experiment={experiment}"])
+            check_config(OmegaConf.to_container(cfg, resolve=True), memory=2**40)
+        for suite in sorted(p.stem for p in (configs / "suite").glob("*.yaml")):
+            cfg = compose("evaluate", overrides=[f"suite={suite}"])
+            check_config(OmegaConf.to_container(cfg, resolve=True), memory=2**40)
+
+
+@pytest.mark.subprocess
+def test_train_py_with_a_bad_learning_rate_exits_with_one_line_before_building(tmp_path):
+    import subprocess
+    import sys
+
+    repo = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, str(repo / "train.py"), "experiment=sphere_sdf", "optimizer.lr=abc",
+                           f"hydra.run.dir={tmp_path / 'run'}"], capture_output=True, text=True, timeout=300, check=False)
+    output = done.stdout + done.stderr
+    assert done.returncode == 1 and "Traceback" not in output
+    assert re.search(r"ConfigError: optimizer\.lr='abc': expected a finite number > 0; set optimizer\.lr=<value> in "
+                     r"that range", output)
+    assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+def test_a_report_file_that_cannot_be_replaced_is_a_file_format_error(results):
+    from neuralsurf.errors import FileFormatError
+    from neuralsurf.evaluation.store import rebuild_report, store_row
+
+    store_row(results, ok_row(), "key", {}, True)
+    (results / "report.html").mkdir()
+    with pytest.raises(FileFormatError, match=r"cannot write the report of .*results: Is a directory \(.*results/report\.html\); each report "
+                                              r"file must be a writable file"):
+        rebuild_report(results)

@@ -21,10 +21,12 @@ from typing import Any
 
 import numpy as np
 
-from neuralsurf.evaluation.filenames import row_stem, safe_name
+from neuralsurf.errors import FileFormatError
+from neuralsurf.evaluation.filenames import NPZ, row_stem, safe_name, stored_file
 from neuralsurf.evaluation.render import default_view, labelled_row, shade, viridis
 from neuralsurf.geometry import closest_on_mesh, render_depth
 from neuralsurf.io import write_mesh
+from neuralsurf.io.npz import read_npz
 from neuralsurf.locks import replaced, write_atomic
 from neuralsurf.structures import Mesh
 
@@ -90,6 +92,27 @@ def save_distances(run_dir: Path, scene: str, method: str, mesh: Mesh, gt: Mesh,
     return str(path)
 
 
+DISTANCE_ARRAYS = {"vertices": (-1, 3), "faces": (-1, 3), "gt_vertices": (-1, 3), "gt_faces": (-1, 3),
+                   "to_gt": (-1,), "to_mesh": (-1,), "render_size": ()}
+"""The arrays of a distances file (`save_distances`) and their shapes (-1: any length)."""
+
+
+def read_distances(path: str | Path) -> dict[str, np.ndarray]:
+    """The arrays of a distances file (`save_distances`), each of the shape DISTANCE_ARRAYS gives and one
+    distance per vertex; FileFormatError naming the file otherwise."""
+    arrays = read_npz(path, tuple(DISTANCE_ARRAYS))
+    for name, shape in DISTANCE_ARRAYS.items():
+        found = arrays[name].shape
+        if len(found) != len(shape) or any(want not in (-1, got) for want, got in zip(shape, found)):
+            raise FileFormatError(f"{path}: {name} has shape {found}, expected {shape} (-1: any length); "
+                                  f"delete the file and evaluate the row again")
+    if (not len(arrays["vertices"]) or not len(arrays["gt_vertices"]) or len(arrays["to_gt"]) != len(arrays["vertices"])
+            or len(arrays["to_mesh"]) != len(arrays["gt_vertices"])):
+        raise FileFormatError(f"{path}: the distances do not match the meshes' vertices (or a mesh is empty); "
+                              f"delete the file and evaluate the row again")
+    return arrays
+
+
 def _stamp(path: Path) -> list[int]:
     """What identifies a distances file's content for the colour cache: [size, mtime in ns]."""
     stat = path.stat()
@@ -106,18 +129,28 @@ def write_error_views(rows: list[dict[str, Any]], run_dir: str | Path) -> dict[t
     run_dir = Path(run_dir)
     by_scene: dict[str, dict[str, Path]] = {}
     for row in rows:
-        path = run_dir / row["distances"] if row.get("status") == "ok" and row.get("distances") else None
-        if path is not None and path.is_file():
+        path = (stored_file(run_dir, row["distances"], "distances", signature=NPZ)
+                if row.get("status") == "ok" and row.get("distances") else None)
+        if path is not None:
             by_scene.setdefault(row["scene"], {})[row["method"]] = path
     rows_by_key = {(row["scene"], row["method"]): row for row in rows}
     views = {}
     for scene, paths in by_scene.items():
-        data = {method: np.load(path) for method, path in paths.items()}
+        data = {}
+        for method, path in paths.items():
+            try:
+                data[method] = read_distances(path)
+            except FileFormatError as error:
+                log.warning("no error-coloured view of %s on %s: %s", method, scene, error)
+        if not data:
+            continue
         top = shared_scale([d[key] for d in data.values() for key in ("to_gt", "to_mesh")])
         manifest_path = run_dir / colours_path(scene)
         try:
             manifest = json.loads(manifest_path.read_text())
         except (OSError, ValueError):
+            manifest = {}
+        if not isinstance(manifest, dict):
             manifest = {}
         for method, arrays in data.items():
             row, stem = rows_by_key[(scene, method)], row_stem(scene, method)
@@ -137,8 +170,6 @@ def write_error_views(rows: list[dict[str, Any]], run_dir: str | Path) -> dict[t
                     continue
                 manifest[method] = made
             views[(scene, method)] = view
-        for arrays in data.values():
-            arrays.close()
         write_atomic(manifest_path, json.dumps(manifest, indent=1))
     return views
 

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from neuralsurf.evaluation.distances import PERCENTILE, write_error_views
+from neuralsurf.evaluation.filenames import read_stored
 from neuralsurf.evaluation.render import bar_chart, css_gradient, scatter_plot
 from neuralsurf.locks import replaced, write_atomic
 from neuralsurf.metrics import json_ready
@@ -103,7 +104,11 @@ def write_plots(rows: list[dict[str, Any]], run_dir: Path) -> list[str]:
 
 
 def _img(run_dir: Path, path: str, alt: str) -> str:
-    data = base64.b64encode((run_dir / path).read_bytes()).decode("ascii")
+    """An embedded PNG: only a PNG file inside `run_dir` (`read_stored`), else "" with a warning."""
+    image = read_stored(run_dir, path, "image")
+    if image is None:
+        return ""
+    data = base64.b64encode(image).decode("ascii")
     return f'<img src="data:image/png;base64,{data}" alt="{html.escape(alt)}">'
 
 

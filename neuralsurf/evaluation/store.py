@@ -23,8 +23,9 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
-from neuralsurf.evaluation.filenames import row_stem, safe_name
-from neuralsurf.evaluation.report import write_report
+from neuralsurf.errors import FileFormatError
+from neuralsurf.evaluation.filenames import NPZ, PNG, row_stem, safe_name, stored_file
+from neuralsurf.evaluation.report import TABLE_COLUMNS, write_report
 from neuralsurf.locks import file_lock, replaced, write_atomic
 from neuralsurf.metrics import json_ready
 
@@ -75,7 +76,42 @@ def _read(path: Path) -> dict[str, Any] | None:
             and {"scene", "method", "status"} <= set(record["row"])):
         log.warning("ignoring %s: not a row file written by neuralsurf evaluate; delete it", path)
         return None
+    row = record["row"]
+    problem = row_problem(row)
+    if problem is None and path.name != f"{row_stem(row['scene'], row['method'])}.json":
+        problem = f"it holds the row of {row['method']!r:.80} on {row['scene']!r:.80}, whose file is " \
+                  f"{row_stem(row['scene'], row['method'])}.json"
+    if problem is not None:
+        log.warning("ignoring %s: %s; delete it or evaluate its row again", path, problem)
+        return None
     return record
+
+
+STATUSES = ("ok", "skipped", "failed")
+TEXT_FIELDS = ("reason", "scene_description", "config", "render", "held_out_render", "mesh", "distances")
+"""Row entries that are text when present."""
+NUMBER_FIELDS = tuple(key for key, _ in TABLE_COLUMNS if key not in ("method", "scene", "status"))
+"""Row entries that are numbers (or booleans, or null) when present."""
+
+
+def row_problem(row: dict[str, Any]) -> str | None:
+    """What makes `row` (read from a row file) unusable by the report, or None: its scene and method must be
+    non-empty text, its status one of STATUSES, TEXT_FIELDS text, NUMBER_FIELDS numbers, and an ok row must
+    carry its seconds."""
+    for key in ("scene", "method"):
+        if not isinstance(row[key], str) or not row[key]:
+            return f"its {key} is {row[key]!r:.80}, not a name"
+    if row["status"] not in STATUSES:
+        return f"its status is {row['status']!r:.80}, not one of {', '.join(STATUSES)}"
+    for key in TEXT_FIELDS:
+        if row.get(key) is not None and not isinstance(row[key], str):
+            return f"its {key} is {row[key]!r:.80}, not text"
+    for key in NUMBER_FIELDS:
+        if row.get(key) is not None and not isinstance(row[key], (bool, int, float)):
+            return f"its {key} is {row[key]!r:.80}, not a number"
+    if row["status"] == "ok" and not isinstance(row.get("seconds"), (int, float)):
+        return "it is an ok row without its seconds"
+    return None
 
 
 def reusable_row(results_dir: str | Path, scene: str, method: str, key: str) -> dict[str, Any] | None:
@@ -88,15 +124,19 @@ def reusable_row(results_dir: str | Path, scene: str, method: str, key: str) -> 
     if record is None or record.get("key") != key or not record.get("final"):
         return None
     row = record["row"]
-    if any(row.get(name) and not (Path(results_dir) / row[name]).is_file() for name in ("mesh", "render", "distances")):
+    signatures = {"mesh": b"", "render": PNG, "distances": NPZ}
+    if any(row.get(name) and stored_file(results_dir, row[name], name, signature=signature) is None
+           for name, signature in signatures.items()):
         return None
     return row
 
 
 def read_rows(results_dir: str | Path) -> list[dict[str, Any]]:
-    """Every stored row of a results folder (list of row dicts), in file-name order."""
+    """Every stored row of a results folder (list of row dicts), in file-name order: one per (scene,
+    method), from the file named by its `row_stem`; temporary files (names starting with ".") and files
+    that are not valid rows (`row_problem`) are skipped, the latter with a warning."""
     folder = Path(results_dir) / ROWS
-    records = (_read(path) for path in sorted(folder.glob("*.json")))
+    records = (_read(path) for path in sorted(folder.glob("*.json")) if not path.name.startswith("."))
     return [record["row"] for record in records if record is not None]
 
 
@@ -123,7 +163,13 @@ def rebuild_report(results_dir: str | Path, extra: dict[str, Any] | None = None,
         rows = ordered(read_rows(results_dir), scenes, methods)
         extra = {**(extra or {}), "scenes": list(dict.fromkeys(r["scene"] for r in rows)),
                  "methods": list(dict.fromkeys(r["method"] for r in rows))}
-        table = write_report(rows, results_dir, extra)
+        try:
+            table = write_report(rows, results_dir, extra)
+        except OSError as error:
+            where = getattr(error, "filename2", None) or error.filename or results_dir
+            raise FileFormatError(f"cannot write the report of {results_dir}: {error.strerror or error} ({where}); "
+                                  f"each report file must be a writable file: move what stands there away, then run "
+                                  f"python evaluate.py report={results_dir}") from None
     return rows, table
 
 

@@ -227,7 +227,7 @@ def write_mesh(path: PathLike, mesh: Mesh) -> None:
     .ply (binary) keeps float32/float64 vertices; .obj and .off are text with round-trip digits;
     .stl and .glb store float32. .ply, .obj and .glb also store outward unit vertex normals
     (`vertex_normals`). Vertex colours go to .ply, .obj, .glb; .off and .stl cannot store them (a
-    warning says so). Parent folders are created.
+    warning says so). Parent folders are created. FileFormatError when the file cannot be written.
     """
     if not isinstance(mesh, Mesh):
         raise InputError(
@@ -237,4 +237,8 @@ def write_mesh(path: PathLike, mesh: Mesh) -> None:
     path, ext = writable_path(path, SUPPORTED, "mesh")
     vertices = mesh.vertices.detach().cpu().numpy()
     colors = None if mesh.vertex_colors is None else mesh.vertex_colors.detach().cpu().numpy()
-    _WRITERS[ext](path, vertices, mesh.faces.cpu().numpy(), colors)
+    try:
+        _WRITERS[ext](path, vertices, mesh.faces.cpu().numpy(), colors)
+    except OSError as error:
+        raise FileFormatError(f"cannot write mesh file {str(path)!r}: {error.strerror or error}; check that its "
+                              f"folder is writable, or write somewhere else") from None

@@ -1,8 +1,11 @@
-"""Plain-array .npz files written atomically (read them back with `np.load(path, allow_pickle=False)`)."""
+"""Plain-array .npz files written atomically (`write_npz`) and read with every member's header checked
+against its size first (`read_npz`)."""
 
 from __future__ import annotations
 
+import math
 import os
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -33,3 +36,39 @@ def write_npz(path: str | Path, arrays: dict[str, np.ndarray], compressed: bool 
             f"cannot write {str(path)!r}: {error.strerror or error}; check that its folder is a writable folder"
         ) from error
     return path
+
+
+NUMERIC_KINDS = "biuf"
+"""numpy dtype kinds of plain numbers (bool, signed and unsigned integers, floats)."""
+
+
+def read_npz(path: str | Path, keys: tuple[str, ...] = (), kinds: str = NUMERIC_KINDS) -> dict[str, np.ndarray]:
+    """Every array of the .npz file `path` as {name: array}. Each member's header is checked before it is
+    read: its dtype must be of `kinds` (no objects, no strings) and the size it declares must fit in the
+    member's bytes, so a crafted header cannot make a huge allocation. Raises FileFormatError naming the
+    file for a missing, truncated or foreign file, a member of another dtype or size, or a missing `keys`."""
+    path = Path(path)
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for info in archive.infolist():
+                name = info.filename.removesuffix(".npy")
+                with archive.open(info) as member:
+                    version = np.lib.format.read_magic(member)
+                    reader = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                              else np.lib.format.read_array_header_2_0)
+                    shape, _, dtype = reader(member, max_header_size=10_000)
+                if dtype.hasobject or dtype.kind not in kinds:
+                    raise FileFormatError(f"{path}: array {name!r} has dtype {dtype}, not plain numbers; the file "
+                                          f"is not one neuralsurf can read")
+                if math.prod(shape) * dtype.itemsize > info.file_size:
+                    raise FileFormatError(f"{path}: array {name!r} declares shape {shape} ({dtype}), more than its "
+                                          f"{info.file_size} bytes hold; the file is damaged or crafted")
+        with np.load(path, allow_pickle=False) as data:
+            missing = [key for key in keys if key not in data.files]
+            if missing:
+                raise FileFormatError(f"{path} lacks {missing} (it has {sorted(data.files)[:10]})")
+            return {name: data[name] for name in data.files}
+    except FileFormatError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as error:
+        raise FileFormatError(f"cannot read {path}: {error}; the file is missing, truncated or not an .npz") from None

@@ -60,10 +60,15 @@ bridge depth discontinuities)."""
 
 def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
     """(x, y, z, w) quaternion (4,), normalised here -> Hamilton rotation matrix (3, 3), float64
-    (scipy's `Rotation.from_quat`, whose default order is the same scalar-last one)."""
+    (scipy's `Rotation.from_quat`, whose default order is the same scalar-last one). InputError for a
+    quaternion of zero length or with NaN."""
     from scipy.spatial.transform import Rotation
 
-    return Rotation.from_quat(np.asarray(q, dtype=np.float64)).as_matrix()
+    q = np.asarray(q, dtype=np.float64)
+    if q.shape != (4,) or not np.isfinite(q).all() or not np.linalg.norm(q) > 1e-12:
+        raise InputError(f"quaternion (x y z w) {q.tolist()} is not a rotation (zero length, NaN or not 4 "
+                         f"numbers); correct the pose")
+    return Rotation.from_quat(q).as_matrix()
 
 
 def conf_transform(translation: np.ndarray, quaternion: np.ndarray) -> np.ndarray:

@@ -337,7 +337,10 @@ def _list_tum(path: Path, with_color: bool, tolerance: float, K) -> _Listing:
         )
     if with_color:
         colors = [path / rgb_names[i] for i in color_index[keep]]
-    poses = tum_trajectory_to_poses(truth[pose_index[keep], 1:8])
+    try:
+        poses = tum_trajectory_to_poses(truth[pose_index[keep], 1:8])
+    except InputError as error:
+        raise InputError(f"{str(path / 'groundtruth.txt')!r}: {error}") from None
     depths = [path / name for name, kept in zip(depth_names, keep) if kept]
     K = tum_intrinsics(path) if K is None else np.asarray(K, dtype=np.float64)
     return _Listing(depths, colors, poses, K, 5000.0, (0,), COLOR_REGISTERED["tum"])
@@ -371,11 +374,7 @@ def _list_redwood(path: Path, with_color: bool, K) -> _Listing:
             f"Redwood folder {str(path)!r} needs exactly one trajectory .log file, found "
             f"{[p.name for p in logs] or 'none'}; keep only the camera trajectory there"
         )
-    ids, poses = read_trajectory_log(logs[0])
-    if ids.max() >= len(depths):
-        raise FileFormatError(
-            f"{str(logs[0])!r} names frame {int(ids.max())} but depth/ holds only {len(depths)} images"
-        )
+    ids, poses = read_trajectory_log(logs[0], frames=len(depths))
     colors = None
     if with_color:
         folder = next((path / f for f in _COLOR_FOLDERS if (path / f).is_dir()), None)
@@ -390,10 +389,12 @@ def _list_redwood(path: Path, with_color: bool, K) -> _Listing:
     return _Listing([depths[i] for i in ids], colors, poses, K, 1000.0, (0,), COLOR_REGISTERED["redwood"])
 
 
-def read_trajectory_log(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
+def read_trajectory_log(path: PathLike, frames: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A Redwood / Open3D trajectory .log: (frame ids (n,) int64, camera-to-world (n, 4, 4) float64).
 
-    Each frame is a line `id id n` (the first number is the frame id) then 4 rows of the matrix.
+    Each frame is a line `id id n` (the first number is the frame id) then 4 rows of the matrix. Ids
+    must be distinct and >= 0 (and < `frames`, the number of depth images, when given); FileFormatError
+    naming the line otherwise.
     """
     path = Path(path)
     lines = [(i, line.split()) for i, line in enumerate(path.read_text(errors="replace").splitlines(), 1)]
@@ -403,7 +404,7 @@ def read_trajectory_log(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
             f"trajectory {str(path)!r} has {len(lines)} non-empty lines; expected 5 per frame "
             f"(a line 'id id n' then 4 rows of a 4x4 matrix)"
         )
-    ids, poses = [], []
+    ids, poses, seen = [], [], set()
     for start in range(0, len(lines), 5):
         number, header = lines[start]
         rows = [words for _, words in lines[start + 1 : start + 5]]
@@ -414,6 +415,12 @@ def read_trajectory_log(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
             raise FileFormatError(
                 f"trajectory {str(path)!r} lines {number}-{number + 4} are not 'id id n' + a 4x4 matrix"
             ) from None
+        if ids[-1] < 0 or (frames is not None and ids[-1] >= frames) or ids[-1] in seen:
+            limit = "" if frames is None else f" and below {frames} (the depth images in depth/)"
+            raise FileFormatError(
+                f"trajectory {str(path)!r} line {number} names frame {ids[-1]}; ids must be distinct, >= 0{limit}"
+            )
+        seen.add(ids[-1])
     return np.array(ids, dtype=np.int64), np.stack(poses)
 
 

@@ -31,6 +31,7 @@ from torch import Tensor
 
 from neuralsurf.errors import FileFormatError, InputError
 from neuralsurf.io.meshes import SUPPORTED as MESH_SUFFIXES
+from neuralsurf.io.npz import read_npz
 from neuralsurf.io.pointclouds import PathLike
 
 SPLITS = ("train", "val", "test")
@@ -185,15 +186,7 @@ def _arrays(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise FileFormatError(f"{path} not found; each Occupancy Networks shape folder needs points.npz and "
                               f"pointcloud.npz")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            missing = [k for k in keys if k not in data.files]
-            if missing:
-                raise FileFormatError(f"{path} lacks {missing} (it has {sorted(data.files)}); it is not an "
-                                      f"Occupancy Networks file")
-            return {k: data[k] for k in data.files}
-    except (OSError, ValueError, EOFError) as error:
-        raise FileFormatError(f"cannot read {path}: {error}; the file is truncated or not an .npz") from None
+    return read_npz(path, keys)  # headers checked against the file's size, numbers only
 
 
 def unpack_occupancies(occupancies: np.ndarray, n: int, path: Path | str = "occupancies") -> np.ndarray:

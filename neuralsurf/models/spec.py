@@ -98,9 +98,50 @@ def build_model(spec: Any, where: str = "model") -> nn.Module:
                               f"the checkpoint was tampered with or written by another version") from None
 
 
+def check_storage(value: Tensor, where: str) -> None:
+    """A CheckpointError naming `where` unless the tensor `value` (read from a file) is a dense,
+    contiguous tensor whose storage holds all its values: an expanded view (stride 0) or any tensor
+    larger than the bytes stored for it could make a reader allocate far more than the file holds."""
+    if value.layout != torch.strided or value.is_quantized:
+        raise CheckpointError(f"{where} is a {value.layout} tensor, not a dense one; the checkpoint was not written "
+                              f"by neuralsurf or was tampered with")
+    needed = (value.storage_offset() + value.numel()) * value.element_size()
+    stored = value.untyped_storage().nbytes()
+    if not value.is_contiguous() or stored < needed:
+        raise CheckpointError(f"{where}: a tensor of shape {tuple(value.shape)} whose file stores {stored} bytes for "
+                              f"its {needed} (an expanded or non-contiguous view); the checkpoint was tampered with")
+
+
+def check_tensors(state: Any, where: str) -> None:
+    """`check_storage` on every tensor in `state` (nested dicts, lists and tuples, as read from a file)."""
+    stack = [(state, where)]
+    while stack:
+        value, name = stack.pop()
+        if isinstance(value, Tensor):
+            check_storage(value, name)
+        elif isinstance(value, dict):
+            stack += [(item, f"{name}[{key!r:.60}]") for key, item in value.items()]
+        elif isinstance(value, (list, tuple)):
+            stack += [(item, f"{name}[{index}]") for index, item in enumerate(value)]
+
+
+def stored_elements(weights: dict[str, Tensor]) -> int:
+    """The values `weights` (checked by `check_storage`) can hold, counted from the bytes of their distinct
+    storages (a storage shared by several tensors counts once), in units of the smallest element size
+    that uses it."""
+    storages: dict[int, tuple[int, int]] = {}
+    for value in weights.values():
+        storage = value.untyped_storage()
+        key = storage.data_ptr() if storage.nbytes() else id(value)
+        size = min(value.element_size(), storages.get(key, (0, value.element_size()))[1])
+        storages[key] = (storage.nbytes(), size)
+    return sum(nbytes // size for nbytes, size in storages.values())
+
+
 def check_weights(weights: Any, where: str) -> dict[str, Tensor]:
-    """`weights` (a state dict read from a file) as {name: tensor}, every floating tensor finite;
-    a CheckpointError naming `where` and the bad entry otherwise."""
+    """`weights` (a state dict read from a file) as {name: tensor}, every tensor dense with its values
+    stored (`check_storage`) and every floating tensor finite; a CheckpointError naming `where` and the
+    bad entry otherwise."""
     if not isinstance(weights, dict):
         raise CheckpointError(f"{where}: the weights are a {type(weights).__name__}, not a dict of tensors; "
                               f"the checkpoint was not written by neuralsurf or was tampered with")
@@ -108,6 +149,8 @@ def check_weights(weights: Any, where: str) -> dict[str, Tensor]:
     if bad:
         raise CheckpointError(f"{where}: weight entries {bad[:5]} are not named tensors; the checkpoint was not "
                               f"written by neuralsurf or was tampered with")
+    for name, value in weights.items():
+        check_storage(value, f"{where}: weight {name!r}")
     for name, value in weights.items():
         if value.is_floating_point() and not bool(torch.isfinite(value).all()):
             count = int((~torch.isfinite(value)).sum())
@@ -163,12 +206,12 @@ def build_checked(spec: Any, weights: Any, where: str = "model") -> nn.Module:
     """The model of `spec` (`model_spec`'s output) holding `weights` (its state dict, read from a file).
 
     Nothing is allocated before the spec is known to agree with the weights: every integer argument
-    must stay within the stored values' count, the model is first built on the meta device (its
+    must stay within the stored values' count (from the bytes the file stores, `stored_elements`), the model is first built on the meta device (its
     construction stopped if it outgrows the stored weights), and its state dict's names and shapes
     must equal the stored ones. Raises CheckpointError, naming `where`, otherwise.
     """
     weights = check_weights(weights, where)
-    elements = sum(value.numel() for value in weights.values())
+    elements = stored_elements(weights)
     for name, value in _integers(spec, where):
         if abs(value) > max(elements, 64):
             raise CheckpointError(f"{name}={value} exceeds the {elements} values the checkpoint stores: its "
