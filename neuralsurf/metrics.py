@@ -34,6 +34,9 @@ from neuralsurf.structures import Mesh, Normalization, PointCloud
 
 __all__ = [
     "NearestNeighbours",
+    "RelativePoseError",
+    "absolute_trajectory_error",
+    "align_trajectory",
     "box_overlap",
     "chamfer_distances",
     "chamfer_l1",
@@ -48,6 +51,7 @@ __all__ = [
     "iou",
     "json_ready",
     "normal_consistency",
+    "relative_pose_error",
 ]
 
 
@@ -447,3 +451,67 @@ def json_ready(metrics: dict) -> dict:
 
     cleaned = clean(dict(metrics), "")
     return {**cleaned, "undefined": undefined} if undefined else cleaned
+
+
+# ----------------------------------------------------------------------------- camera trajectories
+#
+# As the TUM RGB-D benchmark defines them (Sturm et al. 2012, evaluate_ate.py / evaluate_rpe.py).
+
+
+def _check_trajectories(estimated: Tensor, reference: Tensor) -> tuple[Tensor, Tensor]:
+    estimated, reference = torch.as_tensor(estimated).double().cpu(), torch.as_tensor(reference).double().cpu()
+    if estimated.ndim != 3 or estimated.shape[1:] != (4, 4) or estimated.shape != reference.shape:
+        raise InputError(f"trajectories are (n, 4, 4) camera-to-world poses of the same frames, got "
+                         f"{tuple(estimated.shape)} and {tuple(reference.shape)}")
+    if len(estimated) < 2 or not (torch.isfinite(estimated).all() and torch.isfinite(reference).all()):
+        raise InputError(f"trajectories need at least 2 finite poses, got {len(estimated)}")
+    return estimated, reference
+
+
+def align_trajectory(estimated: Tensor, reference: Tensor) -> Tensor:
+    """Float64[Tensor, "4 4"]: the rigid motion S minimising sum_i |S c_i - d_i|^2 between the camera
+    centres c_i of `estimated` and d_i of `reference` (Float[Tensor, "n 4 4"] each; Horn / Umeyama
+    without scale, reflections excluded)."""
+    estimated, reference = _check_trajectories(estimated, reference)
+    c, d = estimated[:, :3, 3], reference[:, :3, 3]
+    mu_c, mu_d = c.mean(0), d.mean(0)
+    u, _, vt = torch.linalg.svd((d - mu_d).T @ (c - mu_c))
+    sign = torch.ones(3, dtype=torch.float64)
+    sign[2] = torch.sign(torch.linalg.det(u @ vt)) or 1.0
+    rotation = u @ torch.diag(sign) @ vt
+    transform = torch.eye(4, dtype=torch.float64)
+    transform[:3, :3], transform[:3, 3] = rotation, mu_d - rotation @ mu_c
+    return transform
+
+
+def absolute_trajectory_error(estimated: Tensor, reference: Tensor) -> float:
+    """ATE (metres): RMSE of the camera centres of `estimated` after `align_trajectory` onto `reference`
+    (Float[Tensor, "n 4 4"] camera-to-world each, frame i of one matching frame i of the other)."""
+    estimated, reference = _check_trajectories(estimated, reference)
+    aligned = align_trajectory(estimated, reference) @ estimated
+    return float((aligned[:, :3, 3] - reference[:, :3, 3]).norm(dim=1).square().mean().sqrt())
+
+
+@dataclass(frozen=True)
+class RelativePoseError:
+    """Drift over a fixed number of frames (TUM's RPE), as RMSEs over the frame pairs."""
+
+    translation: float
+    """Metres: RMSE of |translation of E_i|, E_i = (Q_i^-1 Q_i+d)^-1 (P_i^-1 P_i+d)."""
+    rotation: float
+    """Degrees: RMSE of the rotation angle of E_i."""
+
+
+def relative_pose_error(estimated: Tensor, reference: Tensor, delta: int = 1) -> RelativePoseError:
+    """RPE of `estimated` poses P against `reference` poses Q (Float[Tensor, "n 4 4"] camera-to-world each)
+    over pairs of frames `delta` apart: per frame for delta=1, per second for delta = the frame rate."""
+    estimated, reference = _check_trajectories(estimated, reference)
+    if not (isinstance(delta, int) and 1 <= delta < len(estimated)):
+        raise InputError(f"delta must be a frame count from 1 to {len(estimated) - 1}, got {delta!r}")
+    motion = lambda poses: torch.linalg.inv(poses[:-delta]) @ poses[delta:]
+    error = torch.linalg.inv(motion(reference)) @ motion(estimated)
+    cosine = ((error[:, :3, :3].diagonal(dim1=1, dim2=2).sum(1) - 1) / 2).clamp(-1, 1)
+    return RelativePoseError(
+        float(error[:, :3, 3].norm(dim=1).square().mean().sqrt()),
+        float(torch.rad2deg(torch.arccos(cosine)).square().mean().sqrt()),
+    )
