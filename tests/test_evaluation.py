@@ -17,6 +17,7 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from neuralsurf.evaluation.report import CHARTS
 from neuralsurf.scenes import Scene
 from neuralsurf.structures import Mesh
 
@@ -110,7 +111,10 @@ def test_tiny_run_writes_tables_plots_renders_and_report(tmp_path):
     report = (tmp_path / "report.html").read_text()
     assert "<table>" in report and "neural_sdf" in report and "skipped" in report
     plots = list((tmp_path / "plots").glob("*.png"))
-    assert len(plots) == 4
+    charted = {key for key, _, _ in CHARTS if any(math.isfinite(r.get(key, math.nan)) for r in ok)}
+    assert {"chamfer_l1_exact", "fscore_1%", "normal_consistency_exact", "hausdorff", "seconds"} <= charted
+    assert {p.name for p in plots} == {f"{'fscore' if k == 'fscore_1%' else k}.png" for k in charted} | \
+        {"time_vs_chamfer.png"}  # a chart for each metric the rows have, none for the others
     assert report.count("<img ") == len(plots) + 2 * len(ok)  # every plot, every render and its error view
     assert "data:image/png;base64," in report and 'src="renders/' not in report
     for row in ok:
@@ -236,7 +240,8 @@ def test_report_opens_in_headless_chromium_with_table_plots_and_every_render(tmp
             " i.getBoundingClientRect().width, i.getBoundingClientRect().height])")
         renders = [r for r in rows if r.get("render")]
         assert len(renders) == sum(r["status"] == "ok" for r in rows) == 2
-        assert len(images) == 4 + 2 * len(renders)  # four plots, a render and an error view per reconstruction
+        plots = list((tmp_path / "plots").glob("*.png"))
+        assert len(images) == len(plots) + 2 * len(renders)  # the charts, a render and an error view per mesh
         for alt, complete, width, height, shown_width, shown_height in images:
             assert complete and width > 0 and height > 0 and shown_width > 0 and shown_height > 0, alt
         assert {f"{r['method']} on {r['scene']}" for r in renders} <= {alt for alt, *_ in images}

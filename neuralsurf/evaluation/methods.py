@@ -33,6 +33,14 @@ class NotApplicable(NeuralsurfError):
     """This method does not take this scene's kind of input; the row is skipped with the reason."""
 
 
+def scene_input(scene: Scene) -> str:
+    """What a scene without depth frames offers, for the reason of a skipped row."""
+    if scene.photometric:
+        return (f"{scene.name} is a photometric capture (images under known lights)"
+                f"{' with a point cloud' if scene.cloud is not None and not scene.cloud_from_truth else ''}")
+    return f"{scene.name} is a point cloud"
+
+
 def extract_scene_mesh(field: nn.Module, scene: Scene, extract: dict[str, Any] | None = None) -> Mesh:
     """`extract_mesh(field, **extract)` for a world-frame field fitted to `scene`; a room (the scene's
     `near_distance`, or a `near_distance` option) is meshed only that close to its input points, or with an
@@ -107,7 +115,7 @@ def tsdf(scene: Scene, *, voxel_fraction: float = 1 / 256, truncation_voxels: fl
     """TSDF fusion of the scene's depth frames; the voxel is `voxel_fraction` of the longest side of
     the box of the back-projected input (enlarged by `margin_fraction`; the ground truth is not used)."""
     if scene.frames is None:
-        raise NotApplicable("TSDF fusion needs depth frames; this scene is a point cloud")
+        raise NotApplicable(f"TSDF fusion needs depth frames; {scene_input(scene)}")
     bounds, size = input_box(scene, margin_fraction)
     voxel = voxel_fraction * size
     volume = TSDFVolume(bounds, voxel, truncation_voxels * voxel, device=device, weighting=weighting)

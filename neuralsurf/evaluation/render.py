@@ -171,13 +171,27 @@ def _nice_max(value: float) -> float:
     return 10 * exponent
 
 
+def _fitted(draw: ImageDraw.ImageDraw, text: str, width: float, font) -> str:
+    """`text`, cut with an ellipsis to fit `width` pixels."""
+    if draw.textlength(text, font=font) <= width:
+        return text
+    while text and draw.textlength(text + "…", font=font) > width:
+        text = text[:-1]
+    return text + "…"
+
+
 def bar_chart(title: str, groups: list[str], series: list[str], values: dict[tuple[str, str], float],
               width: int = 720, height: int = 360, log: bool = False) -> Image.Image:
     """Grouped bars: one group per `groups` entry (scenes), one bar per `series` entry (methods);
-    values[(group, series)], missing or NaN values leave a gap. `log` plots log10 (values > 0)."""
+    values[(group, series)], missing or NaN values leave a gap. `log` plots log10 (values > 0). The
+    chart widens past `width` to give each bar at least 14 pixels and each group label 2 rows of room:
+    labels alternate between two rows under the axis and are cut with an ellipsis only beyond that."""
+    draw, font = ImageDraw.Draw(Image.new("RGB", (1, 1))), _font(12)
+    legend = max([draw.textlength(name, font=font) for name in series] + [60])
+    left, right, top, bottom = 70, int(legend) + 44, 30, 56
+    width = max(width, left + right + len(groups) * max(14 * len(series) + 12, 60))
     image = Image.new("RGB", (width, height), BACKGROUND)
-    draw, font = ImageDraw.Draw(image), _font(12)
-    left, right, top, bottom = 70, 150, 30, 50
+    draw = ImageDraw.Draw(image)
     draw.text((left, 8), title, fill=(0, 0, 0), font=_font(15))
     finite = [v for v in values.values() if v is not None and math.isfinite(v) and (v > 0 or not log)]
     if log and finite:
@@ -206,7 +220,11 @@ def bar_chart(title: str, groups: list[str], series: list[str], values: dict[tup
             h = plot_h * min(max(scale(value), 0.0), 1.0)
             x = x0 + s * bar_w
             draw.rectangle([x, top + plot_h - h, x + bar_w - 2, top + plot_h], fill=PALETTE[s % len(PALETTE)])
-        draw.text((x0, top + plot_h + 6), group[:18], fill=(0, 0, 0), font=font)
+        label = _fitted(draw, group, 2 * group_w - 8, font)
+        centre, row = left + (g + 0.5) * group_w, g % 2 if len(groups) > 1 else 0
+        draw.line([(centre, top + plot_h), (centre, top + plot_h + 4 + 16 * row)], fill=(150, 150, 150))
+        x = min(max(centre - draw.textlength(label, font=font) / 2, 2), width - draw.textlength(label, font=font) - 2)
+        draw.text((x, top + plot_h + 6 + 16 * row), label, fill=(0, 0, 0), font=font)
     for s, name in enumerate(series):
         y = top + 4 + 18 * s
         draw.rectangle([width - right + 12, y, width - right + 24, y + 12], fill=PALETTE[s % len(PALETTE)])

@@ -46,16 +46,43 @@ def markdown(header: list[str], rows: list[list[str]]) -> str:
     return "\n".join(lines + ["| " + " | ".join(cells) + " |" for cells in rows])
 
 
+def shown_columns(rows: list[dict[str, Any]]) -> list[tuple[str, str]]:
+    """The TABLE_COLUMNS that some ok row has a value for (method, scene and status always)."""
+    ok = [row for row in rows if row["status"] == "ok"]
+    return [(key, header) for key, header in TABLE_COLUMNS
+            if key in ("method", "scene", "status") or any(row.get(key) not in (None, "") for row in ok)]
+
+
+def _general(reason: str, scene: str) -> str:
+    """A skip reason with its scene's name taken out, so that rows skipped for one cause read alike."""
+    for name in (f"scene {scene!r}", f"scene {scene}", repr(scene), scene):
+        reason = reason.replace(name, "the scene")
+    return reason.replace("the scene's", "its").replace("\n", " ")
+
+
+def skipped_lines(rows: list[dict[str, Any]]) -> list[tuple[str, str]]:
+    """The skipped rows folded into one (reason, "method on scene, scene; method on scene") per reason."""
+    causes: dict[str, dict[str, list[str]]] = {}
+    for row in rows:
+        if row["status"] == "skipped":
+            reason = _general(row.get("reason", ""), row["scene"])
+            causes.setdefault(reason, {}).setdefault(row["method"], []).append(row["scene"])
+    return [(reason, "; ".join(f"{method} on {', '.join(scenes)}" for method, scenes in by_method.items()))
+            for reason, by_method in causes.items()]
+
+
 def markdown_table(rows: list[dict[str, Any]]) -> str:
-    """One line per row: the headline metrics; skipped/failed rows show their reason."""
-    lines = []
+    """One line per computed row: the metrics any row has; failed rows show their reason. Skipped rows
+    follow the table, one line per reason (`skipped_lines`)."""
+    columns, lines = shown_columns(rows), []
     for row in rows:
         if row["status"] == "ok":
-            lines.append([_cell(row.get(key)) for key, _ in TABLE_COLUMNS])
-        else:
+            lines.append([_cell(row.get(key)) for key, _ in columns])
+        elif row["status"] != "skipped":
             reason = row.get("reason", "").replace("|", "/").replace("\n", " ")[:120]
-            lines.append([row["method"], row["scene"], f"{row['status']}: {reason}"] + [""] * (len(TABLE_COLUMNS) - 3))
-    return markdown([h for _, h in TABLE_COLUMNS], lines)
+            lines.append([row["method"], row["scene"], f"{row['status']}: {reason}"] + [""] * (len(columns) - 3))
+    skipped = [f"skipped ({reason}): {pairs}" for reason, pairs in skipped_lines(rows)]
+    return "\n".join([markdown([h for _, h in columns], lines), *(["", *skipped] if skipped else [])])
 
 
 def metrics_table(metrics: dict[str, Any]) -> str:
@@ -78,23 +105,38 @@ def write_tables(rows: list[dict[str, Any]], run_dir: Path, extra: dict[str, Any
     write_atomic(run_dir / "results.json", json.dumps({"rows": clean, **(extra or {})}, indent=2, default=str))
 
 
+CHARTS = [
+    ("chamfer_l1_exact", "exact Chamfer-L1, fraction of the gt box (log; lower is better)", True),
+    ("fscore_1%", "F-score at 1% of the gt box (higher is better)", False),
+    ("normal_consistency_exact", "normal consistency, exact (higher is better)", False),
+    ("iou", "volumetric IoU (higher is better)", False),
+    ("hausdorff", "Hausdorff distance, fraction of the gt box (log; lower is better)", True),
+    ("depth_error_mean", "held-out depth error, mean in metres (log; lower is better)", True),
+    ("depth_completeness", "held-out depth completeness (higher is better)", False),
+    ("normal_error_mean_deg", "normal angular error, mean in degrees (log; lower is better)", True),
+    ("integration_depth_error", "depth error of the integrated normals (log; lower is better)", True),
+    ("seconds", "wall time in seconds (log)", True),
+]
+"""One bar chart per metric family (key, title, log scale): drawn when some row has a value for it."""
+
+
 def write_plots(rows: list[dict[str, Any]], run_dir: Path) -> list[str]:
-    """Bar charts (Chamfer-L1, F@1%, time per scene and method) and a time vs. accuracy scatter."""
+    """A bar chart per metric of CHARTS that some ok row has (only the scenes and methods with a value),
+    and a time vs. exact Chamfer scatter; returns their paths in `run_dir`."""
     ok = [r for r in rows if r["status"] == "ok"]
-    scenes = list(dict.fromkeys(r["scene"] for r in rows))
-    methods = list(dict.fromkeys(r["method"] for r in rows))
-    plots = {
-        "chamfer_l1.png": bar_chart("Chamfer-L1 (fraction of gt box, lower is better)", scenes, methods,
-                                    {(r["scene"], r["method"]): r.get("chamfer_l1") for r in ok}, log=True),
-        "fscore.png": bar_chart("F-score at 1% (higher is better)", scenes, methods,
-                                {(r["scene"], r["method"]): r.get("fscore_1%") for r in ok}),
-        "time.png": bar_chart("wall time in seconds (log)", scenes, methods,
-                              {(r["scene"], r["method"]): r.get("seconds") for r in ok}, log=True),
-        "time_vs_chamfer.png": scatter_plot("time vs. accuracy (lower left is better)", "seconds (log)",
-                                            "exact Chamfer-L1 (log)",
-                                            [(r["seconds"], r["chamfer_l1_exact"], r["method"], r["scene"])
-                                             for r in ok if "chamfer_l1_exact" in r]),
-    }
+    plots = {}
+    for key, title, log in CHARTS:
+        values = {(r["scene"], r["method"]): float(r[key]) for r in ok
+                  if isinstance(r.get(key), (int, float)) and math.isfinite(r[key]) and (r[key] > 0 or not log)}
+        if values:
+            scenes = list(dict.fromkeys(scene for scene, _ in values))
+            methods = list(dict.fromkeys(method for _, method in values))
+            plots[f"{'fscore' if key == 'fscore_1%' else key}.png"] = bar_chart(title, scenes, methods, values, log=log)
+    points = [(r["seconds"], r["chamfer_l1_exact"], r["method"], r["scene"]) for r in ok
+              if isinstance(r.get("chamfer_l1_exact"), (int, float)) and isinstance(r.get("seconds"), (int, float))]
+    if points:
+        plots["time_vs_chamfer.png"] = scatter_plot("time vs. accuracy (lower left is better)", "seconds (log)",
+                                                    "exact Chamfer-L1 (log)", points)
     folder = run_dir / "plots"
     folder.mkdir(parents=True, exist_ok=True)
     for name, image in plots.items():
@@ -134,16 +176,21 @@ def write_html(rows: list[dict[str, Any]], run_dir: Path, plots: list[str], titl
     """One self-contained report.html: the table, the plots and every render (base64 PNGs), each beside
     its error-coloured render with a colour bar (`error_views`, from `distances.write_error_views`)."""
     error_views = error_views or {}
-    head = "".join(f"<th>{html.escape(h)}</th>" for _, h in TABLE_COLUMNS)
+    columns = shown_columns(rows)
+    head = "".join(f"<th>{html.escape(h)}</th>" for _, h in columns)
     body = []
     for row in rows:
         if row["status"] == "ok":
-            cells = "".join(f"<td>{html.escape(_cell(row.get(k)))}</td>" for k, _ in TABLE_COLUMNS)
+            cells = "".join(f"<td>{html.escape(_cell(row.get(k)))}</td>" for k, _ in columns)
+        elif row["status"] == "skipped":
+            continue
         else:
             cells = (f"<td>{html.escape(row['method'])}</td><td>{html.escape(row['scene'])}</td>"
-                     f"<td class='{row['status']}' colspan='{len(TABLE_COLUMNS) - 2}'>"
+                     f"<td class='{row['status']}' colspan='{len(columns) - 2}'>"
                      f"{html.escape(row['status'])}: {html.escape(row.get('reason', ''))}</td>")
         body.append(f"<tr>{cells}</tr>")
+    skipped = "".join(f"<li class='skipped'><b>{html.escape(pairs)}</b>: {html.escape(reason)}</li>"
+                      for reason, pairs in skipped_lines(rows))
     scenes = {r["scene"]: r.get("scene_description", "") for r in rows}
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'>",
@@ -159,6 +206,7 @@ def write_html(rows: list[dict[str, Any]], run_dir: Path, plots: list[str], titl
         "<p>Distances are fractions of the ground truth's longest side (its normalised frame).</p>",
         "<ul>" + "".join(f"<li><b>{html.escape(s)}</b>: {html.escape(d)}</li>" for s, d in scenes.items()) + "</ul>",
         f"<h2>Results</h2><table><tr>{head}</tr>{''.join(body)}</table>",
+        f"<p>Skipped, one line per reason:</p><ul class='skips'>{skipped}</ul>" if skipped else "",
         "<h2>Plots</h2>", *[_img(run_dir, p, p) for p in plots],
         ("<h2>Renders</h2><p>ground truth | reconstruction | distance to ground truth (blue 0, red &ge; 1%); "
          "beside them, in viridis on one scale per scene: the reconstruction coloured by each vertex's distance to "

@@ -20,7 +20,7 @@ from torch import Tensor
 from neuralsurf.baselines import TSDFVolume
 from neuralsurf.devices import resolve_device
 from neuralsurf.errors import ConfigError, ExtractionError
-from neuralsurf.evaluation.methods import NotApplicable, input_box
+from neuralsurf.evaluation.methods import NotApplicable, input_box, scene_input
 from neuralsurf.geometry import kinect_sigma
 from neuralsurf.marching import cube_triangles, merge_edge_vertices
 from neuralsurf.models.grid import VoxelSDF
@@ -142,7 +142,7 @@ def neural_voxels(scene: Scene, *, voxel_fraction: float = 1 / 512, truncation_v
     its observed voxels (`voxel_mesh`). `seed`, `run_dir` and `config` are taken as every method takes them; the
     solve is deterministic and writes nothing."""
     if scene.frames is None:
-        raise NotApplicable("the voxel fit needs depth frames; this scene is a point cloud")
+        raise NotApplicable(f"the voxel fit needs depth frames; {scene_input(scene)}")
     device = str(resolve_device(device))
     bounds, size = input_box(scene, margin_fraction)
     voxel = voxel_fraction * size

@@ -444,8 +444,10 @@ class DepthRays(Observation):
         """The scene's depth frames (a `neuralsurf.scenes.Scene`) with these options; NotObserved
         when the scene has none."""
         if scene.frames is None or not scene.depth_input:
-            raise NotObserved(f"scene {scene.name!r} is not a depth capture (no depth frames as its input); "
-                              f"fit it with PointSamples (observation=points)")
+            points = scene.cloud is not None and not getattr(scene, "cloud_from_truth", False)
+            raise NotObserved(f"scene {scene.name!r} is not a depth capture (no depth frames as its input)" +
+                              ("; fit its points with PointSamples (observation=points)" if points else
+                               ", and it has no measured points either"))
         return cls(scene.frames, **options)
 
     def _sigma_of_depth(self):
