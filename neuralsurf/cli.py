@@ -42,6 +42,7 @@ from neuralsurf.evaluation.runner import environment, seed_everything
 from neuralsurf.evaluation.store import cached_scene, rebuild_report, settings_key
 from neuralsurf.io import read_mesh, write_mesh
 from neuralsurf.io.meshes import mesh_format
+from neuralsurf.io.trajectories import write_trajectory_log, write_tum_trajectory
 from neuralsurf.metrics import box_overlap, depth_metrics, evaluate_mesh, json_ready
 from neuralsurf.models import AutoDecoder
 from neuralsurf.priors import ShapeCollection, score_completions, train_prior
@@ -176,6 +177,9 @@ def train(cfg: DictConfig) -> dict[str, float]:
         extract_seconds = time.perf_counter() - started
         mesh_path = run_dir / f"mesh{extension}"
         write_mesh(mesh_path, mesh)
+        if scene.trajectory is not None:  # tracked camera poses, next to the mesh
+            write_tum_trajectory(run_dir / "trajectory.txt", scene.trajectory)
+            write_trajectory_log(run_dir / "trajectory.log", scene.trajectory)
 
         metrics = evaluate_mesh(mesh, scene.ground_truth, seed=cfg.seed) if scene.ground_truth is not None else {}
         if scene.held_out is not None:

@@ -8,7 +8,10 @@ levels, ICP steps and trajectory errors; the numpy point-to-plane step of the IC
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,14 +28,15 @@ from neuralsurf.baselines.tracking import (
     raycast_volume,
     track_frames,
 )
-from neuralsurf.errors import ConfigError
-from neuralsurf.io.rgbd import read_trajectory_log, tum_trajectory_to_poses
+from neuralsurf.errors import ConfigError, FileFormatError
+from neuralsurf.io.rgbd import read_depth_frames, read_trajectory_log, tum_trajectory_to_poses
 from neuralsurf.io.trajectories import sensor_intrinsics, write_trajectory_log, write_tum_trajectory
 from neuralsurf.metrics import absolute_trajectory_error, align_trajectory, relative_pose_error
 from neuralsurf.scenes.analytic import Box, Sphere
 from neuralsurf.scenes.scanner import intrinsics_from_fov, look_at, scan_depth
 from neuralsurf.structures import DepthFrames, Mesh
 
+REPO = Path(__file__).resolve().parents[1]
 WIDTH, HEIGHT = 160, 120
 
 
@@ -268,3 +272,60 @@ def test_sensor_presets_and_the_error_naming_them():
         sensor_intrinsics("phone")
     with pytest.raises(ConfigError, match="512x424"):
         sensor_intrinsics("kinect_v2", 640, 480)
+
+
+# ----------------------------------------------------------------------------- captures without poses
+
+
+def write_frames_only(folder: Path, n: int = 6) -> torch.Tensor:
+    """n synthetic room frames as a capture without poses: depth/*.png (16-bit mm), image/*.png and
+    camera-intrinsics.txt; returns the true poses."""
+    from PIL import Image
+
+    truth = path(n)
+    frames = capture(truth)
+    (folder / "depth").mkdir(parents=True)
+    (folder / "image").mkdir()
+    np.savetxt(folder / "camera-intrinsics.txt", frames.K[0].numpy())
+    for i, depth in enumerate(frames.depth):
+        Image.fromarray(np.round(depth.numpy() * 1000).astype(np.uint16)).save(folder / "depth" / f"{i:05d}.png")
+        Image.fromarray(np.full((HEIGHT, WIDTH, 3), 128, np.uint8)).save(folder / "image" / f"{i:05d}.png")
+    return truth
+
+
+def test_a_capture_without_poses_is_tracked_when_poses_are_auto(tmp_path):
+    from neuralsurf.scenes.recipes import rgbd_scene
+
+    truth = write_frames_only(tmp_path)
+    with pytest.raises(FileFormatError, match="no RGB-D frames of a known layout"):
+        rgbd_scene(str(tmp_path), poses="files")
+    scene = rgbd_scene(str(tmp_path), poses="auto", hold_out_every=3)
+    assert scene.trajectory.shape == (6, 4, 4) and "tracked poses" in scene.description
+    assert absolute_trajectory_error(scene.trajectory, truth[0].inverse() @ truth) < 0.01
+    assert torch.allclose(scene.held_out.cam_to_world, scene.trajectory[[2, 5]].float())
+    frames = read_depth_frames(tmp_path, K=None, with_color=True)
+    assert frames.colors.shape == (6, HEIGHT, WIDTH, 3) and torch.equal(frames.cam_to_world[3], torch.eye(4))
+
+
+def test_a_capture_without_intrinsics_names_the_sensor_presets(tmp_path):
+    write_frames_only(tmp_path, n=2)
+    (tmp_path / "camera-intrinsics.txt").unlink()
+    with pytest.raises(ConfigError, match="sensor= one of primesense, kinect_v1, kinect_v2, realsense_d435"):
+        read_depth_frames(tmp_path)
+    with pytest.raises(ConfigError, match="640x480 but these are 160x120"):
+        read_depth_frames(tmp_path, sensor="kinect_v1")
+
+
+@pytest.mark.subprocess
+def test_train_py_on_frames_only_writes_the_trajectory_beside_the_mesh(tmp_path):
+    truth = write_frames_only(tmp_path / "capture")
+    command = [sys.executable, "train.py", "data=rgbd", f"data.path={tmp_path / 'capture'}", "data.hold_out_every=0",
+               "trainer.steps=2", "trainer.progress=false", "extract.resolution=32", "observation.rays.denoise_k=0",
+               f"hydra.run.dir={tmp_path / 'run'}", "device=cpu"]
+    done = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
+    assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]
+    ids, poses = read_trajectory_log(tmp_path / "run" / "trajectory.log")
+    assert ids.tolist() == list(range(6)) and any((tmp_path / "run").glob("mesh.*"))
+    assert absolute_trajectory_error(torch.from_numpy(poses), truth[0].inverse() @ truth) < 0.01
+    table = np.loadtxt(tmp_path / "run" / "trajectory.txt")
+    assert np.allclose(tum_trajectory_to_poses(table[:, 1:]), poses, atol=1e-6)

@@ -375,6 +375,8 @@ class Tracker:
         raycast_level: the pyramid level at which the model is raycast (0: full size; coarser is faster, and
             its coarser levels are downsampled from it; finer source levels associate with it).
         smoothing: radius (pixels) of the `bilateral_filter` of the depth that is registered (0: none).
+        constant_velocity: start each frame's ICP from the previous frame's motion repeated (else from
+            the previous pose, as KinectFusion).
     """
 
     def __init__(self, K: Tensor, mode: str = "model", levels: int = 3, iterations: tuple[int, ...] = (4, 5, 10),
@@ -382,7 +384,7 @@ class Tracker:
                  max_normal_angle: float = 30.0, min_inlier_share: float = 0.3, max_rmse: float = 0.03,
                  max_depth: float = 4.0, voxel_size: float = 0.02, truncation: float | None = None,
                  margin: float = 3.0, initial_pose: Tensor | None = None, raycast_level: int = 1,
-                 smoothing: int = 1):
+                 smoothing: int = 1, constant_velocity: bool = True):
         if mode not in MODES:
             raise ConfigError(f"tracking mode must be one of {MODES}, got {mode!r}")
         if not (isinstance(levels, int) and levels >= 1) or len(iterations) != levels:
@@ -398,6 +400,7 @@ class Tracker:
         self.voxel_size = voxel_size
         self.truncation = 3 * voxel_size if truncation is None else truncation
         self.margin, self.raycast_level, self.smoothing = margin, raycast_level, int(smoothing)
+        self.constant_velocity = bool(constant_velocity)
         self.initial_pose = torch.eye(4, dtype=torch.float64) if initial_pose is None else initial_pose.double()
         self.poses: list[Tensor] = []
         self.volume: TSDFVolume | None = None
@@ -443,7 +446,10 @@ class Tracker:
             previous = self.poses[-1]
             model = self._model(previous.to(depth.device))
             source = self._maps(self._smooth(depth))
-            fit = register_maps(source, model, torch.eye(4, dtype=torch.float64, device=depth.device),
+            motion = torch.eye(4, dtype=torch.float64)
+            if self.constant_velocity and index > 1:
+                motion = torch.linalg.inv(self.poses[-2]) @ previous
+            fit = register_maps(source, model, motion.to(depth.device),
                                 self.iterations, self.kernel, self.kernel_scale, self.max_distance, self.min_cosine)
             self.last_fit = fit
             reason = ("the normal equations are degenerate" if fit.degenerate else

@@ -41,6 +41,7 @@ import torch
 from neuralsurf.errors import ConfigError, FileFormatError, InputError
 from neuralsurf.io.pointclouds import PathLike
 from neuralsurf.io.range_scans import quaternion_to_matrix
+from neuralsurf.io.trajectories import sensor_intrinsics
 from neuralsurf.progress import progress_bar
 from neuralsurf.structures import DepthFrames, check_intrinsics
 
@@ -422,6 +423,61 @@ def read_trajectory_log(path: PathLike, frames: int | None = None) -> tuple[np.n
             )
         seen.add(ids[-1])
     return np.array(ids, dtype=np.int64), np.stack(poses)
+
+
+
+def has_poses(path: PathLike) -> bool:
+    """Whether `read_rgbd_folder` finds a layout with camera poses in `path` (7-Scenes, TUM, Redwood)."""
+    try:
+        detect_rgbd_format(path)
+    except FileFormatError:
+        return False
+    return True
+
+
+def read_depth_frames(
+    path: PathLike,
+    K=None,
+    sensor: str | None = None,
+    stride: int = 1,
+    max_frames: int | None = None,
+    with_color: bool = True,
+    depth_scale: float = 1000.0,
+    progress: bool = True,
+) -> DepthFrames:
+    """Read a capture without poses: `depth/*.png` (16-bit, `depth_scale` units per metre, 0 invalid) and,
+    with `with_color`, registered colour images in `image/`, `rgb/` or `color/` (one per depth image).
+
+    Intrinsics: `K` (3x3), else the folder's camera-intrinsics.txt (a 3x3 table), else the named
+    `sensor` (`io.trajectories.SENSORS`); ConfigError naming the options when there is none.
+    Returns DepthFrames whose `cam_to_world` is the identity for every frame: placeholders for a
+    tracker's estimate (`baselines.tracking.track_frames`).
+    """
+    path = Path(path)
+    depths = sorted((path / "depth").glob("*.png")) if (path / "depth").is_dir() else []
+    if not depths:
+        raise FileFormatError(f"{str(path)!r} has no depth/*.png images; a capture without poses keeps its "
+                              f"16-bit depth images there (and colour in image/, rgb/ or color/)")
+    if not isinstance(stride, int) or stride < 1:
+        raise ConfigError(f"stride must be a positive integer (keep every stride-th frame), got {stride!r}")
+    colors = None
+    if with_color:
+        folder = next((path / f for f in _COLOR_FOLDERS if (path / f).is_dir()), None)
+        colors = sorted(p for p in folder.iterdir() if p.suffix.lower() in _IMAGE_SUFFIXES) if folder else []
+        if len(colors) != len(depths):
+            raise FileFormatError(
+                f"{str(path)!r} has {len(depths)} depth images but {len(colors)} colour images in "
+                f"{'/'.join(_COLOR_FOLDERS)}/; pass with_color=False to read depth only"
+            )
+    if K is None and (path / _INTRINSICS).is_file():
+        K = _read_matrix(path / _INTRINSICS, (3, 3), "camera intrinsics")
+    if K is None:
+        height, width = read_depth_png(depths[0], depth_scale).shape
+        K = sensor_intrinsics(sensor, width, height)
+    poses = np.tile(np.eye(4), (len(depths), 1, 1))
+    listing = _Listing(depths, colors, poses, np.asarray(K, dtype=np.float64), depth_scale, (0,), True)
+    keep = np.arange(0, len(depths), stride)[:max_frames]
+    return _load(listing, keep, with_color, path, progress)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import torch
 
+from neuralsurf.baselines.tracking import track_frames
 from neuralsurf.data import DATASETS, cache_dir, find_folder
 from neuralsurf.errors import ConfigError, MissingDependencyError, NeuralsurfError
 from neuralsurf.geometry import cloud_from_mesh, depth_to_cloud
@@ -27,6 +28,7 @@ from neuralsurf.io import (
     read_range_scans,
     read_rgbd_folder,
 )
+from neuralsurf.io.rgbd import has_poses, read_depth_frames
 from neuralsurf.photometric import PhotometricStereoResult, integrate_least_squares, photometric_stereo
 from neuralsurf.scenes.analytic import analytic_shape
 from neuralsurf.scenes.bunny import bunny
@@ -71,6 +73,9 @@ class Scene:
     cloud_from_truth: bool = False
     """True when `cloud` is made from the ground truth only to complete the scene (photometric captures
     with neither depth nor a true surface): a mesh reconstructed on it is not scored (its row is skipped)."""
+    trajectory: torch.Tensor | None = None
+    """Float64[Tensor, "n 4 4"]: camera poses estimated by tracking (every frame, held-out ones included, in
+    capture order) when the capture came without poses or they were not used; None otherwise."""
 
 
 def data_root(root: str | Path | None = None) -> Path:
@@ -163,17 +168,36 @@ def bunny_depth(name: str = "bunny_depth", n_views: int = 24, width: int = 320, 
     return depth_scene(name, frames, mesh, hold_out_every, stride, f"{noise} noise")
 
 
+POSES = ("files", "track", "auto")
+"""Where an RGB-D scene's camera poses come from: the folder's pose files, tracking (`track_frames`; the
+files, if any, are not read), or "auto": the files when the folder has them, else tracking."""
+
+
 @lru_cache(maxsize=4)
 def rgbd_scene(path: str, name: str | None = None, stride: int = 1, max_frames: int | None = None,
                hold_out_every: int = 10, cloud_stride: int = 4, ground_truth: str | None = None,
-               near_distance: float | None = 0.05) -> Scene:
-    """A 7-Scenes, TUM or Redwood folder (`read_rgbd_folder`, every `stride`-th frame) as a depth scene
-    with every `hold_out_every`-th frame held out; an optional ground-truth mesh file. A room: neural
-    fields are meshed within `near_distance` metres of the input (None: everywhere)."""
-    frames = read_rgbd_folder(path, stride=stride, max_frames=max_frames, with_color=False)
+               near_distance: float | None = 0.05, poses: str = "files", sensor: str | None = None) -> Scene:
+    """A 7-Scenes, TUM or Redwood folder (`read_rgbd_folder`, every `stride`-th frame), or a folder of depth
+    (and colour) images without poses (`read_depth_frames`, intrinsics from K file or `sensor`), as a depth
+    scene with every `hold_out_every`-th frame held out; an optional ground-truth mesh file. `poses`: one of
+    POSES; tracked poses (`track_frames`, its default settings) start at the identity and are kept in
+    `Scene.trajectory`. A room: neural fields are meshed within `near_distance`
+    metres of the input (None: everywhere)."""
+    if poses not in POSES:
+        raise ConfigError(f"poses must be one of {', '.join(POSES)} (where camera poses come from), got {poses!r}")
+    with_files = poses == "files" or has_poses(path) or (poses == "auto" and not (Path(path) / "depth").is_dir())
+    if poses == "files" or (poses == "auto" and with_files):  # read_rgbd_folder names what a folder lacks
+        frames = read_rgbd_folder(path, stride=stride, max_frames=max_frames, with_color=False)
+        trajectory = None
+    else:
+        frames = (read_rgbd_folder(path, stride=stride, max_frames=max_frames, with_color=False) if with_files
+                  else read_depth_frames(path, sensor=sensor, stride=stride, max_frames=max_frames, with_color=False))
+        trajectory = track_frames(frames).cam_to_world
+        frames = DepthFrames(frames.depth, frames.K, trajectory.float())
     mesh = read_mesh(ground_truth) if ground_truth else None
-    return depth_scene(name or Path(path).name, frames, mesh, hold_out_every, cloud_stride, f"real RGB-D {path}",
-                       near_distance)
+    scene = depth_scene(name or Path(path).name, frames, mesh, hold_out_every, cloud_stride,
+                        f"real RGB-D {path}" + (", tracked poses" if trajectory is not None else ""), near_distance)
+    return replace(scene, trajectory=trajectory)
 
 
 def rgbd_capture(name: str, folder: str, root: str | None = None, stride: int = 1, max_frames: int | None = None,
