@@ -8,7 +8,7 @@ ratios; then the held-out depth error of the meshes fused at the tracked and at 
 Sequences ($NEURALSURF_DATA): livingroom1_redwood (211 frames at 30 Hz, PrimeSense K) and
 7scenes_redkitchen_every10 (every 10th frame: 10x the motion between frames; a tracker may stop there
 with the first lost frame named). Open3D: `o3d.t.pipelines.odometry.rgbd_odometry_multi_scale`, its
-default criteria (20/10/5 iterations over 3 levels), depth_max as ours, method Hybrid (depth and colour)
+default criteria (10/5/3 iterations over 3 levels, coarse to fine), depth_max as ours, method Hybrid (depth and colour)
 and PointToPlane (depth only), on the same device as ours. Times are wall-clock per frame, whole
 sequence, after one warm-up frame pair; the load average is printed, as other processes inflate them.
 
@@ -52,15 +52,19 @@ def open3d_odometry(frames: DepthFrames, method: str, device: str) -> tuple[np.n
         color = o3d.t.geometry.Image(o3d.core.Tensor(colors[i].contiguous().numpy())).to(o3d_device)
         return o3d.t.geometry.RGBDImage(color, depth)
 
-    criteria = [odometry.OdometryConvergenceCriteria(n) for n in (20, 10, 5)]
     kind = getattr(odometry.Method, method)
     identity = o3d.core.Tensor(np.eye(4))
     images = [image(i) for i in range(len(frames))]
-    odometry.rgbd_odometry_multi_scale(images[1], images[0], K, identity, 1.0, MAX_DEPTH, criteria, kind)  # warm-up
+
+    def odometry_step(source, target):
+        return odometry.rgbd_odometry_multi_scale(source, target, K, init_source_to_target=identity,
+                                                  depth_scale=1.0, depth_max=MAX_DEPTH, method=kind)
+
+    odometry_step(images[1], images[0])  # warm-up
     poses, lost = [np.eye(4)], None
     start = time.perf_counter()
     for i in range(1, len(frames)):
-        result = odometry.rgbd_odometry_multi_scale(images[i], images[i - 1], K, identity, 1.0, MAX_DEPTH, criteria, kind)
+        result = odometry_step(images[i], images[i - 1])
         if lost is None and result.fitness < 0.3:  # the same inlier-share bar as ours
             lost = i
         poses.append(poses[-1] @ result.transformation.cpu().numpy())

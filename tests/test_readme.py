@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import yaml
 
 from neuralsurf.data import locate
@@ -85,7 +86,24 @@ def workspace(tmp_path_factory) -> Path:
     write_mesh(folder / "mesh.ply", Sphere(radius=0.305).mesh())
     write_point_cloud(folder / "scan.ply", sample_surface(sphere, n=5000, noise=0.0, seed=0))
     write_capture(folder / "my_capture")
+    write_frames_only_capture(folder / "my_frames")
     return folder
+
+
+def write_frames_only_capture(folder: Path) -> None:
+    """Depth and colour frames of a PrimeSense (640x480) without poses or intrinsics: livingroom1's images
+    when NEURALSURF_DATA has them, else six synthetic views of a room (`test_tracking.write_frames_only`)."""
+    real = Path(os.environ.get("NEURALSURF_DATA", "/nonexistent")) / "livingroom1_redwood"
+    if real.is_dir():
+        folder.mkdir()
+        for name in ("depth", "image"):
+            (folder / name).symlink_to(real / name)
+        return
+    from test_tracking import write_frames_only
+
+    from neuralsurf.io.trajectories import sensor_intrinsics
+
+    write_frames_only(folder, K=torch.from_numpy(sensor_intrinsics("kinect_v1")), width=640, height=480)
 
 
 def write_capture(folder: Path) -> None:

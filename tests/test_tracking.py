@@ -72,9 +72,11 @@ def path(n: int) -> torch.Tensor:
     return torch.stack(poses)
 
 
-def capture(poses: torch.Tensor, mesh: Mesh | None = None, seed: int = 0) -> DepthFrames:
-    K = intrinsics_from_fov(WIDTH, HEIGHT, 45.0)
-    return scan_depth(mesh or room(), width=WIDTH, height=HEIGHT, noise="kinect", seed=seed,
+def capture(poses: torch.Tensor, mesh: Mesh | None = None, seed: int = 0, K: torch.Tensor | None = None,
+            width: int = WIDTH, height: int = HEIGHT) -> DepthFrames:
+    """Kinect-noise depth of `mesh` (default the room) seen at `poses` through K (default a 45-degree view)."""
+    K = intrinsics_from_fov(width, height, 45.0) if K is None else K
+    return scan_depth(mesh or room(), width=width, height=height, noise="kinect", seed=seed,
                       cam_to_world=poses, K=K.expand(len(poses), 3, 3))
 
 
@@ -277,19 +279,21 @@ def test_sensor_presets_and_the_error_naming_them():
 # ----------------------------------------------------------------------------- captures without poses
 
 
-def write_frames_only(folder: Path, n: int = 6) -> torch.Tensor:
-    """n synthetic room frames as a capture without poses: depth/*.png (16-bit mm), image/*.png and
-    camera-intrinsics.txt; returns the true poses."""
+def write_frames_only(folder: Path, n: int = 6, K: torch.Tensor | None = None, width: int = WIDTH,
+                      height: int = HEIGHT) -> torch.Tensor:
+    """n synthetic room frames as a capture without poses: depth/*.png (16-bit mm), image/*.png and, unless
+    K is given, camera-intrinsics.txt; returns the true poses."""
     from PIL import Image
 
     truth = path(n)
-    frames = capture(truth)
+    frames = capture(truth, K=K, width=width, height=height)
     (folder / "depth").mkdir(parents=True)
     (folder / "image").mkdir()
-    np.savetxt(folder / "camera-intrinsics.txt", frames.K[0].numpy())
+    if K is None:
+        np.savetxt(folder / "camera-intrinsics.txt", frames.K[0].numpy())
     for i, depth in enumerate(frames.depth):
         Image.fromarray(np.round(depth.numpy() * 1000).astype(np.uint16)).save(folder / "depth" / f"{i:05d}.png")
-        Image.fromarray(np.full((HEIGHT, WIDTH, 3), 128, np.uint8)).save(folder / "image" / f"{i:05d}.png")
+        Image.fromarray(np.full((height, width, 3), 128, np.uint8)).save(folder / "image" / f"{i:05d}.png")
     return truth
 
 
