@@ -47,7 +47,7 @@ from neuralsurf.metrics import box_overlap, depth_metrics, evaluate_mesh, json_r
 from neuralsurf.models import AutoDecoder
 from neuralsurf.priors import ShapeCollection, score_completions, train_prior
 from neuralsurf.priors.folders import FolderCollection
-from neuralsurf.runlock import busy_message, run_lock
+from neuralsurf.runlock import busy_message, claim, run_lock
 from neuralsurf.structures import Mesh
 from neuralsurf.training import CHECKPOINT_NAME, fit, load_checkpoint
 
@@ -211,11 +211,15 @@ def train_collection(cfg: DictConfig, collection: ShapeCollection | FolderCollec
     shape), metrics.json (means and per-shape values) and checkpoints/last.pt (read back with
     neuralsurf.priors.load_prior). Under torchrun every rank trains; rank 0 alone builds, scores and
     writes. An auto-decoder also writes interpolation.png: the shapes between the codes of its first
-    and last training shapes."""
+    and last training shapes. A folder in Occupancy Networks' layout has no meshes: its prior is trained
+    and kept, not scored (`FolderCollection.check_prior`, checked before building)."""
+    observations = observation_configs(cfg)
+    scored = not isinstance(collection, FolderCollection) or collection.check_prior(  # before building
+        {name: OmegaConf.to_container(entry, resolve=True) for name, entry in observations.items()})
     if is_main_process():
         collection.build(progress=bool(cfg.trainer.progress))
     barrier()
-    builders = [instantiate(entry, _convert_="all") for entry in observation_configs(cfg).values()]
+    builders = [instantiate(entry, _convert_="all") for entry in observations.values()]
     result = train_prior(collection, instantiate(cfg.model, _convert_="all"), builders,
                          optimizer=instantiate(cfg.optimizer), trainer=config["trainer"], seed=cfg.seed, device=device,
                          run_dir=run_dir, config=config)
@@ -223,6 +227,10 @@ def train_collection(cfg: DictConfig, collection: ShapeCollection | FolderCollec
     leave_process_group()  # training is over: rank 0 scores alone (its latent fits are single-process)
     if not main:
         return {}
+    if not scored:  # Occupancy Networks' layout: the checkpoint alone (check_prior warned)
+        metrics = {"fit_seconds": result.seconds, "steps": result.steps}
+        (run_dir / "metrics.json").write_text(json.dumps(json_ready(metrics), indent=2, default=float, allow_nan=False))
+        return metrics
     score = dict(config.get("score") or {})
     limit = score.pop("shapes", None)
     means, per_shape, mesh = score_completions(result.model, collection.test_shapes(limit), seed=cfg.seed,
@@ -358,12 +366,13 @@ def evaluation_job(cfg: DictConfig) -> tuple[dict, Path]:
     return launcher, run_directory(cfg)
 
 
-def check_run_dir_argument(argv: list[str]) -> None:
+def check_run_dir_argument(argv: list[str], lock: bool = False) -> None:
     """Exit with a clear message when `hydra.run.dir=` (or `hydra.sweep.dir=`) names a path under a
     file or one that cannot be created (a read-only or virtual file system such as /proc, no
     permission): Hydra's own mkdir would fail with a raw OSError before any neuralsurf code runs.
     A run directory another live run holds (`neuralsurf.runlock`) is refused too, before Hydra
-    writes its config and log there."""
+    writes its config and log there; with `lock` (train.py) its lock is taken here (`claim`) and held
+    through the run, so two runs started together cannot both pass."""
     import tempfile
 
     for argument in argv:
@@ -375,16 +384,16 @@ def check_run_dir_argument(argv: list[str]) -> None:
                 sys.exit(f"error: {key}={value}: {blocking} is a file, not a folder; choose another run directory")
             if "${" in value:  # resolved by Hydra later
                 continue
-            rank = int(os.environ.get("RANK", "0"))  # torchrun: rank 0's lock is the job's own
-            busy = busy_message(path) if key == "hydra.run.dir" and rank == 0 else None
-            if busy is not None:  # before Hydra writes its config and log into the other run's folder
-                sys.exit(f"error: {key}={value}: {busy}")
             existing = next(p for p in (path.absolute(), *path.absolute().parents) if p.exists())
             try:  # a folder made and removed where the run directory's first missing folder would go
                 os.rmdir(tempfile.mkdtemp(dir=existing, prefix=".neuralsurf-check-"))
             except OSError as error:
                 sys.exit(f"error: {key}={value}: the run directory cannot be created in {existing} "
                          f"({error.strerror or error}); choose a folder you can write to")
+            rank = int(os.environ.get("RANK", "0"))  # torchrun: rank 0's lock is the job's own
+            busy = (claim if lock else busy_message)(path) if key == "hydra.run.dir" and rank == 0 else None
+            if busy is not None:  # before Hydra writes its config and log into the other run's folder
+                sys.exit(f"error: {key}={value}: {busy}")
 
 
 def check_override_keys(argv: list[str], config_name: str) -> None:
@@ -462,7 +471,7 @@ def reporting_errors(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig]
 
 def _hydra_main(task: Callable[[DictConfig], Any], config_name: str) -> None:
     """Hydra's command line around `task`, with Python's warnings in the run's log."""
-    check_run_dir_argument(sys.argv[1:])
+    check_run_dir_argument(sys.argv[1:], lock=config_name == "train")
     check_override_keys(sys.argv[1:], config_name)
     try:
         check_sweep_arguments(sys.argv[1:])  # before a multirun launches any job

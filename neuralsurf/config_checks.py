@@ -10,6 +10,7 @@ and the allowed range.
 from __future__ import annotations
 
 import math
+import os
 import re
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -126,6 +127,28 @@ def check_config(config: dict[str, Any], memory: int | None = None) -> None:
             check_resolution(".".join(path), value, memory)
     if "shard" in config or "shards" in config:
         check_shards(config.get("shard", 0), config.get("shards", 1))
+    if config.get("results_dir") is not None:
+        check_writable_folder("results_dir", config["results_dir"])
+
+
+def check_writable_folder(key: str, value: Any) -> None:
+    """ConfigError unless the folder `value` (given as `key`) exists as a folder or can be made: no file
+    stands where it or a parent should be, and a folder can be created in its first existing parent
+    (one is made and removed there: read-only and virtual file systems fail)."""
+    import tempfile
+    from pathlib import Path
+
+    if not isinstance(value, str) or not value:
+        raise ConfigError(f"{key}={value!r:.60}: expected a folder path")
+    path = Path(value).expanduser().absolute()
+    existing = next(p for p in (path, *path.parents) if p.exists())
+    if not existing.is_dir():
+        raise ConfigError(f"{key}={value}: {existing} is a file, not a folder; choose another folder")
+    try:
+        os.rmdir(tempfile.mkdtemp(dir=existing, prefix=".neuralsurf-check-"))
+    except OSError as error:
+        raise ConfigError(f"{key}={value}: a folder cannot be created in {existing} ({error.strerror or error}); "
+                          f"choose a folder you can write to") from None
 
 
 def check_shards(shard: Any, shards: Any) -> None:

@@ -344,9 +344,12 @@ def fetch(name: str, progress: bool = True) -> Path:
             f"{len(dataset.manifest)} files of its manifest are checked once it is unpacked",
             stacklevel=2,
         )
+    target = cache_dir() / dataset.folder
+    if target.exists() and not target.is_dir():  # before the download: the folder could not take its place
+        raise FileFormatError(f"{str(target)!r} is a file where the folder of data set {name} goes; move it away "
+                              f"and run `python -m neuralsurf data fetch {name}` again")
     archive = download(dataset.url, cache_dir() / "downloads" / dataset.url.rsplit("/", 1)[-1], dataset.sha256,
                        progress, warn_unverified=False)
-    target = cache_dir() / dataset.folder
     staging = target.with_name(f".{target.name}.unpacking")
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)

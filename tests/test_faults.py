@@ -695,3 +695,130 @@ def test_a_report_file_that_cannot_be_replaced_is_a_file_format_error(results):
     with pytest.raises(FileFormatError, match=r"cannot write the report of .*results: Is a directory \(.*results/report\.html\); each report "
                                               r"file must be a writable file"):
         rebuild_report(results)
+
+
+@pytest.mark.subprocess
+def test_train_takes_the_run_lock_before_hydra_writes_into_the_run_directory(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    from neuralsurf.cli import check_run_dir_argument
+    from neuralsurf.runlock import busy_message, run_lock
+
+    run = tmp_path / "run"
+    check_run_dir_argument([f"hydra.run.dir={run}"], lock=True)  # as train.py does before Hydra starts
+    script = f"from neuralsurf.cli import check_run_dir_argument\ncheck_run_dir_argument(['hydra.run.dir={run}'], lock=True)"
+    second = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300, check=False)
+    assert second.returncode == 1 and "Traceback" not in second.stderr
+    assert f"error: hydra.run.dir={run}: run directory {run} is in use by pid {os.getpid()}" in second.stderr
+    assert sorted(p.name for p in run.iterdir()) == [".neuralsurf.lock"]  # nothing of the second run's
+    with run_lock(run):  # the run itself goes on under the lock taken for it
+        assert busy_message(run) is not None
+    assert busy_message(run) is None
+
+
+def onet_folder(root, shapes=3):
+    """Occupancy Networks' layout: class c, `shapes` spheres of radius 0.4 (points.npz, pointcloud.npz)."""
+    import numpy as np
+
+    for i in range(shapes):
+        rng = np.random.default_rng(i)
+        folder = root / "c" / f"s{i}"
+        folder.mkdir(parents=True)
+        points = rng.uniform(-0.55, 0.55, (4001, 3)).astype(np.float32)
+        normals = rng.normal(size=(800, 3))
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        np.savez(folder / "points.npz", points=points, occupancies=np.packbits(np.linalg.norm(points, axis=1) < 0.4))
+        np.savez(folder / "pointcloud.npz", points=(0.4 * normals).astype(np.float32), normals=normals.astype(np.float32))
+    return root
+
+
+def prior_config(tmp_path, experiment, source, *overrides):
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    configs = Path(__file__).resolve().parents[1] / "neuralsurf" / "configs"
+    with initialize_config_dir(str(configs), version_base="1.3"):
+        cfg = compose("train", overrides=[f"experiment={experiment}", "data=shape_folder", f"data.source={source}",
+                                          "data.normalize=false", f"data.root={tmp_path / 'cache'}", "data.workers=0",
+                                          "data.n_sdf=2000", "data.n_occ=1000", "data.n_surface=400", "trainer.steps=2",
+                                          "trainer.progress=false", "trainer.checkpoint_every=1", "device=cpu",
+                                          *overrides])
+    OmegaConf.set_struct(cfg, False)
+    cfg.run_dir = str(tmp_path / "run")
+    return cfg
+
+
+def test_a_prior_trains_on_occupancy_networks_layout_and_is_kept_unscored(tmp_path):
+    import json
+
+    from neuralsurf.cli import train
+    from neuralsurf.errors import ConfigError
+
+    source = onet_folder(tmp_path / "onet")
+    with pytest.raises(ConfigError, match=r"Occupancy Networks' layout, which has no meshes to take depth views of; "
+                                          r"set observation\.occupancy\.partial_views=0"):
+        train(prior_config(tmp_path, "shapes_onet_tiny", source))
+    assert not (tmp_path / "cache").exists()  # refused before building
+    with pytest.warns(UserWarning, match="no meshes to score test shapes against: the prior is trained and kept"):
+        metrics = train(prior_config(tmp_path, "shapes_onet_tiny", source, "observation.occupancy.partial_views=0",
+                                     "observation.occupancy.shapes_per_batch=2"))
+    assert metrics["steps"] == 2 and (tmp_path / "run" / "checkpoints" / "last.pt").is_file()
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["steps"] == 2
+
+
+def test_a_mesh_folder_without_test_shapes_is_refused_before_building(tmp_path):
+    from neuralsurf.cli import train
+    from neuralsurf.errors import ConfigError
+    from neuralsurf.io import write_mesh
+    from neuralsurf.scenes import Sphere
+
+    for name in ("a", "b"):
+        write_mesh(tmp_path / "meshes" / name / "one.ply", Sphere(radius=0.4).mesh(1))
+    with pytest.raises(ConfigError, match=r"no test shapes to score the prior on; list some in test\.lst or set "
+                                          r"data\.test_fraction > 0"):
+        train(prior_config(tmp_path, "shapes_deepsdf_tiny", tmp_path / "meshes", "data.test_fraction=0"))
+    assert not (tmp_path / "cache").exists()
+
+
+def test_a_shape_that_cannot_be_sampled_is_named_by_its_file(tmp_path):
+    from neuralsurf.errors import NeuralsurfError
+    from neuralsurf.io import write_mesh
+    from neuralsurf.priors.folders import FolderCollection
+    from neuralsurf.scenes import Sphere
+    from neuralsurf.structures import Mesh
+
+    write_mesh(tmp_path / "meshes" / "a" / "good.ply", Sphere(radius=0.4).mesh(1))
+    write_mesh(tmp_path / "meshes" / "a" / "point.ply", Mesh(torch.ones(3, 3), torch.tensor([[0, 1, 2]])))
+    collection = FolderCollection(str(tmp_path / "meshes"), root=str(tmp_path / "cache"), n_sdf=500, n_occ=500,
+                                  n_surface=200, test_fraction=0.0, workers=0)
+    with pytest.raises(NeuralsurfError, match=r"meshes/a/point\.ply: .*one location"):
+        collection.build(progress=False)
+
+
+def test_a_results_dir_that_cannot_be_made_is_a_config_error(tmp_path):
+    from neuralsurf.config_checks import check_config
+    from neuralsurf.errors import ConfigError
+
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ConfigError, match=r"^results_dir=.*/file/out: .*/file is a file, not a folder"):
+        check_config({"results_dir": str(tmp_path / "file" / "out")})
+    if Path("/proc/self").is_dir():
+        with pytest.raises(ConfigError, match=r"^results_dir=/proc/out: a folder cannot be created in /proc"):
+            check_config({"results_dir": "/proc/out"})
+    check_config({"results_dir": str(tmp_path / "new" / "out")})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_a_file_where_a_data_sets_folder_goes_is_refused_before_the_download(tmp_path, monkeypatch):
+    from neuralsurf import data
+    from neuralsurf.errors import FileFormatError
+
+    monkeypatch.setenv("NEURALSURF_CACHE", str(tmp_path))
+    monkeypatch.delenv("NEURALSURF_DATA", raising=False)
+    monkeypatch.setattr(data, "download", lambda *args, **kwargs: pytest.fail("downloaded"))
+    (tmp_path / data.DATASETS["stanford_bunny"].folder).write_text("not a folder")
+    with pytest.warns(UserWarning, match="no sha256"), \
+            pytest.raises(FileFormatError, match=r"is a file where the folder of data set stanford_bunny goes"):
+        data.fetch("stanford_bunny", progress=False)

@@ -36,7 +36,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.data import cache_dir
-from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.errors import ConfigError, InputError, NeuralsurfError
 from neuralsurf.geometry import knn, mesh_contains, point_to_mesh_distance, sample_mesh_surface
 from neuralsurf.io.meshes import read_mesh
 from neuralsurf.io.npz import write_npz
@@ -265,7 +265,13 @@ def _shape_cache(entry: ShapeEntry, record: ShapeRecord, out: str, recipe: Cache
 
 
 def _build_job(args) -> tuple[str, str]:
-    return _shape_cache(*args)
+    """`_shape_cache(*args)`; its errors name the shape's file."""
+    try:
+        return _shape_cache(*args)
+    except NeuralsurfError as error:
+        if str(args[0].path) in str(error):
+            raise
+        raise type(error)(f"{args[0].path}: {error}") from None
 
 
 @dataclass(frozen=True)
@@ -411,6 +417,27 @@ class FolderCollection:
             raise InputError(f"{path} not found: build the collection first (FolderCollection.build)")
         return FrameStats(**{k: tuple(v) if isinstance(v, list) else v
                              for k, v in json.loads(path.read_text())["frame"].items()})
+
+    def check_prior(self, observations: dict[str, dict]) -> bool:
+        """What can be checked before the collection is built for a prior trained on it with `observations`
+        (name -> observation config as a plain dict). Occupancy Networks' layout has no meshes: depth views
+        of them (`partial_views` with `partial`) are a ConfigError, and its test shapes cannot be scored
+        (returns False, with a warning). A mesh folder without test shapes is a ConfigError. Returns
+        whether the prior's test shapes can be scored."""
+        if self.layout == "occupancy":
+            for name, options in observations.items():
+                if options.get("partial_views") and options.get("partial"):
+                    raise ConfigError(f"{self.source} is in Occupancy Networks' layout, which has no meshes to take "
+                                      f"depth views of; set observation.{name}.partial_views=0 (one-sided clouds from "
+                                      f"a half-space) or observation.{name}.partial=0")
+            warnings.warn(f"{self.source} is in Occupancy Networks' layout, which has no meshes to score test shapes "
+                          f"against: the prior is trained and kept (checkpoints/last.pt) but not scored; score it on "
+                          f"a mesh folder of the same classes", stacklevel=2)
+            return False
+        if not self.count("test"):
+            raise ConfigError(f"{self.description}: no test shapes to score the prior on; list some in test.lst or "
+                              f"set data.test_fraction > 0 (a class needs two shapes for one to be held out)")
+        return True
 
     def test_shapes(self, limit: int | None = None) -> list[TestShape]:
         """The first `limit` test shapes (all when None), read from the built caches, each checked
