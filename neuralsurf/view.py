@@ -133,11 +133,12 @@ def run_rows(folder: Path) -> list[dict[str, Any]]:
 def _scene_input(folder: Path, scene: str) -> list[Item]:
     """The input points and cameras of `scene` from the run's scene cache (`scenes/<scene>-<key>.pt`,
     the newest), or [] when the run kept none or it cannot be read."""
-    files = sorted((folder / "scenes").glob(f"{safe_name(scene)}-*.pt"), key=lambda p: p.stat().st_mtime)
-    if not files:
+    files = sorted((folder / "scenes").glob(f"{safe_name(scene)}-*.pt"), key=lambda p: p.lstat().st_mtime)
+    scene_file = stored_file(folder, str(files[-1].relative_to(folder)), "scene") if files else None
+    if scene_file is None:
         return []
     try:
-        built = load_scene(files[-1])
+        built = load_scene(scene_file)
     except Exception:  # noqa: BLE001 - the view goes on without the input
         return []
     built = built.scenes[0] if hasattr(built, "scenes") else built  # a set of shapes: its first

@@ -492,9 +492,12 @@ def test_the_viewer_skips_rows_that_are_not_rows_and_meshes_outside_the_folder(t
     rows = [3, ["sphere"], {"method": "m"}, ok_row(method="outside", mesh="../outside.ply"),
             ok_row(mesh="meshes/sphere__poisson.ply")]
     (folder / "results.json").write_text(json.dumps({"rows": rows}))
+    (folder / "scenes").mkdir()
+    (folder / "scenes" / "sphere-0123.pt").symlink_to("/dev/zero")  # a scene cache that never ends
     groups = run_groups(folder)
     assert [[item.label for item in g.items] for g in groups] == [["poisson"]]
     assert "mesh '../outside.ply' lies outside" in caplog.text and "not a row of scene, method and status" in caplog.text
+    assert "scene 'scenes/sphere-0123.pt' lies outside" in caplog.text
 
 
 def test_the_viewer_refuses_a_port_outside_0_to_65535(capsys):
