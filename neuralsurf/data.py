@@ -36,7 +36,7 @@ of the files it unpacks to, by path relative to its folder. A missing or differe
 DownloadError naming it, and neither the unpacked files nor the archive are kept. The manifests hold
 the files whose bytes are known:
 
-- stanford_bunny: all 17 files.
+- stanford_bunny: all 17 files (a file of the archive it does not list is dropped, with a warning).
 - 7scenes_redkitchen: ``camera-intrinsics.txt`` and the 100 ``pose.txt`` (their bytes follow from
   their values, see above). The colour and depth images are not in it: their bytes in Microsoft's
   archive are not known to this registry. The unpacker checks that every frame has its three files.
@@ -101,6 +101,8 @@ class Dataset:
     """Hex sha256 of unpacked files, by path relative to `folder` (posix): checked after every unpack."""
     size: str = ""
     """What a fetch downloads and keeps, in words (``data list``)."""
+    complete: bool = False
+    """The manifest lists every file of the data set: an unpacked file it does not list is dropped."""
 
 
 def read_manifest(path: str | Path) -> dict[str, str]:
@@ -264,6 +266,7 @@ DATASETS: dict[str, Dataset] = {
         terms="Stanford 3D Scanning Repository: free for research; credit the Stanford Computer Graphics Laboratory",
         manifest=_manifest("stanford_bunny"),
         size="bunny.tar.gz (a few MB); unpacked about 22 MB",
+        complete=True,
     ),
     "7scenes_redkitchen": Dataset(
         folder="7scenes_redkitchen_every10",
@@ -377,6 +380,8 @@ def _unpack_checked(name: str, dataset: Dataset, archive: Path, folder: Path) ->
     except FileFormatError as error:
         archive.unlink(missing_ok=True)
         raise FileFormatError(f"{error}; the archive was deleted: {rerun}") from error
+    if dataset.complete and dataset.manifest:
+        _drop_unlisted(name, folder, dataset.manifest)
     problems = check_manifest(folder, dataset.manifest)
     if problems:
         archive.unlink(missing_ok=True)
@@ -389,6 +394,17 @@ def _unpack_checked(name: str, dataset: Dataset, archive: Path, folder: Path) ->
         )
     if not dataset.manifest:
         warnings.warn(f"data set {name} has no manifest: its unpacked files are not verified", stacklevel=3)
+
+
+def _drop_unlisted(name: str, folder: Path, manifest: Mapping[str, str]) -> None:
+    """Remove the files (and links) under `folder` that `manifest` does not list, with a warning naming them."""
+    unlisted = sorted(p for p in folder.rglob("*") if not p.is_dir() and p.relative_to(folder).as_posix() not in manifest)
+    for path in unlisted:
+        path.unlink()
+    if unlisted:
+        shown = ", ".join(p.relative_to(folder).as_posix() for p in unlisted[:5])
+        warnings.warn(f"{name}: {len(unlisted)} files of the archive are not in its manifest and were dropped ({shown})",
+                      stacklevel=4)
 
 
 def check_manifest(folder: str | Path, manifest: Mapping[str, str]) -> list[str]:

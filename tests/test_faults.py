@@ -825,3 +825,29 @@ def test_a_file_where_a_data_sets_folder_goes_is_refused_before_the_download(tmp
     with pytest.warns(UserWarning, match="no sha256"), \
             pytest.raises(FileFormatError, match=r"is a file where the folder of data set stanford_bunny goes"):
         data.fetch("stanford_bunny", progress=False)
+
+
+def test_files_a_complete_manifest_does_not_list_are_dropped(tmp_path):
+    import dataclasses
+    import hashlib
+    import io
+    import tarfile
+
+    from neuralsurf import data
+
+    files = {"bunny/data/bun.conf": b"camera 0 0 0 0 0 0 1\n", "bunny/data/extra.sh": b"#!/bin/sh\n"}
+    archive = tmp_path / "bunny.tar.gz"
+    with tarfile.open(archive, "w:gz") as tar:
+        for name, content in files.items():
+            member = tarfile.TarInfo(name)
+            member.size = len(content)
+            tar.addfile(member, io.BytesIO(content))
+    manifest = {"data/bun.conf": hashlib.sha256(files["bunny/data/bun.conf"]).hexdigest()}
+    dataset = dataclasses.replace(data.DATASETS["stanford_bunny"], manifest=manifest)
+    assert dataset.complete
+    (tmp_path / "out").mkdir()
+    with pytest.warns(UserWarning, match=r"stanford_bunny: 1 files of the archive are not in its manifest and were "
+                                         r"dropped \(data/extra\.sh\)"):
+        data._unpack_checked("stanford_bunny", dataset, archive, tmp_path / "out")
+    assert sorted(p.relative_to(tmp_path / "out").as_posix() for p in (tmp_path / "out").rglob("*")) == [
+        "data", "data/bun.conf"]

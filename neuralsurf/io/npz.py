@@ -38,6 +38,8 @@ def write_npz(path: str | Path, arrays: dict[str, np.ndarray], compressed: bool 
     return path
 
 
+MAX_RATIO = 1032
+"""The most a deflated zip member can grow when it is unpacked (deflate's limit)."""
 NUMERIC_KINDS = "biuf"
 """numpy dtype kinds of plain numbers (bool, signed and unsigned integers, floats)."""
 
@@ -45,13 +47,19 @@ NUMERIC_KINDS = "biuf"
 def read_npz(path: str | Path, keys: tuple[str, ...] = (), kinds: str = NUMERIC_KINDS) -> dict[str, np.ndarray]:
     """Every array of the .npz file `path` as {name: array}. Each member's header is checked before it is
     read: its dtype must be of `kinds` (no objects, no strings) and the size it declares must fit in the
-    member's bytes, so a crafted header cannot make a huge allocation. Raises FileFormatError naming the
+    member's bytes, which must fit in the file (at most MAX_RATIO times their stored size when deflated),
+    so a crafted header cannot make a huge allocation. Raises FileFormatError naming the
     file for a missing, truncated or foreign file, a member of another dtype or size, or a missing `keys`."""
     path = Path(path)
     try:
+        size = path.stat().st_size
         with zipfile.ZipFile(path) as archive:
             for info in archive.infolist():
                 name = info.filename.removesuffix(".npy")
+                if info.compress_size > size or info.file_size > max(MAX_RATIO * info.compress_size, 2**20):
+                    raise FileFormatError(f"{path}: member {name!r} claims {info.file_size} bytes from "
+                                          f"{info.compress_size} stored in a file of {size}; the file is damaged or "
+                                          f"crafted")
                 with archive.open(info) as member:
                     version = np.lib.format.read_magic(member)
                     reader = (np.lib.format.read_array_header_1_0 if version == (1, 0)
