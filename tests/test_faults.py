@@ -851,3 +851,21 @@ def test_files_a_complete_manifest_does_not_list_are_dropped(tmp_path):
         data._unpack_checked("stanford_bunny", dataset, archive, tmp_path / "out")
     assert sorted(p.relative_to(tmp_path / "out").as_posix() for p in (tmp_path / "out").rglob("*")) == [
         "data", "data/bun.conf"]
+
+
+def test_prior_scenes_without_test_shapes_are_refused_before_building(tmp_path):
+    from neuralsurf.errors import ConfigError
+    from neuralsurf.io import write_mesh
+    from neuralsurf.priors.folders import FolderCollection
+    from neuralsurf.priors.scenes import shapes_cloud
+    from neuralsurf.scenes import Sphere
+
+    for name in ("a", "b"):
+        write_mesh(tmp_path / "meshes" / name / "one.ply", Sphere(radius=0.4).mesh(1))
+    meshes = FolderCollection(str(tmp_path / "meshes"), root=str(tmp_path / "cache"), test_fraction=0.0, workers=0)
+    with pytest.raises(ConfigError, match="no test shapes to evaluate on; list some in test.lst"):
+        shapes_cloud(meshes)
+    onet = FolderCollection(str(onet_folder(tmp_path / "onet")), root=str(tmp_path / "cache"), workers=0)
+    with pytest.raises(ConfigError, match="Occupancy Networks' layout, which has no meshes to evaluate"):
+        shapes_cloud(onet)
+    assert not (tmp_path / "cache").exists()

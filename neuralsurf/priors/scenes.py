@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 
+from neuralsurf.errors import ConfigError
 from neuralsurf.geometry import noisy_cloud
 from neuralsurf.priors.collection import ShapeCollection, TestShape
 from neuralsurf.scenes.recipes import Scene, SceneSet, depth_scene
@@ -14,7 +15,14 @@ from neuralsurf.structures import PointCloud
 
 
 def _test_shapes(collection: ShapeCollection, limit: int | None) -> list[TestShape]:
-    """The built collection's first `limit` test shapes."""
+    """The built collection's first `limit` test shapes. A collection without test shapes, or without
+    meshes (Occupancy Networks' layout), is a ConfigError before anything is built."""
+    if not collection.count("test"):
+        raise ConfigError(f"{collection.description}: no test shapes to evaluate on; list some in test.lst or set "
+                          f"test_fraction > 0 (a class needs two shapes for one to be held out)")
+    if getattr(collection, "layout", "meshes") == "occupancy":
+        raise ConfigError(f"{collection.source} is in Occupancy Networks' layout, which has no meshes to evaluate "
+                          f"test shapes against; evaluate on a mesh folder of the same classes")
     collection.build(progress=False)
     return collection.test_shapes(limit)
 
