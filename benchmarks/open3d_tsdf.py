@@ -9,7 +9,7 @@ import open3d as o3d
 import open3d.core as o3c
 
 from neuralsurf.extract import as_bounds
-from neuralsurf.structures import DepthFrames, Mesh
+from neuralsurf.structures import DepthFrames, Mesh, float_colors
 
 
 def fuse_open3d(
@@ -89,7 +89,7 @@ def open3d_frame(frame: DepthFrames, with_color: bool = False):
     intrinsic = o3d.camera.PinholeCameraIntrinsic(w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     color = np.zeros((h, w, 3), np.uint8)
     if with_color and frame.colors is not None:
-        color = np.ascontiguousarray((frame.colors[0].cpu().numpy() * 255).round().astype(np.uint8))
+        color = np.ascontiguousarray((float_colors(frame.colors[0]).cpu().numpy() * 255).round().astype(np.uint8))
     rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
         o3d.geometry.Image(color),
         o3d.geometry.Image(np.ascontiguousarray(frame.depth[0].cpu().numpy())),

@@ -47,6 +47,7 @@ from neuralsurf.metrics import box_overlap, depth_metrics, evaluate_mesh, json_r
 from neuralsurf.models import AutoDecoder
 from neuralsurf.priors import ShapeCollection, score_completions, train_prior
 from neuralsurf.priors.folders import FolderCollection
+from neuralsurf.rooms import RoomSettings, fit_room
 from neuralsurf.runlock import busy_message, claim, run_lock
 from neuralsurf.structures import Mesh
 from neuralsurf.training import CHECKPOINT_NAME, fit, load_checkpoint
@@ -169,12 +170,14 @@ def train(cfg: DictConfig) -> dict[str, float]:
         if isinstance(scene, (ShapeCollection, FolderCollection)):
             return train_collection(cfg, scene, run_dir, config, device, extension)
         model = instantiate(cfg.model, _convert_="all")
-        result = fit(model, build_observations(cfg, scene), optimizer=instantiate(cfg.optimizer), device=device,
-                     seed=cfg.seed, run_dir=run_dir, config=config, **config["trainer"])
-
-        started = time.perf_counter()
-        mesh = extract_scene_mesh(result.field, scene, config["extract"])
-        extract_seconds = time.perf_counter() - started
+        if isinstance(model, RoomSettings):  # a room's voxel fit: a solve, not a training loop
+            mesh, fit_seconds, extract_seconds, steps = room_mesh(scene, model, device)
+        else:
+            result = fit(model, build_observations(cfg, scene), optimizer=instantiate(cfg.optimizer), device=device,
+                         seed=cfg.seed, run_dir=run_dir, config=config, **config["trainer"])
+            started = time.perf_counter()
+            mesh = extract_scene_mesh(result.field, scene, config["extract"])
+            fit_seconds, extract_seconds, steps = result.seconds, time.perf_counter() - started, result.steps
         mesh_path = run_dir / f"mesh{extension}"
         write_mesh(mesh_path, mesh)
         if scene.trajectory is not None:  # tracked camera poses, next to the mesh
@@ -184,13 +187,24 @@ def train(cfg: DictConfig) -> dict[str, float]:
         metrics = evaluate_mesh(mesh, scene.ground_truth, seed=cfg.seed) if scene.ground_truth is not None else {}
         if scene.held_out is not None:
             metrics.update(depth_metrics(mesh, scene.held_out))
-        metrics = {**metrics, "watertight": mesh.is_watertight, "fit_seconds": result.seconds,
-                   "extract_seconds": extract_seconds, "steps": result.steps}
+        metrics = {**metrics, "watertight": mesh.is_watertight, "fit_seconds": fit_seconds,
+                   "extract_seconds": extract_seconds, "steps": steps}
         (run_dir / "metrics.json").write_text(json.dumps(json_ready(metrics), indent=2, default=float,
                                                          allow_nan=False))
         _log_hparams(run_dir, cfg, metrics)
         log.info("scene %s: mesh written to %s\n%s", scene.name, mesh_path.resolve(), metrics_table(metrics))
         return metrics
+
+
+def room_mesh(scene, settings: RoomSettings, device) -> tuple[Mesh, float, float, int]:
+    """`fit_room` of a depth scene's frames: (coloured mesh, fit seconds, 0 extraction seconds (the mesh comes
+    with the fit), 0 steps). ConfigError for a scene without depth frames."""
+    if scene.frames is None:
+        raise ConfigError(f"model=room_voxels fits depth frames; scene {scene.name!r} has none: use data=rgbd "
+                          f"data.path=<capture> (or redkitchen), or a neural model (model=sdf_hashgrid)")
+    started = time.perf_counter()
+    mesh = fit_room(scene.frames, settings, str(device)).mesh
+    return mesh, time.perf_counter() - started, 0.0, 0
 
 
 def shared_run_directory(cfg: DictConfig) -> Path:

@@ -12,8 +12,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.structures import Mesh, PointCloud
-
+from neuralsurf.structures import Mesh, PointCloud, float_colors
 
 # largest query x point count searched by brute force on a GPU (the bunny's sample pool: 1.25M queries x
 # 100k points); beyond it, and on the CPU, a k-d tree
@@ -582,7 +581,7 @@ def depth_to_cloud(
         if with_normals:
             normals.append((rotation @ local[..., None])[..., 0][keep])
         if frames.colors is not None:
-            colors.append(frames.colors[part, ::stride, ::stride][keep])
+            colors.append(float_colors(frames.colors[part, ::stride, ::stride][keep]))
     points = torch.cat(points)
     if len(points) == 0:
         raise InputError(

@@ -385,27 +385,64 @@ def evaluate_mesh(
     return metrics
 
 
-def depth_metrics(mesh: Mesh, frames, threshold: float = 0.05) -> dict[str, float]:
+DEPTH_THRESHOLDS = (0.01, 0.02, 0.05)
+"""Metres within which a rendered held-out depth agrees with the reading (precision, recall, F-score)."""
+
+
+def held_out_errors(mesh: Mesh, frames) -> Tensor:
+    """Float[Tensor, "n h w"]: rendered - measured z-depth (metres) of `mesh` ray-cast from held-out `frames`
+    (DepthFrames), NaN where the frame has no reading or the mesh shows nothing; negative where the mesh stands
+    in front of the reading."""
+    measured = frames.depth.cpu()
+    rendered, _ = render_depth(mesh, frames.K.cpu(), frames.cam_to_world.cpu(), frames.width, frames.height)
+    seen = (measured > 0) & (rendered > 0)
+    return torch.where(seen, rendered - measured, torch.full_like(measured, math.nan))
+
+
+def depth_metrics(mesh: Mesh, frames, threshold: float = 0.05, errors: Tensor | None = None) -> dict[str, float]:
     """Scores that need no ground-truth mesh: the reconstruction ray-cast from held-out depth frames.
 
     Args:
         mesh: the reconstruction (world frame); frames: DepthFrames held out from fitting;
-        threshold: metres within which a held-out reading counts as covered.
+        threshold: metres within which a held-out reading counts as covered; errors: `held_out_errors(mesh,
+        frames)` when already computed.
     Returns:
         depth_error_mean / depth_error_median: |rendered - measured| z-depth (metres) over the held-out
-        valid pixels where the reconstruction is seen; depth_completeness: the fraction of held-out valid
-        pixels whose rendered depth lies within `threshold` of the reading.
+        valid pixels where the reconstruction is seen; depth_error_front / depth_error_behind: the parts of
+        that mean from pixels where the mesh stands in front of / behind the reading (they sum to it);
+        depth_completeness: the fraction of held-out valid pixels whose rendered depth lies within
+        `threshold` of the reading; for t of DEPTH_THRESHOLDS, depth_precision_<t> (the share of the seen
+        pixels within t), depth_recall_<t> (the share of the valid pixels within t) and depth_fscore_<t>.
     """
-    measured = frames.depth.cpu()
-    rendered, _ = render_depth(mesh, frames.K.cpu(), frames.cam_to_world.cpu(), frames.width, frames.height)
-    valid = measured > 0
-    seen = valid & (rendered > 0)
-    error = (rendered - measured).abs()[seen]
-    return {
-        "depth_error_mean": float(error.mean()) if len(error) else math.nan,
-        "depth_error_median": float(error.median()) if len(error) else math.nan,
-        "depth_completeness": float((seen & ((rendered - measured).abs() < threshold)).sum() / valid.sum().clamp_min(1)),
+    errors = held_out_errors(mesh, frames) if errors is None else errors
+    valid = int((frames.depth > 0).sum())
+    signed = errors[torch.isfinite(errors)]
+    error = signed.abs()
+    n = len(error)
+    metrics = {
+        "depth_error_mean": float(error.mean()) if n else math.nan,
+        "depth_error_median": float(error.median()) if n else math.nan,
+        "depth_error_front": float(error[signed < 0].sum() / n) if n else math.nan,
+        "depth_error_behind": float(error[signed > 0].sum() / n) if n else math.nan,
+        "depth_completeness": float((error < threshold).sum() / max(valid, 1)),
     }
+    for t in DEPTH_THRESHOLDS:
+        name = f"{round(100 * t)}cm"
+        within = int((error < t).sum())
+        precision, recall = within / max(n, 1), within / max(valid, 1)
+        metrics[f"depth_precision_{name}"], metrics[f"depth_recall_{name}"] = precision, recall
+        metrics[f"depth_fscore_{name}"] = 2 * precision * recall / (precision + recall) if within else 0.0
+    return metrics
+
+
+def common_pixel_errors(errors: dict[str, Tensor]) -> dict[str, float]:
+    """The mean |error| of each entry of `errors` (name -> `held_out_errors` of one scene's held-out frames, one
+    shape) over the pixels that every entry shows: no mesh is punished for covering more than another."""
+    shapes = {tuple(e.shape) for e in errors.values()}
+    if len(shapes) > 1:
+        raise InputError(f"common_pixel_errors needs error maps of one shape (one scene's held-out frames), got {shapes}")
+    common = torch.stack([torch.isfinite(e) for e in errors.values()]).all(0) if errors else None
+    return {name: float(e[common].abs().mean()) if common.any() else math.nan for name, e in errors.items()}
 
 
 def box_overlap(a: Mesh, b: Mesh) -> float:

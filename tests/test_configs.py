@@ -20,6 +20,7 @@ from neuralsurf.cli import build_observations, observation_configs
 from neuralsurf.errors import ConfigError
 from neuralsurf.models import OccupancyNetwork
 from neuralsurf.observations import DepthRays, Observation
+from neuralsurf.rooms import RoomSettings
 from neuralsurf.scenes import Scene, data_root
 
 REPO = Path(__file__).resolve().parents[1]
@@ -62,6 +63,9 @@ def compose_train(overrides: list[str]):
 def test_every_model_config_instantiates_and_runs(model):
     cfg = compose_train([f"model={model}"])
     net = instantiate(cfg.model, _convert_="all")
+    if isinstance(net, RoomSettings):  # a room's voxel fit: settings of a solve (tests/test_rooms.py)
+        assert net == RoomSettings()
+        return
     if not isinstance(net, torch.nn.Module):  # a learned prior's builder: sized by its collection
         net = net(n_shapes=2)
     latent = torch.zeros(net.latent_dim) if isinstance(net, OccupancyNetwork) else None
@@ -160,8 +164,9 @@ def test_every_experiment_uses_all_of_its_observation_settings(experiment):
 
 
 def test_a_depth_data_config_leaves_the_experiments_point_settings_unused_and_says_so(tmp_path, caplog):
-    """The README's `train.py data=rgbd data.path=<folder>` (default experiment bunny_sdf, tuned for points)."""
-    cfg = compose_train(["data=rgbd", f"data.path={write_7scenes_plane(tmp_path)}", "data.hold_out_every=0"])
+    """`train.py data=rgbd data.path=<folder> model=sdf_hashgrid` (default experiment bunny_sdf, tuned for points)."""
+    cfg = compose_train(["data=rgbd", f"data.path={write_7scenes_plane(tmp_path)}", "data.hold_out_every=0",
+                         "model=sdf_hashgrid"])
     assert set(cfg.observation) == {"rays", "points"} and "_target_" not in cfg.observation.points
     with caplog.at_level(logging.INFO, logger="neuralsurf"):
         observations = build_observations(cfg, instantiate(cfg.data))
@@ -184,7 +189,7 @@ def test_an_override_of_an_observation_that_is_not_selected_is_a_config_error():
 def test_train_py_reports_an_override_of_an_unselected_observation_in_one_line(tmp_path):
     folder = write_7scenes_plane(tmp_path / "capture")
     command = [sys.executable, "train.py", "data=rgbd", f"data.path={folder}", "data.hold_out_every=0",
-               "observation.points.batch_size=10", f"hydra.run.dir={tmp_path / 'run'}", "device=cpu"]
+               "model=sdf_hashgrid", "observation.points.batch_size=10", f"hydra.run.dir={tmp_path / 'run'}", "device=cpu"]
     done = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=300, check=False)
     output = done.stdout + done.stderr
     assert done.returncode == 1, output[-3000:]

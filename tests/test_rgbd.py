@@ -153,7 +153,7 @@ def test_7scenes_frames_in_metres_with_poses_and_colour(shared_data):
     assert 0.3 < float(valid.min()) and float(valid.max()) < 8.0  # metres; 65535 codes became 0
     raw = np.array(Image.open(folder / "frames" / "frame-000000.depth.png"))
     assert np.allclose(frames.depth[0].numpy(), np.where(raw == 65535, 0, raw) / 1000.0)
-    assert frames.colors.shape == (10, 480, 640, 3) and 0 <= frames.colors.min() and frames.colors.max() <= 1
+    assert frames.colors.shape == (10, 480, 640, 3) and frames.colors.dtype == torch.uint8  # as the JPEGs hold them
     assert detect_rgbd_format(folder) == "7scenes"
 
 
@@ -307,8 +307,8 @@ def test_tum_association_quaternions_and_scale(tmp_path):
     assert len(frames) == 4 and detect_rgbd_format(root) == "tum"
     assert np.allclose(frames.cam_to_world.numpy(), np.stack(poses), atol=1e-6)  # nearest pose, xyzw
     assert_on_plane(frames, atol=3e-4)  # 1/5000 m quantisation
-    expected = np.asarray(Image.open(root / "rgb" / f"{100.0 + 0.0333 + 0.005:.6f}.png")) / 255
-    assert np.allclose(frames.colors[1].numpy(), expected, atol=1e-6)
+    expected = np.asarray(Image.open(root / "rgb" / f"{100.0 + 0.0333 + 0.005:.6f}.png"))
+    assert np.array_equal(frames.colors[1].numpy(), expected)
     fx, fy, cx, cy = TUM_K["freiburg2"]  # the default K follows the folder name
     assert np.allclose(tum_intrinsics(root), [[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
     with pytest.warns(UserWarning, match="ROS default"):

@@ -1,4 +1,4 @@
-"""The voxel SDF (neuralsurf.models.grid) and the room fit built on it (neuralsurf.evaluation.rooms), against
+"""The voxel SDF (neuralsurf.models.grid) and the room fit built on it (neuralsurf.rooms), against
 oracles: a linear field, which trilinear interpolation reproduces exactly, a dense least-squares solve of the same
 equations, and a plane seen by cameras facing it."""
 
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from neuralsurf.errors import ConfigError
-from neuralsurf.evaluation.rooms import fused_voxels, ray_equations, solve_on_rays, voxel_mesh
+from neuralsurf.rooms import fused_voxels, ray_equations, solve_on_rays, voxel_mesh
 from neuralsurf.models.grid import VoxelSDF
 from neuralsurf.models.spec import build_model, model_spec
 from neuralsurf.structures import DepthFrames, Normalization

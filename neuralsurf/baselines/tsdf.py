@@ -60,7 +60,7 @@ from neuralsurf.extract import as_bounds
 from neuralsurf.geometry import backproject_depth
 from neuralsurf.marching import cube_triangles, merge_edge_vertices
 from neuralsurf.progress import progress_bar
-from neuralsurf.structures import DepthFrames, Mesh
+from neuralsurf.structures import DepthFrames, Mesh, float_colors
 
 WEIGHTINGS = ("constant", "depth")
 """Per-observation weights: "constant" = 1; "depth" = inverse variance of the Kinect v1 axial noise
@@ -431,7 +431,7 @@ class TSDFVolume:
                 if shares > 1:
                     mine = slot % shares == share
                     keys, slot = keys[mine], slot[mine]
-                self._integrate_frames(depth[part], projections[part], None if colors is None else colors[part],
+                self._integrate_frames(depth[part], projections[part], None if colors is None else float_colors(colors[part]),
                                        compiled, keys, frame_keys, slot)
                 if share == 0:
                     bar.update(len(depth[part]))

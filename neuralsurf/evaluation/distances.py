@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from neuralsurf.errors import FileFormatError
 from neuralsurf.evaluation.filenames import NPZ, row_stem, safe_name, stored_file
@@ -28,6 +29,7 @@ from neuralsurf.geometry import closest_on_mesh, render_depth
 from neuralsurf.io import write_mesh
 from neuralsurf.io.npz import read_npz
 from neuralsurf.locks import replaced, write_atomic
+from neuralsurf.metrics import common_pixel_errors
 from neuralsurf.structures import Mesh
 
 log = logging.getLogger("neuralsurf")
@@ -224,3 +226,45 @@ def save_held_out_errors(run_dir: Path, scene: str, method: str, mesh: Mesh, fra
         image.save(temporary, format="PNG")
     return str(path)
 
+
+
+def held_out_errors_path(scene: str, method: str) -> Path:
+    """Where a row's held-out depth errors are stored, relative to the results folder (named by the row, never
+    read from a row file)."""
+    return Path(FOLDER) / f"{row_stem(scene, method)}__held_out{NPZ}"
+
+
+def save_held_out_error_map(run_dir: Path, scene: str, method: str, errors) -> None:
+    """Store Float[Tensor, "n h w"] held-out depth errors (`metrics.held_out_errors`, NaN where not seen) as
+    float16 (compressed) at `held_out_errors_path`, for the common-pixel errors of the report."""
+    path = Path(run_dir) / held_out_errors_path(scene, method)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with replaced(path) as temporary, open(temporary, "wb") as file:
+        np.savez_compressed(file, errors=errors.cpu().numpy().astype(np.float16))
+
+
+def with_common_pixel_errors(rows: list[dict[str, Any]], run_dir: Path) -> list[dict[str, Any]]:
+    """`rows` with `depth_error_common` on each ok row that has held-out depth errors: its mean |error| over
+    the held-out pixels that every such row of its scene shows (`metrics.common_pixel_errors`). A map that
+    cannot be read is left out with a warning."""
+    by_scene: dict[str, dict[str, Any]] = {}
+    for row in rows:
+        if row.get("status") == "ok" and "depth_error_mean" in row:
+            path = Path(run_dir) / held_out_errors_path(row["scene"], row["method"])
+            if not path.is_file():
+                continue
+            try:
+                errors = torch.from_numpy(read_npz(path, ("errors",))["errors"].astype(np.float32))
+            except FileFormatError as error:
+                log.warning("leaving %s out of the common-pixel errors: %s", path, error)
+                continue
+            by_scene.setdefault(row["scene"], {})[row["method"]] = errors
+    common = {}
+    for scene, errors in by_scene.items():
+        shapes = {tuple(e.shape) for e in errors.values()}
+        if len(shapes) == 1:
+            common.update({(scene, method): value for method, value in common_pixel_errors(errors).items()})
+        else:
+            log.warning("scene %s: held-out error maps of different shapes %s; no common-pixel errors", scene, shapes)
+    return [{**row, "depth_error_common": common[(row["scene"], row["method"])]}
+            if (row["scene"], row["method"]) in common else row for row in rows]

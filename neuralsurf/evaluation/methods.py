@@ -110,15 +110,18 @@ def input_box(scene: Scene, margin_fraction: float) -> tuple[Tensor, float]:
 
 
 def tsdf(scene: Scene, *, voxel_fraction: float = 1 / 256, truncation_voxels: float = 4.0,
-         margin_fraction: float = 0.05, device: str = "auto", weighting: str = "constant",
-         seed: int = 0, run_dir=None, config=None) -> Mesh:
-    """TSDF fusion of the scene's depth frames; the voxel is `voxel_fraction` of the longest side of
-    the box of the back-projected input (enlarged by `margin_fraction`; the ground truth is not used)."""
+         margin_fraction: float = 0.05, room_voxel: float | None = 0.01, device: str = "auto",
+         weighting: str = "constant", seed: int = 0, run_dir=None, config=None) -> Mesh:
+    """TSDF fusion of the scene's depth frames, truncation `truncation_voxels` voxels; the voxel is
+    `voxel_fraction` of the longest side of the box of the back-projected input (enlarged by
+    `margin_fraction`; the ground truth is not used), or `room_voxel` metres for a room (a scene with a
+    `near_distance`; sparse blocks, as the room fit and Open3D's VoxelBlockGrid fuse it; None: the fraction)."""
     if scene.frames is None:
         raise NotApplicable(f"TSDF fusion needs depth frames; {scene_input(scene)}")
     bounds, size = input_box(scene, margin_fraction)
-    voxel = voxel_fraction * size
-    volume = TSDFVolume(bounds, voxel, truncation_voxels * voxel, device=device, weighting=weighting)
+    room = scene.near_distance is not None and room_voxel is not None
+    voxel = room_voxel if room else voxel_fraction * size
+    volume = TSDFVolume(bounds, voxel, truncation_voxels * voxel, device=device, weighting=weighting, sparse=room)
     return volume.integrate(scene.frames).extract_mesh()
 
 

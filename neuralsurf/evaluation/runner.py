@@ -23,7 +23,7 @@ import torch
 
 import neuralsurf
 from neuralsurf.errors import ConfigError
-from neuralsurf.evaluation.distances import save_distances, save_held_out_errors
+from neuralsurf.evaluation.distances import save_distances, save_held_out_error_map, save_held_out_errors
 from neuralsurf.evaluation.methods import NotApplicable
 from neuralsurf.evaluation.photometric import NormalMapResult, normal_map_picture, score_normal_maps
 from neuralsurf.evaluation.render import default_view, distance_image, labelled_row, shade
@@ -31,7 +31,7 @@ from neuralsurf.evaluation.store import reusable_row, row_stem, settings_key, st
 from neuralsurf.io import write_mesh
 from neuralsurf.io.meshes import mesh_format as mesh_format_extension
 from neuralsurf.locks import replaced
-from neuralsurf.metrics import depth_metrics, evaluate_mesh
+from neuralsurf.metrics import depth_metrics, evaluate_mesh, held_out_errors
 from neuralsurf.priors import mean_metrics
 from neuralsurf.scenes import Scene, SceneUnavailable
 from neuralsurf.scenes.recipes import SceneSet
@@ -235,7 +235,9 @@ def run_row(row: dict[str, Any], built: dict[str, Any], make_method: MethodFacto
             if not math.isfinite(metrics["chamfer_l1"]):
                 raise ValueError(f"the metrics are not finite (chamfer_l1 = {metrics['chamfer_l1']})")
         if getattr(scene, "held_out", None) is not None:
-            metrics.update(depth_metrics(mesh, scene.held_out))
+            errors = held_out_errors(mesh, scene.held_out)
+            metrics.update(depth_metrics(mesh, scene.held_out, errors=errors))
+            save_held_out_error_map(run_dir, scene_name, method_name, errors)  # the report's common-pixel errors
     except NotApplicable as error:
         row["status"], row["reason"] = "skipped", str(error)
         log(f"  {method_name:>12} on {scene_name}: skipped ({error})")

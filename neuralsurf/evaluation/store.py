@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from neuralsurf.errors import FileFormatError
+from neuralsurf.evaluation.distances import with_common_pixel_errors
 from neuralsurf.evaluation.filenames import NPZ, PNG, row_stem, safe_name, stored_file
 from neuralsurf.evaluation.report import TABLE_COLUMNS, write_report
 from neuralsurf.locks import file_lock, replaced, write_atomic
@@ -160,7 +161,7 @@ def rebuild_report(results_dir: str | Path, extra: dict[str, Any] | None = None,
     report.html, with "scenes" and "methods": those of the stored rows. Returns (rows, Markdown table)."""
     results_dir = Path(results_dir)
     with file_lock(results_dir / ".report.lock"):
-        rows = ordered(read_rows(results_dir), scenes, methods)
+        rows = with_common_pixel_errors(ordered(read_rows(results_dir), scenes, methods), results_dir)
         extra = {**(extra or {}), "scenes": list(dict.fromkeys(r["scene"] for r in rows)),
                  "methods": list(dict.fromkeys(r["method"] for r in rows))}
         try:

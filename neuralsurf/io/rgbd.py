@@ -203,9 +203,9 @@ def read_depth_png(path: PathLike, depth_scale: float, invalid: tuple[int, ...] 
     return depth
 
 
-def read_color_image(path: PathLike, size: tuple[int, int] | None = None) -> np.ndarray:
-    """A colour image -> Float32[ndarray, "h w 3"] RGB in [0, 1], resized (bilinear) to `size` =
-    (width, height) when given and different."""
+def read_color_image(path: PathLike, size: tuple[int, int] | None = None, as_bytes: bool = False) -> np.ndarray:
+    """A colour image -> Float32[ndarray, "h w 3"] RGB in [0, 1] (`as_bytes`: UInt8[ndarray, "h w 3"] in
+    [0, 255]), resized (bilinear) to `size` = (width, height) when given and different."""
     from PIL import Image, UnidentifiedImageError
 
     path = Path(path)
@@ -216,7 +216,8 @@ def read_color_image(path: PathLike, size: tuple[int, int] | None = None) -> np.
             image = image.convert("RGB")
             if size is not None and image.size != size:
                 image = image.resize(size, Image.BILINEAR)
-            return np.asarray(image, dtype=np.float32) / np.float32(255)
+            rgb = np.asarray(image, dtype=np.uint8)
+            return rgb if as_bytes else rgb.astype(np.float32) / np.float32(255)
     except (UnidentifiedImageError, OSError) as error:
         raise FileFormatError(f"cannot read colour image {str(path)!r}: {error}") from error
 
@@ -511,9 +512,10 @@ def _load(listing: _Listing, keep: np.ndarray, with_color: bool, path: Path, pro
                 f"colours are loaded as-is and are only approximate per depth pixel",
                 stacklevel=3,
             )
-        colors = np.empty((len(keep), height, width, 3), dtype=np.float32)
+        colors = np.empty((len(keep), height, width, 3), dtype=np.uint8)  # as the images hold them
         for slot, i in enumerate(keep):
-            image = read_color_image(listing.color_paths[i], None if listing.registered else (width, height))
+            image = read_color_image(listing.color_paths[i], None if listing.registered else (width, height),
+                                     as_bytes=True)
             if image.shape[:2] != (height, width):
                 raise InputError(
                     f"mismatched depth/colour sizes: {str(listing.color_paths[i])!r} is "

@@ -6,7 +6,7 @@ value (`rows`: each point's row of `values`, -1 where none). A query averages th
 cell with their trilinear weights (so unobserved points, which may lie in free space or behind a surface,
 invent no zero crossing) and reads `outside` where no corner is observed. Initialised from a fused TSDF
 (`from_observed`), the field starts at TSDF's answer; it is linear in its values (`corners`), so they can be
-fitted by one least-squares solve (`evaluation.rooms.solve_on_rays`) as well as by `fit`.
+fitted by one least-squares solve (`rooms.solve_on_rays`) as well as by `fit`.
 """
 
 from __future__ import annotations

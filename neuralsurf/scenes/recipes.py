@@ -176,24 +176,26 @@ files, if any, are not read), or "auto": the files when the folder has them, els
 @lru_cache(maxsize=4)
 def rgbd_scene(path: str, name: str | None = None, stride: int = 1, max_frames: int | None = None,
                hold_out_every: int = 10, cloud_stride: int = 4, ground_truth: str | None = None,
-               near_distance: float | None = 0.05, poses: str = "files", sensor: str | None = None) -> Scene:
+               near_distance: float | None = 0.05, poses: str = "files", sensor: str | None = None,
+               colors: bool = False) -> Scene:
     """A 7-Scenes, TUM or Redwood folder (`read_rgbd_folder`, every `stride`-th frame), or a folder of depth
     (and colour) images without poses (`read_depth_frames`, intrinsics from K file or `sensor`), as a depth
     scene with every `hold_out_every`-th frame held out; an optional ground-truth mesh file. `poses`: one of
     POSES; tracked poses (`track_frames`, its default settings) start at the identity and are kept in
-    `Scene.trajectory`. A room: neural fields are meshed within `near_distance`
+    `Scene.trajectory`. `colors`: the frames carry the colour images (room meshes are coloured from them).
+    A room: neural fields are meshed within `near_distance`
     metres of the input (None: everywhere)."""
     if poses not in POSES:
         raise ConfigError(f"poses must be one of {', '.join(POSES)} (where camera poses come from), got {poses!r}")
     with_files = poses == "files" or has_poses(path) or (poses == "auto" and not (Path(path) / "depth").is_dir())
     if poses == "files" or (poses == "auto" and with_files):  # read_rgbd_folder names what a folder lacks
-        frames = read_rgbd_folder(path, stride=stride, max_frames=max_frames, with_color=False)
+        frames = read_rgbd_folder(path, stride=stride, max_frames=max_frames, with_color=colors)
         trajectory = None
     else:
-        frames = (read_rgbd_folder(path, stride=stride, max_frames=max_frames, with_color=False) if with_files
-                  else read_depth_frames(path, sensor=sensor, stride=stride, max_frames=max_frames, with_color=False))
+        frames = (read_rgbd_folder(path, stride=stride, max_frames=max_frames, with_color=colors) if with_files
+                  else read_depth_frames(path, sensor=sensor, stride=stride, max_frames=max_frames, with_color=colors))
         trajectory = track_frames(frames).cam_to_world
-        frames = DepthFrames(frames.depth, frames.K, trajectory.float())
+        frames = DepthFrames(frames.depth, frames.K, trajectory.float(), frames.colors)
     mesh = read_mesh(ground_truth) if ground_truth else None
     scene = depth_scene(name or Path(path).name, frames, mesh, hold_out_every, cloud_stride,
                         f"real RGB-D {path}" + (", tracked poses" if trajectory is not None else ""), near_distance)
@@ -201,21 +203,24 @@ def rgbd_scene(path: str, name: str | None = None, stride: int = 1, max_frames: 
 
 
 def rgbd_capture(name: str, folder: str, root: str | None = None, stride: int = 1, max_frames: int | None = None,
-                 hold_out_every: int = 10, cloud_stride: int = 4, near_distance: float | None = 0.05) -> Scene:
+                 hold_out_every: int = 10, cloud_stride: int = 4, near_distance: float | None = 0.05,
+                 colors: bool = False) -> Scene:
     """The RGB-D sequence in `folder` under `root`, $NEURALSURF_DATA or the fetch cache (`data_path`): every
     `stride`-th frame (at most `max_frames`), every `hold_out_every`-th of those held out for scoring
     (`rgbd_scene`). Raises SceneUnavailable naming the command that fetches it when the folder is absent."""
     path = data_path(root, folder)
     if not path.is_dir():
         raise _unavailable(path, folder)
-    return rgbd_scene(str(path), name, stride, max_frames, hold_out_every, cloud_stride, near_distance=near_distance)
+    return rgbd_scene(str(path), name, stride, max_frames, hold_out_every, cloud_stride, near_distance=near_distance,
+                      colors=colors)
 
 
 def redkitchen(name: str = "redkitchen", root: str | None = None, folder: str = "7scenes_redkitchen_every10",
-               stride: int = 1, max_frames: int | None = None, hold_out_every: int = 10, cloud_stride: int = 4) -> Scene:
+               stride: int = 1, max_frames: int | None = None, hold_out_every: int = 10, cloud_stride: int = 4,
+               colors: bool = False) -> Scene:
     """The real 7-Scenes redkitchen frames: `folder` under `root`, $NEURALSURF_DATA or the fetch cache
     (`data_path`)."""
-    return rgbd_capture(name, folder, root, stride, max_frames, hold_out_every, cloud_stride)
+    return rgbd_capture(name, folder, root, stride, max_frames, hold_out_every, cloud_stride, colors=colors)
 
 
 @lru_cache(maxsize=4)
