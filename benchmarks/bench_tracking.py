@@ -9,8 +9,9 @@ Sequences ($NEURALSURF_DATA): livingroom1_redwood (211 frames at 30 Hz, PrimeSen
 7scenes_redkitchen_every10 (every 10th frame: 10x the motion between frames; a tracker may stop there
 with the first lost frame named). Open3D: `o3d.t.pipelines.odometry.rgbd_odometry_multi_scale`, its
 default criteria (10/5/3 iterations over 3 levels, coarse to fine), depth_max as ours, method Hybrid (depth and colour)
-and PointToPlane (depth only), on the same device as ours. Times are wall-clock per frame, whole
-sequence, after one warm-up frame pair; the load average is printed, as other processes inflate them.
+and PointToPlane (depth only), on the same device as ours. The trackers take the frames in turn, one
+frame each (so that load from other processes hits them alike); times are wall-clock per frame, frame 0
+excluded, after a warm-up pair; the load average is printed.
 
 Held-out depth error: every 10th frame held out; the others fused into a TSDF (1 cm voxels) at the
 given poses, and at the tracked poses moved onto the given ones by the ATE alignment; each mesh
@@ -26,7 +27,7 @@ import time
 import numpy as np
 import torch
 
-from neuralsurf.baselines.tracking import TrackingLostError, track_frames
+from neuralsurf.baselines.tracking import Tracker, TrackingLostError
 from neuralsurf.baselines.tsdf import TSDFVolume, depth_bounds
 from neuralsurf.io.rgbd import read_rgbd_folder
 from neuralsurf.metrics import absolute_trajectory_error, align_trajectory, depth_metrics, relative_pose_error
@@ -37,38 +38,73 @@ SEQUENCES = {"livingroom1": "livingroom1_redwood", "redkitchen": "7scenes_redkit
 MAX_DEPTH = 4.0
 
 
-def open3d_odometry(frames: DepthFrames, method: str, device: str) -> tuple[np.ndarray, float, int | None]:
-    """Poses (n, 4, 4) of Open3D's multi-scale RGB-D odometry chained frame to frame, seconds, and the first
-    frame where it failed (None: tracked all)."""
-    import open3d as o3d
+class Open3DOdometry:
+    """Open3D's multi-scale RGB-D odometry chained frame to frame, one frame per `track` call, as ours."""
 
-    odometry = o3d.t.pipelines.odometry
-    o3d_device = o3d.core.Device("CUDA:0" if device == "cuda" else "CPU:0")
-    K = o3d.core.Tensor(frames.K[0].double().numpy())
+    def __init__(self, frames: DepthFrames, method: str, device: str):
+        import open3d as o3d
+
+        self.o3d, self.odometry = o3d, o3d.t.pipelines.odometry
+        self.device = o3d.core.Device("CUDA:0" if device == "cuda" else "CPU:0")
+        self.K = o3d.core.Tensor(frames.K[0].double().numpy())
+        self.method = getattr(self.odometry.Method, method)
+        self.identity = o3d.core.Tensor(np.eye(4))
+        self.poses: list[np.ndarray] = []
+        self.previous = None
+        self.first_unfit: int | None = None  # first frame whose fitness is below ours' inlier-share bar
+
+    def image(self, depth: torch.Tensor, color: torch.Tensor):
+        geometry = self.o3d.t.geometry
+        return geometry.RGBDImage(geometry.Image(self.o3d.core.Tensor(color.contiguous().numpy())).to(self.device),
+                                  geometry.Image(self.o3d.core.Tensor(depth.numpy()[..., None])).to(self.device))
+
+    def track(self, depth: torch.Tensor, color: torch.Tensor) -> None:
+        image = self.image(depth, color)
+        if self.previous is None:
+            self.poses.append(np.eye(4))
+        else:
+            result = self.odometry.rgbd_odometry_multi_scale(
+                image, self.previous, self.K, init_source_to_target=self.identity, depth_scale=1.0,
+                depth_max=MAX_DEPTH, method=self.method)
+            if self.first_unfit is None and result.fitness < 0.3:
+                self.first_unfit = len(self.poses)
+            self.poses.append(self.poses[-1] @ result.transformation.cpu().numpy())
+        self.previous = image
+
+
+def interleaved(frames: DepthFrames, device: str, reference: bool) -> dict[str, tuple]:
+    """Every tracker over the frames, one frame each in turn (load from other processes hits them
+    alike): {label: (poses (n, 4, 4) or None, seconds per frame after the first, error or None)}."""
     colors = frames.colors if frames.colors is not None else frames.depth[..., None].expand(-1, -1, -1, 3) / MAX_DEPTH
-
-    def image(i: int):
-        depth = o3d.t.geometry.Image(o3d.core.Tensor(frames.depth[i].numpy()[..., None])).to(o3d_device)
-        color = o3d.t.geometry.Image(o3d.core.Tensor(colors[i].contiguous().numpy())).to(o3d_device)
-        return o3d.t.geometry.RGBDImage(color, depth)
-
-    kind = getattr(odometry.Method, method)
-    identity = o3d.core.Tensor(np.eye(4))
-    images = [image(i) for i in range(len(frames))]
-
-    def odometry_step(source, target):
-        return odometry.rgbd_odometry_multi_scale(source, target, K, init_source_to_target=identity,
-                                                  depth_scale=1.0, depth_max=MAX_DEPTH, method=kind)
-
-    odometry_step(images[1], images[0])  # warm-up
-    poses, lost = [np.eye(4)], None
-    start = time.perf_counter()
-    for i in range(1, len(frames)):
-        result = odometry_step(images[i], images[i - 1])
-        if lost is None and result.fitness < 0.3:  # the same inlier-share bar as ours
-            lost = i
-        poses.append(poses[-1] @ result.transformation.cpu().numpy())
-    return np.stack(poses), time.perf_counter() - start, lost
+    depth = frames.depth.to(device)
+    trackers = {f"ours ({mode})": Tracker(frames.K[0], mode=mode) for mode in ("model", "frame")}
+    if reference:
+        trackers.update({f"Open3D {m}": Open3DOdometry(frames, m, device) for m in ("Hybrid", "PointToPlane")})
+    seconds = dict.fromkeys(trackers, 0.0)
+    lost: dict[str, Exception] = {}
+    for i in range(len(frames)):
+        for label, tracker in trackers.items():
+            if label in lost:
+                continue
+            start = time.perf_counter()
+            try:
+                if isinstance(tracker, Tracker):
+                    tracker.track(depth[i])
+                    if device == "cuda":
+                        torch.cuda.synchronize()
+                else:
+                    tracker.track(frames.depth[i], colors[i])
+            except TrackingLostError as error:
+                lost[label] = error
+            if i > 0:
+                seconds[label] += time.perf_counter() - start
+    rows = {}
+    for label, tracker in trackers.items():
+        poses = None if label in lost else np.stack([np.asarray(p) for p in tracker.poses])
+        note = lost.get(label) or (None if isinstance(tracker, Tracker) or tracker.first_unfit is None
+                                   else f"fitness < 0.3 first at frame {tracker.first_unfit}")
+        rows[label] = (poses, seconds[label] / (len(frames) - 1), note)
+    return rows
 
 
 def scores(estimated: np.ndarray | torch.Tensor, truth: torch.Tensor) -> dict[str, float]:
@@ -89,36 +125,29 @@ def held_out_error(frames: DepthFrames, poses: torch.Tensor, device: str) -> flo
     return 100 * depth_metrics(mesh, frames[index[held]])["depth_error_median"]
 
 
-def run(name: str, folder: str, device: str, max_frames: int | None, fuse: bool) -> None:
-    frames = read_rgbd_folder(data_root() / folder, max_frames=max_frames, progress=False)
+def run(name: str, folder: str, device: str, max_frames: int | None, fuse: bool, reference: bool) -> None:
+    frames = read_rgbd_folder(data_root() / folder, max_frames=max_frames, with_color=reference, progress=False)
     depth = torch.where(frames.depth <= MAX_DEPTH, frames.depth, 0.0)
     frames = DepthFrames(depth, frames.K, frames.cam_to_world, frames.colors)
     truth = frames.cam_to_world.double()
     print(f"\n== {name}: {len(frames)} frames {frames.width}x{frames.height}, device {device}")
-    rows = {}
-    hidden = DepthFrames(frames.depth.to(device), frames.K, torch.eye(4).expand(len(frames), 4, 4))
-    for mode in ("model", "frame"):
-        track_frames(hidden[:2], progress=False, mode=mode)  # warm-up
-        try:
-            trajectory = track_frames(hidden, progress=False, mode=mode)
-            poses, seconds, lost = trajectory.cam_to_world, trajectory.seconds, None
-        except TrackingLostError as error:
-            poses, seconds, lost = None, None, error
-        rows[f"ours ({mode})"] = (poses, seconds, lost)
-    for method in ("Hybrid", "PointToPlane"):
-        poses, seconds, lost = open3d_odometry(frames, method, device)
-        rows[f"Open3D {method}"] = (poses, seconds, lost)
-    reference = rows["Open3D Hybrid"][1] / (len(frames) - 1)
-    for label, (poses, seconds, lost) in rows.items():
+    warm = Tracker(frames.K[0])  # first calls (allocations, kernels) outside the timing
+    warm.track(frames.depth[0].to(device)), warm.track(frames.depth[1].to(device))
+    if reference:
+        colors = frames.colors if frames.colors is not None else frames.depth[..., None].expand(-1, -1, -1, 3)
+        warm_open3d = Open3DOdometry(frames, "Hybrid", device)
+        warm_open3d.track(frames.depth[0], colors[0]), warm_open3d.track(frames.depth[1], colors[1])
+    rows = interleaved(frames, device, reference)
+    baseline = "Open3D Hybrid" if reference else "ours (model)"
+    for label, (poses, per_frame, note) in rows.items():
         if poses is None:
-            print(f"  {label:22s} stopped: {lost}")
+            print(f"  {label:22s} stopped: {note}")
             continue
         s = scores(poses, truth)
-        ms = 1000 * seconds / (len(frames) - 1)
-        note = "" if lost is None else f"  (fitness < 0.3 first at frame {lost})"
+        ms = 1000 * per_frame
         print(f"  {label:22s} ATE {s['ate_cm']:6.2f} cm  RPE {s['rpe_cm']:5.2f} cm {s['rpe_deg']:5.2f} deg  "
-              f"{ms:7.1f} ms/frame ({ms / (1000 * reference):.2f}x Open3D Hybrid){note}")
-    if fuse:
+              f"{ms:7.1f} ms/frame ({per_frame / rows[baseline][1]:.2f}x {baseline})" + (f"  ({note})" if note else ""))
+    if fuse and reference:  # the meshes are ray-cast by Open3D
         given = held_out_error(frames, truth, device)
         print(f"  held-out median depth error, mesh fused at the given poses: {given:.2f} cm")
         for label, (poses, _, _) in rows.items():
@@ -134,10 +163,11 @@ def main() -> None:
     parser.add_argument("--max-frames", type=int, default=None)
     parser.add_argument("--sequences", nargs="+", default=list(SEQUENCES), choices=list(SEQUENCES))
     parser.add_argument("--no-fuse", action="store_true", help="skip the held-out depth error of fused meshes")
+    parser.add_argument("--no-open3d", action="store_true", help="ours only (where Open3D is not installed)")
     args = parser.parse_args()
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, load average {os.getloadavg()}")
     for name in args.sequences:
-        run(name, SEQUENCES[name], args.device, args.max_frames, not args.no_fuse)
+        run(name, SEQUENCES[name], args.device, args.max_frames, not args.no_fuse, not args.no_open3d)
     print(f"load average at the end {os.getloadavg()}")
 
 
