@@ -43,6 +43,11 @@ def run_checkpoint(run_dir: Path) -> Path:
     if fits:
         raise ConfigError(f"{run_dir} is an evaluate.py results folder; export one of its fitted rows: "
                           f"{', '.join(map(str, fits[:8]))}{' ...' if len(fits) > 8 else ''}")
+    hydra_config = run_dir / ".hydra" / "config.yaml"
+    if hydra_config.is_file() and "neuralsurf.rooms.RoomSettings" in hydra_config.read_text():
+        raise ConfigError(f"{run_dir} is a room's voxel fit (model=room_voxels), a solve that keeps only its mesh: "
+                          f"run train.py again with other model.voxel or model.pixel_stride settings, or with "
+                          f"model=sdf_hashgrid for a field that neuralsurf-export can mesh again")
     if (run_dir / "rows").is_dir():
         raise ConfigError(f"{run_dir} is an evaluate.py results folder with no fitted field in fits/: only the "
                           f"neural_sdf, neural_sdf_points, neural_depth and neural_depth_normals rows keep one "

@@ -103,6 +103,11 @@ def test_export_refuses_what_it_cannot_do(run, tmp_path, capsys):
     assert "--format" in capsys.readouterr().err
     assert main([str(run), "--box", "0", "0", "0", "0", "1", "1", "--quiet"]) == 1
     assert "max above its min" in capsys.readouterr().err
+    room = tmp_path / "room"
+    (room / ".hydra").mkdir(parents=True)
+    (room / ".hydra" / "config.yaml").write_text("model:\n  _target_: neuralsurf.rooms.RoomSettings\n")
+    assert main([str(room), "--quiet"]) == 1
+    assert "model=room_voxels" in capsys.readouterr().err
 
 
 def test_export_of_an_evaluate_row_and_of_its_results_folder(tmp_path, capsys):
