@@ -1,19 +1,21 @@
-"""Real rooms from depth frames: the neural voxel fit (method neural_voxels: TSDF fusion at half the tsdf method's
-voxel as the start of a sparse voxel SDF, fitted to the rays in one least-squares solve and meshed on its observed
-voxels) against TSDF fusion of the same frames (the tsdf method), in one run: time, peak memory, held-out depth
-error (mean, median) and completeness, side by side. "TSDF fine" is TSDF fusion at the voxel fit's own voxel
-(what the fit starts from): the fit's own part is the difference between it and the neural row.
+"""Rooms from depth frames, in one run: the library's room fit (`neuralsurf.rooms.fit_room`, what
+`train.py data=rgbd` runs: TSDF fusion at 1 cm fitted to the rays in one least-squares solve), the project's TSDF
+fusion at the same voxel and Open3D's VoxelBlockGrid at the same voxel (the reference), side by side: time, peak
+memory and the held-out depth scores (mean, mean over the pixels every row shows, median, completeness, the share
+of readings explained within 1 cm, F-score at 1 cm, the part of the mean from surfaces in front of the reading).
+One setting for both rooms: the defaults of `RoomSettings`, chosen on redkitchen and checked on livingroom1.
 
-    python benchmarks/bench_room.py [--scenes redkitchen,tum_fr1_desk] [--frames 50] [--mlp] [--maps DIR]
+    python benchmarks/bench_room.py [--scenes redkitchen,livingroom1] [--frames 50] [--voxel 0.01] [--colors]
+                                    [--mlp] [--maps DIR] [--scaling]
 
-The sequences are 7-Scenes redkitchen and TUM RGB-D fr1/desk, read from $NEURALSURF_DATA or the fetch cache
-(`python -m neuralsurf data fetch <name>`; one that is absent is skipped with that command); every 10th frame is
-held out and the meshes are rendered from those views. --frames takes the first N frames (a block of the
-sequence). --mlp adds the hash-grid MLP fitted from scratch (experiment redkitchen_depth, meshed where frames
-observed a surface: `neuralsurf.observations.observed`; minutes). --maps writes each method's per-pixel error maps
-of the held-out views as PNGs (measured | rendered | signed error: red where the mesh lies behind the reading,
-blue where it stands in front, black where it shows nothing) and prints where the error comes from (shares of
-the mean by signed error).
+The sequences are 7-Scenes redkitchen (every 10th frame of the first 1,000), Augmented ICL-NUIM livingroom1
+(Redwood layout, 211 frames) and TUM RGB-D fr1/desk, read from $NEURALSURF_DATA or the fetch cache (one that is
+absent is skipped with the command that fetches it); every 10th frame is held out and the meshes are rendered from
+those views. --frames takes the first N frames (a block). --voxel sets the voxel of all three rows (metres).
+--colors fits with the colour images loaded and the mesh coloured, as train.py does. --mlp adds the hash-grid MLP
+fitted from scratch (experiment redkitchen_depth; minutes). --maps writes each row's held-out error maps (PNG:
+measured | rendered | signed error, red where the mesh lies behind the reading, blue where it stands in front).
+--scaling times the room fit alone over 50, 100, 200 and all frames and over voxels of 2, 1 and 0.7 cm.
 """
 
 from __future__ import annotations
@@ -23,11 +25,11 @@ import itertools
 import os
 import platform
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
-import torch._dynamo
 from bench_bunny import CONFIGS
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
@@ -36,12 +38,15 @@ from omegaconf import OmegaConf
 import neuralsurf as ns
 from neuralsurf.evaluation.distances import held_out_error_image
 from neuralsurf.evaluation.methods import extract_scene_mesh, tsdf
+from neuralsurf.evaluation.rooms import open3d_tsdf
 from neuralsurf.evaluation.runner import peak_memory_mb, reset_peak_memory
 from neuralsurf.geometry import render_depth
+from neuralsurf.metrics import common_pixel_errors, depth_metrics, held_out_errors
+from neuralsurf.rooms import RoomSettings, fit_room
 from neuralsurf.scenes.recipes import SceneUnavailable
 
-SCENES = ("redkitchen", "tum_fr1_desk")
-"""The real sequences: 7-Scenes redkitchen and TUM RGB-D fr1/desk (`python -m neuralsurf data fetch <name>`)."""
+SCENES = ("redkitchen", "livingroom1", "tum_fr1_desk")
+"""The real sequences (`python -m neuralsurf data fetch <name>` for those not in the shared data)."""
 
 BINS = (-np.inf, -0.5, -0.05, -0.02, 0.02, 0.05, 0.5, np.inf)
 """Signed error bins (rendered - measured, metres) of the error breakdown."""
@@ -57,11 +62,10 @@ def run(label: str, function, *args, **kwargs):
     return value, wall, cpu, peak_memory_mb()[0]
 
 
-def error_breakdown(rendered: torch.Tensor, measured: torch.Tensor) -> str:
-    """Where the held-out mean error comes from: per signed-error bin, its share of the seen pixels and
-    its part of the mean |error| (metres)."""
-    seen = (measured > 0) & (rendered > 0)
-    error = (rendered - measured)[seen].double().numpy()
+def error_breakdown(errors: torch.Tensor) -> str:
+    """Where the held-out mean error comes from: per signed-error bin, its share of the seen pixels and its part
+    of the mean |error| (metres)."""
+    error = errors[torch.isfinite(errors)].double().numpy()
     parts = []
     for low, high in itertools.pairwise(BINS):
         inside = (error >= low) & (error < high)
@@ -81,53 +85,85 @@ def mlp_fit(cfg, scene):
     return extract_scene_mesh(result.field, scene, OmegaConf.to_container(cfg.extract, resolve=True))
 
 
-def bench_scene(cfg, name: str, mlp, maps: Path | None) -> None:
-    """Fit and score every method on scene `name` of `cfg`, printing the table and the error breakdown."""
+def load_scene(cfg, name: str, colors: bool):
+    """Scene `name` of the evaluate config `cfg` (None, with the reason printed, when its data are absent)."""
     try:
-        scene = instantiate(cfg.scene[name], _partial_=True)()
+        return instantiate(cfg.scene[name], _partial_=True)(colors=colors)
     except SceneUnavailable as error:
         print(f"\n{name}: skipped: {error}")
+        return None
+
+
+def bench_scene(cfg, name: str, settings: RoomSettings, colors: bool, mlp, maps: Path | None) -> None:
+    """Fit and score every row on scene `name` of `cfg`, printing the table and the error breakdown."""
+    scene = load_scene(cfg, name, colors)
+    if scene is None:
         return
+    voxel = settings.voxel
     print(f"\n{name}: {scene.description}")
-    method = OmegaConf.to_container(cfg.method.neural_voxels, resolve=True)
-    voxels = instantiate(cfg.method.neural_voxels, _partial_=True, _convert_="all")
-    print(f"neural voxels: 1/{1 / method['voxel_fraction']:.0f} of the box, rays of every {method['pixel_stride']}th "
-          f"pixel, {method['iterations']} conjugate-gradient steps")
-    rows = {"neural (voxels)": run("voxel fusion + solve + extraction", voxels, scene),
-            "TSDF": run("TSDF fusion, 1/256 voxels", tsdf, scene, device="cpu")}
-    fine = {"voxel_fraction": method["voxel_fraction"], "margin_fraction": method["margin_fraction"]}
-    rows["TSDF fine"] = run(f"TSDF fusion, the voxels' start (1/{1 / fine['voxel_fraction']:.0f})", tsdf, scene,
-                            device="cpu", **fine)
+    print(f"room fit: {100 * voxel:g} cm voxels, {100 * settings.truncation:g} cm truncation, rays of every "
+          f"{settings.pixel_stride}th pixel, {settings.iterations} conjugate-gradient steps")
+    rows = {"room fit": run("fusion + solve + mesh" + (" + colours" if colors else ""),
+                            lambda: fit_room(scene.frames, settings).mesh),
+            "TSDF": run(f"TSDF fusion, {100 * voxel:g} cm", tsdf, scene, room_voxel=voxel, device="cpu"),
+            "Open3D VBG": run(f"Open3D VoxelBlockGrid, {100 * voxel:g} cm", open3d_tsdf, scene, voxel=voxel,
+                              truncation_voxels=settings.truncation / voxel, device="cpu")}
     if mlp is not None:
         rows["neural (MLP)"] = run("MLP fit + observed extraction", mlp_fit, mlp, scene)
     held = scene.held_out
-    print(f"\n{'':<16} {'wall s':>8} {'CPU s':>8} {'peak MiB':>9} {'mean cm':>8} {'median mm':>10} {'compl.':>7}")
+    errors = {row: held_out_errors(mesh, held) for row, (mesh, *_) in rows.items()}
+    common = common_pixel_errors(errors)
+    print(f"\n{'':<13} {'wall s':>7} {'CPU s':>7} {'peak MiB':>9} {'mean cm':>8} {'common cm':>10} {'median mm':>10} "
+          f"{'compl.':>7} {'in 1cm':>7} {'F@1cm':>6} {'front cm':>9}")
     for row, (mesh, wall, cpu, memory) in rows.items():
-        metrics = ns.metrics.depth_metrics(mesh, held)
-        print(f"{row:<16} {wall:8.1f} {cpu:8.1f} {memory:9.0f} {100 * metrics['depth_error_mean']:8.2f} "
-              f"{1000 * metrics['depth_error_median']:10.2f} {metrics['depth_completeness']:7.3f}")
-    (_, neural_wall, neural_cpu, _), (_, tsdf_wall, tsdf_cpu, _) = list(rows.values())[:2]
-    print(f"time ratio neural / TSDF: {neural_wall / tsdf_wall:.1f}x wall, {neural_cpu / tsdf_cpu:.1f}x CPU")
+        m = depth_metrics(mesh, held, errors=errors[row])
+        print(f"{row:<13} {wall:7.1f} {cpu:7.1f} {memory:9.0f} {100 * m['depth_error_mean']:8.2f} "
+              f"{100 * common[row]:10.2f} {1000 * m['depth_error_median']:10.2f} {m['depth_completeness']:7.3f} "
+              f"{m['depth_recall_1cm']:7.3f} {m['depth_fscore_1cm']:6.3f} {100 * m['depth_error_front']:9.2f}")
+    (_, fit_wall, *_), (_, tsdf_wall, *_), (_, open3d_wall, *_) = list(rows.values())[:3]
+    print(f"time ratio room fit / TSDF: {fit_wall / tsdf_wall:.1f}x, / Open3D: {fit_wall / open3d_wall:.1f}x")
     for row, (mesh, *_) in rows.items():
-        rendered, _ = render_depth(mesh, held.K.cpu(), held.cam_to_world.cpu(), held.width, held.height)
-        print(f"{row} held-out error by sign: {error_breakdown(rendered, held.depth.cpu())}")
+        print(f"{row} held-out error by sign: {error_breakdown(errors[row])}")
         if maps is not None:
+            rendered, _ = render_depth(mesh, held.K.cpu(), held.cam_to_world.cpu(), held.width, held.height)
             maps.mkdir(parents=True, exist_ok=True)
-            path = maps / f"{name}_{row.replace(' (', '_').rstrip(')').lower()}_held_out_error.png"
+            path = maps / f"{name}_{row.replace(' ', '_').replace('(', '').replace(')', '').lower()}_held_out_error.png"
             held_out_error_image(rendered.numpy(), held.depth.cpu().numpy()).save(path)
             print(f"  error maps: {path}")
 
 
+def scaling(cfg, name: str, settings: RoomSettings) -> None:
+    """Time and peak memory of the room fit alone (no colours) over blocks of 50, 100, 200 and all frames at
+    the default voxel, and over voxels of 2, 1 and 0.7 cm on all frames."""
+    scene = load_scene(cfg, name, False)
+    if scene is None:
+        return
+    frames = scene.frames
+    print(f"\n{name} scaling ({len(frames)} fitted frames): frames, voxel cm, wall s, CPU s, peak RSS MiB, "
+          f"observed voxels")
+    cases = [(n, settings.voxel) for n in (50, 100, 200) if n < len(frames)] + [(len(frames), settings.voxel)]
+    cases += [(len(frames), v) for v in (0.02, 0.007)]
+    for n, voxel in cases:
+        chosen = replace(settings, voxel=voxel, truncation=settings.truncation * voxel / settings.voxel)
+        fitted, wall, cpu, memory = run(f"{n} frames, {100 * voxel:g} cm", fit_room, frames[:n], chosen)
+        print(f"  {n:5d} {100 * voxel:6.2g} {wall:7.1f} {cpu:7.1f} {memory:8.0f} {len(fitted.field.values):10d}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scenes", default=",".join(SCENES), help=f"comma-separated, of {', '.join(SCENES)}")
+    parser.add_argument("--scenes", default="redkitchen,livingroom1", help=f"comma-separated, of {', '.join(SCENES)}")
     parser.add_argument("--frames", type=int, default=None, help="the first N frames of each (default: all)")
+    parser.add_argument("--voxel", type=float, default=RoomSettings.voxel, help="metres, for all three rows")
+    parser.add_argument("--colors", action="store_true", help="load the colour images and colour the room fit")
     parser.add_argument("--mlp", action="store_true", help="also the MLP fitted from scratch (experiment redkitchen_depth)")
     parser.add_argument("--maps", type=Path, default=None, help="folder for the held-out error maps (PNG)")
+    parser.add_argument("--scaling", action="store_true", help="time the room fit over frame counts and voxels")
     args = parser.parse_args()
     names = args.scenes.split(",")
     if unknown := set(names) - set(SCENES):
         parser.error(f"unknown scene {min(unknown)!r}: choose from {', '.join(SCENES)}")
+    defaults = RoomSettings()
+    settings = replace(defaults, voxel=args.voxel, truncation=defaults.truncation * args.voxel / defaults.voxel)
 
     frames = [f"+scene.{name}.max_frames={args.frames}" for name in names] if args.frames else []
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
@@ -137,7 +173,10 @@ def main() -> None:
     print(f"machine: {platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, "
           f"torch {torch.__version__}, CPU; load average {os.getloadavg()[0]:.1f}")
     for name in names:
-        bench_scene(cfg, name, mlp, args.maps)
+        if args.scaling:
+            scaling(cfg, name, settings)
+        else:
+            bench_scene(cfg, name, settings, args.colors, mlp, args.maps)
 
 
 if __name__ == "__main__":
