@@ -666,8 +666,9 @@ def test_every_shipped_config_passes_the_checks():
 
     configs = Path(__file__).resolve().parents[1] / "neuralsurf" / "configs"
     with initialize_config_dir(str(configs), version_base="1.3"):
-        for experiment in sorted(p.stem for p in (configs / "experiment").glob("*.yaml")):
-            cfg = compose("train", overrides=[f"experiment={experiment}"])
+        options = [f"{group}={p.stem}" for group in ("experiment", "data", "model") for p in (configs / group).glob("*.yaml")]
+        for option in sorted(options):
+            cfg = compose("train", overrides=[option])
             check_config(OmegaConf.to_container(cfg, resolve=True), memory=2**40)
         for suite in sorted(p.stem for p in (configs / "suite").glob("*.yaml")):
             cfg = compose("evaluate", overrides=[f"suite={suite}"])
