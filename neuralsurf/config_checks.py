@@ -117,7 +117,7 @@ def check_config(config: dict[str, Any], memory: int | None = None) -> None:
     """Raise ConfigError for the first common key of `config` (a run's resolved config as a plain dict)
     whose type or range is wrong (RULES), for shard/shards out of range, and for an extraction
     resolution whose grid cannot fit in `memory` bytes (default: what is available now)."""
-    for path, value in _leaves(config):
+    for path, value in sorted(_leaves(config), key=lambda leaf: len(leaf[0])):  # `seed` before `data.seed`
         rule = _rule(path)
         allowed = rule(value) if rule is not None else None
         if allowed is not None:

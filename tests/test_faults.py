@@ -656,6 +656,8 @@ def test_a_shard_sweep_out_of_range_is_refused_before_any_job(argv, bad):
     check_sweep_arguments(["-m", "shard=range(4)", "shards=4", "seed=1"])
     with pytest.raises(ConfigError, match="shard='a'"):
         check_config({"shard": "a", "shards": 2})
+    with pytest.raises(ConfigError, match=r"^seed='abc'"):  # the key given, not the places it is copied to
+        check_config({"data": {"seed": "abc"}, "seed": "abc"})
 
 
 def test_every_shipped_config_passes_the_checks():
