@@ -72,7 +72,7 @@ def stored_file(folder: str | Path, name: Any, what: str, max_bytes: int = MAX_D
         except (OSError, RuntimeError, ValueError) as error:
             reason = f"{what} {name!r:.200} cannot be read ({getattr(error, 'strerror', None) or error})"
     if reason is not None:
-        log.warning("%s: skipping %s (a results folder's rows may name only regular files inside it)", folder, reason)
+        log.warning("%s: %s; skipped (a results folder's rows may name only regular files inside it)", folder, reason)
         return None
     return path
 
@@ -88,10 +88,10 @@ def read_stored(folder: str | Path, name: Any, what: str, max_bytes: int = MAX_I
         with open(path, "rb") as handle:
             data = handle.read(max_bytes + 1)
     except OSError as error:
-        log.warning("%s: skipping %s %s: %s", folder, what, name, error.strerror or error)
+        log.warning("%s: %s %r cannot be read (%s); skipped", folder, what, name, error.strerror or error)
         return None
     if len(data) > max_bytes or not data.startswith(signature):
-        log.warning("%s: skipping %s %s: it changed while it was read", folder, what, name)
+        log.warning("%s: %s %r changed while it was read; skipped", folder, what, name)
         return None
     return data
 
