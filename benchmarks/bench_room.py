@@ -6,7 +6,7 @@ of readings explained within 1 cm, F-score at 1 cm, the part of the mean from su
 One setting for both rooms: the defaults of `RoomSettings`, chosen on redkitchen and checked on livingroom1.
 
     python benchmarks/bench_room.py [--scenes redkitchen,livingroom1] [--frames 50] [--voxel 0.01] [--colors]
-                                    [--mlp] [--maps DIR] [--scaling]
+                                    [--mlp] [--maps DIR] [--scaling [--plot PNG]]
 
 The sequences are 7-Scenes redkitchen (every 10th frame of the first 1,000), Augmented ICL-NUIM livingroom1
 (Redwood layout, 211 frames) and TUM RGB-D fr1/desk, read from $NEURALSURF_DATA or the fetch cache (one that is
@@ -15,7 +15,8 @@ those views. --frames takes the first N frames (a block). --voxel sets the voxel
 --colors fits with the colour images loaded and the mesh coloured, as train.py does. --mlp adds the hash-grid MLP
 fitted from scratch (experiment redkitchen_depth; minutes). --maps writes each row's held-out error maps (PNG:
 measured | rendered | signed error, red where the mesh lies behind the reading, blue where it stands in front).
---scaling times the room fit alone over 50, 100, 200 and all frames and over voxels of 2, 1 and 0.7 cm.
+--scaling times the room fit alone over 50, 100, 200 and all frames and over voxels of 2, 1 and 0.7 cm
+(--plot: the curves as a PNG).
 """
 
 from __future__ import annotations
@@ -132,21 +133,50 @@ def bench_scene(cfg, name: str, settings: RoomSettings, colors: bool, mlp, maps:
             print(f"  error maps: {path}")
 
 
-def scaling(cfg, name: str, settings: RoomSettings) -> None:
+def scaling(cfg, name: str, settings: RoomSettings) -> list[tuple[int, float, float, float, int]]:
     """Time and peak memory of the room fit alone (no colours) over blocks of 50, 100, 200 and all frames at
-    the default voxel, and over voxels of 2, 1 and 0.7 cm on all frames."""
+    the default voxel, and over voxels of 2, 1 and 0.7 cm on all frames: (frames, voxel, wall s, peak MiB,
+    observed voxels) per case."""
     scene = load_scene(cfg, name, False)
     if scene is None:
-        return
+        return []
     frames = scene.frames
     print(f"\n{name} scaling ({len(frames)} fitted frames): frames, voxel cm, wall s, CPU s, peak RSS MiB, "
           f"observed voxels")
     cases = [(n, settings.voxel) for n in (50, 100, 200) if n < len(frames)] + [(len(frames), settings.voxel)]
     cases += [(len(frames), v) for v in (0.02, 0.007)]
+    measured = []
     for n, voxel in cases:
         chosen = replace(settings, voxel=voxel, truncation=settings.truncation * voxel / settings.voxel)
         fitted, wall, cpu, memory = run(f"{n} frames, {100 * voxel:g} cm", fit_room, frames[:n], chosen)
         print(f"  {n:5d} {100 * voxel:6.2g} {wall:7.1f} {cpu:7.1f} {memory:8.0f} {len(fitted.field.values):10d}")
+        measured.append((n, voxel, wall, memory, len(fitted.field.values)))
+    return measured
+
+
+def scaling_plot(measured: dict[str, list], path: Path) -> None:
+    """Two log-log scatter plots side by side, a colour per room: wall time against the observed voxels, and
+    peak memory against the frames fitted; each point labelled with its frames and voxel."""
+    from PIL import Image
+
+    from neuralsurf.evaluation.render import scatter_plot
+
+    def label(n: int, voxel: float) -> str:
+        return f"{n} fr, {100 * voxel:g} cm"
+
+    time_plot = scatter_plot("room fit: wall time against observed voxels", "observed voxels", "wall s",
+                             [(v, wall, room, label(n, voxel)) for room, cases in measured.items()
+                              for n, voxel, wall, _, v in cases])
+    memory_plot = scatter_plot("room fit: peak memory against frames", "frames fitted", "peak RSS MiB",
+                               [(n, memory, room, label(n, voxel)) for room, cases in measured.items()
+                                for n, voxel, _, memory, _ in cases])
+    canvas = Image.new("RGB", (time_plot.width + memory_plot.width, max(time_plot.height, memory_plot.height)),
+                       (255, 255, 255))
+    canvas.paste(time_plot, (0, 0))
+    canvas.paste(memory_plot, (time_plot.width, 0))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    canvas.save(path)
+    print(f"scaling plot: {path}")
 
 
 def main() -> None:
@@ -158,6 +188,7 @@ def main() -> None:
     parser.add_argument("--mlp", action="store_true", help="also the MLP fitted from scratch (experiment redkitchen_depth)")
     parser.add_argument("--maps", type=Path, default=None, help="folder for the held-out error maps (PNG)")
     parser.add_argument("--scaling", action="store_true", help="time the room fit over frame counts and voxels")
+    parser.add_argument("--plot", type=Path, default=None, help="with --scaling: write the curves as a PNG")
     args = parser.parse_args()
     names = args.scenes.split(",")
     if unknown := set(names) - set(SCENES):
@@ -172,11 +203,14 @@ def main() -> None:
                       ([f"data.max_frames={args.frames}"] if args.frames else [])) if args.mlp else None
     print(f"machine: {platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, "
           f"torch {torch.__version__}, CPU; load average {os.getloadavg()[0]:.1f}")
+    measured = {}
     for name in names:
         if args.scaling:
-            scaling(cfg, name, settings)
+            measured[name] = scaling(cfg, name, settings)
         else:
             bench_scene(cfg, name, settings, args.colors, mlp, args.maps)
+    if args.scaling and args.plot is not None:
+        scaling_plot(measured, args.plot)
 
 
 if __name__ == "__main__":
