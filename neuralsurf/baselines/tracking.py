@@ -4,16 +4,16 @@
 
 - **Frame-to-model** (`mode="model"`, KinectFusion): each frame is registered to the surface raycast
   from the TSDF volume fused so far (`TSDFVolume`), seen from the previous pose, then fused at the pose
-  found. The raycast marches each ray through a band around the previous frame's depth (the surface
-  the last fused frame saw along that ray) and interpolates the zero crossing of the trilinear TSDF.
+  found. The raycast starts each ray at the previous frame's depth (the surface the last fused frame saw
+  along it) and steps to the zero crossing of the trilinear TSDF (`raycast_volume`).
 - **Frame-to-frame** (`mode="frame"`): each frame is registered to the previous frame's depth; no
   volume, faster, drifts more.
 
 Registration: point-to-plane Gauss-Newton ICP with projective data association (a source point is
 matched with the model pixel it projects to), coarse to fine over an image pyramid (2 x 2 block
 averages of the depth), with a robust kernel (Huber or Tukey) on the residuals and correspondences
-rejected beyond `max_distance` or with normals apart by more than `max_normal_angle`. Frame k's motion
-starts from frame k-1's pose.
+rejected beyond `max_distance` or with normals apart by more than `max_normal_angle`. Frame k starts
+from frame k-1's pose moved by the motion from frame k-2 to k-1 (constant velocity).
 
 Tracking is lost when too few of the frame's points find an inlier (`min_inlier_share`), when their
 point-to-plane RMSE is above `max_rmse`, or when the normal equations are degenerate: the tracker raises
@@ -403,6 +403,8 @@ class Tracker:
         if not (isinstance(levels, int) and levels >= 1) or len(iterations) != levels:
             raise ConfigError(f"levels must be a positive integer and iterations one count per level, got "
                               f"levels={levels!r}, iterations={tuple(iterations)!r}")
+        if not (isinstance(finest_stride, int) and finest_stride >= 1):
+            raise ConfigError(f"finest_stride must be a positive integer (1: every pixel), got {finest_stride!r}")
         if not (isinstance(raycast_level, int) and 0 <= raycast_level < levels):
             raise ConfigError(f"raycast_level must be a pyramid level from 0 to {levels - 1}, got {raycast_level!r}")
         robust_weights(torch.zeros(1), kernel, kernel_scale)  # an unknown kernel fails here
@@ -418,6 +420,7 @@ class Tracker:
         self.poses: list[Tensor] = []
         self.volume: TSDFVolume | None = None
         self._previous: Tensor | None = None  # the last frame's depth (h, w)
+        self.last_fit: FrameFit | None = None  # the last frame's registration
 
     def _maps(self, depth: Tensor, K: Tensor | None = None, levels: int | None = None, stride: int = 1
               ) -> list[SurfaceMap]:
