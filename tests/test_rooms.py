@@ -126,3 +126,23 @@ def test_train_py_fits_a_depth_capture_as_a_room_and_writes_a_coloured_mesh(tmp_
     assert torch.allclose(mesh.vertices[:, 2].float(), torch.tensor(WALL_Z), atol=0.003)
     left = mesh.vertex_colors[mesh.vertices[:, 0] < -0.1]
     assert torch.allclose(left.mean(0).float(), torch.tensor(RED), atol=0.01)
+
+
+def test_tracked_room_hides_the_poses_scores_the_trajectory_and_places_the_mesh():
+    """evaluate.py's tracked_room on the tracker's synthetic room: the poses it is given differ from the truth
+    by a rigid motion the tracker cannot know; the row's trajectory errors are those of the tracker alone and
+    its mesh lies in the scene's frame (held-out views of it read the truth)."""
+    from test_tracking import capture, path
+
+    from neuralsurf.evaluation.rooms import ScoredMesh, tracked_room
+    from neuralsurf.metrics import depth_metrics
+    from neuralsurf.scenes.recipes import depth_scene
+
+    truth = path(20)
+    scene = depth_scene("synthetic_room", capture(truth), hold_out_every=5, cloud_stride=4, near_distance=0.05)
+    result = tracked_room(scene, voxel=0.02, truncation=0.08, device="cpu")
+    assert isinstance(result, ScoredMesh) and len(result.mesh.faces) > 1000
+    assert result.metrics["tracking_ate"] < 0.01 and result.metrics["tracking_rpe_deg"] < 0.5
+    assert result.metrics["tracking_ms_per_frame"] > 0
+    held_out = depth_metrics(result.mesh, scene.held_out)
+    assert held_out["depth_completeness"] > 0.9 and held_out["depth_error_median"] < 0.01

@@ -1,18 +1,32 @@
-"""evaluate.py's methods for rooms: the library's voxel fit (`neuralsurf.rooms.fit_room`) and Open3D's
-VoxelBlockGrid TSDF fusion as the reference, on the same frames."""
+"""evaluate.py's methods for rooms: the library's voxel fit (`neuralsurf.rooms.fit_room`), the same fit at camera
+poses tracked with the scene's poses hidden (`tracked_room`), and Open3D's VoxelBlockGrid TSDF fusion as the
+reference, on the same frames."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from neuralsurf.baselines.tracking import track_frames
 from neuralsurf.devices import resolve_device
 from neuralsurf.evaluation.methods import NotApplicable, input_box, scene_input
+from neuralsurf.metrics import absolute_trajectory_error, align_trajectory, relative_pose_error
 from neuralsurf.rooms import RoomSettings, fit_room
 from neuralsurf.scenes import Scene
-from neuralsurf.structures import Mesh
+from neuralsurf.structures import DepthFrames, Mesh
+
+
+@dataclass(frozen=True)
+class ScoredMesh:
+    """A method's mesh with metrics only the method can measure (a tracker's trajectory errors)."""
+
+    mesh: Mesh
+    """The reconstruction, world frame."""
+    metrics: dict[str, float]
+    """Named figures added to the method's row."""
 
 
 def neural_voxels(scene: Scene, *, voxel: float = 0.01, truncation: float = 0.04, margin: float = 0.1,
@@ -62,3 +76,26 @@ def open3d_tsdf(scene: Scene, *, voxel: float = 0.01, truncation_voxels: float =
     vertices = torch.from_numpy(mesh.vertex.positions.numpy().astype(np.float32))
     faces = torch.from_numpy(mesh.triangle.indices.numpy().astype(np.int64))
     return Mesh(vertices, faces)
+
+
+def tracked_room(scene: Scene, *, mode: str = "model", voxel: float = 0.01, truncation: float = 0.04,
+                 device: str = "auto", seed: int = 0, run_dir: str | Path | None = None,
+                 config: dict | None = None) -> ScoredMesh:
+    """The room fit (`fit_room`, `voxel` / `truncation` metres) at camera poses tracked from the fitted frames'
+    depth alone (`track_frames` in `mode`, "model" or "frame"): the scene's poses are hidden from the tracker and
+    used only to score its trajectory (`tracking_ate`, `tracking_rpe_m` / `_deg` per fitted frame, TUM's
+    definitions) and to place it in the scene's frame (the rigid alignment ATE makes) so that the held-out views
+    score the mesh. Raises TrackingLostError (the row fails, naming the frame) when tracking is lost."""
+    if scene.frames is None or scene.near_distance is None:
+        raise NotApplicable(f"tracking needs a room's depth frames; {scene.name} is not a room capture")
+    frames = scene.frames
+    where = resolve_device(device)
+    trajectory = track_frames(frames.to(where), progress=False, mode=mode)
+    tracked, truth = trajectory.cam_to_world.double().cpu(), frames.cam_to_world.double().cpu()
+    placed = align_trajectory(tracked, truth) @ tracked
+    fitted = DepthFrames(frames.depth, frames.K, placed.float(), frames.colors)
+    settings = RoomSettings(voxel, truncation, colors=False)
+    drift = relative_pose_error(tracked, truth)
+    return ScoredMesh(fit_room(fitted, settings, str(where)).mesh, {
+        "tracking_ate": absolute_trajectory_error(tracked, truth), "tracking_rpe_m": drift.translation,
+        "tracking_rpe_deg": drift.rotation, "tracking_ms_per_frame": 1000 * trajectory.seconds / len(frames)})

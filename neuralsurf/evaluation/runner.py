@@ -27,6 +27,7 @@ from neuralsurf.evaluation.distances import save_distances, save_held_out_error_
 from neuralsurf.evaluation.methods import NotApplicable
 from neuralsurf.evaluation.photometric import NormalMapResult, normal_map_picture, score_normal_maps
 from neuralsurf.evaluation.render import default_view, distance_image, labelled_row, shade
+from neuralsurf.evaluation.rooms import ScoredMesh
 from neuralsurf.evaluation.store import reusable_row, row_stem, settings_key, store_row
 from neuralsurf.io import write_mesh
 from neuralsurf.io.meshes import mesh_format as mesh_format_extension
@@ -224,6 +225,9 @@ def run_row(row: dict[str, Any], built: dict[str, Any], make_method: MethodFacto
             raise NotApplicable("the scene's only 3D input is made from its ground-truth normals (a photometric "
                                 "capture without depth or a true surface): a mesh of it cannot be scored; its "
                                 "photometric stereo rows are")
+        method_metrics = {}
+        if isinstance(output, ScoredMesh):  # a mesh with figures only its method measures (a trajectory's)
+            output, method_metrics = output.mesh, output.metrics
         mesh = check_mesh(output)
         row["seconds"] = time.perf_counter() - started
         row["peak_rss_mb"], row["cuda_peak_mb"] = peak_memory_mb()
@@ -234,6 +238,7 @@ def run_row(row: dict[str, Any], built: dict[str, Any], make_method: MethodFacto
             metrics = evaluate_mesh(mesh, scene.ground_truth, n_samples=n_samples, seed=seed)
             if not math.isfinite(metrics["chamfer_l1"]):
                 raise ValueError(f"the metrics are not finite (chamfer_l1 = {metrics['chamfer_l1']})")
+        metrics.update(method_metrics)
         if getattr(scene, "held_out", None) is not None:
             errors = held_out_errors(mesh, scene.held_out)
             metrics.update(depth_metrics(mesh, scene.held_out, errors=errors))
