@@ -68,6 +68,48 @@ def scene_config(run_dir: Path, config: dict[str, Any]) -> dict[str, Any] | None
     return None
 
 
+def shipped_scene_recipes() -> set[str]:
+    """The `_target_` of every scene and data config neuralsurf ships: the only functions a stored config may
+    name to build a scene again."""
+    import yaml
+
+    folder = Path(__file__).parent / "configs"
+    targets = set()
+    for path in [*(folder / "data").glob("*.yaml"), *(folder / "scene").glob("*.yaml")]:
+        config = yaml.safe_load(path.read_text()) or {}
+        config = config.get("data", config) if isinstance(config, dict) else {}
+        if isinstance(config, dict) and isinstance(config.get("_target_"), str):
+            targets.add(config["_target_"])
+    return targets
+
+
+def scene_recipe(scene: dict[str, Any]):
+    """The scene recipe a stored scene config names, imported only when it is one neuralsurf ships
+    (`shipped_scene_recipes`): nothing read from a run folder chooses other code. ConfigError otherwise."""
+    import importlib
+
+    target = scene.get("_target_")
+    if target not in shipped_scene_recipes():
+        raise ConfigError(f"the run's scene config names {str(target)!r:.120}, which is not one of neuralsurf's scene "
+                          f"recipes; a stored config may only rebuild those: export with --box instead of near the "
+                          f"input, or run train.py again")
+    module, name = target.rsplit(".", 1)
+    return getattr(importlib.import_module(module), name)
+
+
+def build_stored_scene(scene: dict[str, Any]):
+    """The scene of a stored config: its shipped recipe (`scene_recipe`) called with plain arguments only (no
+    nested configs, no Hydra keys), so the stored file supplies data, never code."""
+    recipe = scene_recipe(scene)
+    arguments = {key: value for key, value in scene.items() if key != "_target_"}
+    nested = lambda value: isinstance(value, dict) or (isinstance(value, list) and any(map(nested, value)))
+    bad = [key for key, value in arguments.items() if key.startswith("_") or nested(value)]
+    if bad:
+        raise ConfigError(f"the run's scene config has {bad[0]!r}, not a plain argument of {scene['_target_']}; "
+                          f"a stored config may hold only plain values")
+    return recipe(**arguments)
+
+
 def meshed_near_input(scene: dict[str, Any] | None, extract: dict[str, Any]) -> bool:
     """Whether the extraction depends on the scene's input: `near_distance` or `observed_voxel` set in
     `extract`, or a `near_distance` of the scene's config (given, or its target's default)."""
@@ -77,11 +119,9 @@ def meshed_near_input(scene: dict[str, Any] | None, extract: dict[str, Any]) -> 
         return False
     if "near_distance" in scene:
         return scene["near_distance"] is not None
-    from hydra.utils import get_method
-
     try:
-        parameter = inspect.signature(get_method(scene["_target_"])).parameters.get("near_distance")
-    except Exception:  # noqa: BLE001 - a target that no longer imports: no scene to rebuild
+        parameter = inspect.signature(scene_recipe(scene)).parameters.get("near_distance")
+    except Exception:  # noqa: BLE001 - a target that is not a shipped recipe or no longer imports: nothing to rebuild
         return False
     return parameter is not None and parameter.default not in (None, inspect.Parameter.empty)
 
@@ -148,10 +188,8 @@ def _extract(field, run_dir: Path, config: dict[str, Any], extract: dict[str, An
         if scene is None:
             raise ConfigError(f"{run_dir} was meshed near its input only, and its scene's config is not there "
                               f"(a train.py run's checkpoint config, or <results>/rows/ of an evaluate.py run)")
-        from hydra.utils import instantiate
-
         log.info("building scene %s again to mesh near its input", scene.get("name") or scene["_target_"])
-        built = instantiate(scene)
+        built = build_stored_scene(scene)
         if bounds is not None and extract.pop("observed_voxel", None) is not None:
             log.info("--box: meshing within the scene's near_distance of the input, not on observed voxels")
         return extract_scene_mesh(field, built, {**extract, **({"bounds": bounds} if bounds is not None else {})})

@@ -12,6 +12,7 @@ from hydra import compose as hydra_compose
 from hydra import initialize_config_dir
 from omegaconf import OmegaConf
 
+from neuralsurf.errors import ConfigError
 from neuralsurf.export import export_run, main
 from neuralsurf.extract import extract_mesh
 from neuralsurf.io import read_mesh
@@ -151,3 +152,18 @@ def test_a_room_is_meshed_near_its_input_and_an_object_everywhere():
     assert not meshed_near_input(sphere, {"resolution": 64})
     assert meshed_near_input(sphere, {"observed_voxel": 0.04})
     assert meshed_near_input(None, {"near_distance": 0.05})
+
+
+def test_a_stored_scene_config_cannot_choose_code_to_run(tmp_path):
+    """A run folder's scene config names data for a shipped recipe, never a function of its own choosing."""
+    from neuralsurf.export import build_stored_scene, meshed_near_input
+
+    marker = tmp_path / "ran"
+    planted = {"_target_": "os.system", "command": f"touch {marker}"}
+    with pytest.raises(ConfigError, match="not one of neuralsurf's scene recipes"):
+        build_stored_scene(planted)
+    nested = {"_target_": "neuralsurf.scenes.rgbd_scene", "path": {"_target_": "os.system", "command": f"touch {marker}"}}
+    with pytest.raises(ConfigError, match="plain"):
+        build_stored_scene(nested)
+    assert not meshed_near_input({"_target_": "os.getcwd"}, {})
+    assert not marker.exists()
