@@ -11,11 +11,14 @@ with the first lost frame named). Open3D: `o3d.t.pipelines.odometry.rgbd_odometr
 default criteria (10/5/3 iterations over 3 levels, coarse to fine), depth_max as ours, method Hybrid (depth and colour)
 and PointToPlane (depth only), on the same device as ours. The trackers take the frames in turn, one
 frame each (so that load from other processes hits them alike); times are wall-clock per frame, frame 0
-excluded, after a warm-up pair; the load average is printed.
+excluded, after a warm-up pair; the load average is printed. On a CPU ours runs twice, eager and compiled
+(torch.compile of the raycast's sampling and the ICP iterations; the compilation is part of the warm-up,
+printed, not of the time per frame).
 
 Held-out depth error: every 10th frame held out; the others fused into a TSDF (1 cm voxels) at the
 given poses, and at the tracked poses moved onto the given ones by the ATE alignment; each mesh
-ray-cast from the held-out frames' given poses (`metrics.depth_metrics`).
+ray-cast from the held-out frames' given poses (`metrics.depth_metrics`), and from those poses registered to
+the mesh (`evaluation.rooms.localised_depth_metrics`: the shape scored without the trajectory's offset).
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ import torch
 
 from neuralsurf.baselines.tracking import Tracker, TrackingLostError
 from neuralsurf.baselines.tsdf import TSDFVolume, depth_bounds
+from neuralsurf.evaluation.rooms import localised_depth_metrics
 from neuralsurf.io.rgbd import read_rgbd_folder
 from neuralsurf.metrics import absolute_trajectory_error, align_trajectory, depth_metrics, relative_pose_error
 from neuralsurf.scenes.recipes import data_root
@@ -78,6 +82,8 @@ def interleaved(frames: DepthFrames, device: str, reference: bool) -> dict[str, 
     colors = frames.colors if frames.colors is not None else frames.depth[..., None].expand(-1, -1, -1, 3) / MAX_DEPTH
     depth = frames.depth.to(device)
     trackers = {f"ours ({mode})": Tracker(frames.K[0], mode=mode) for mode in ("model", "frame")}
+    if device == "cpu":
+        trackers["ours (model, compiled)"] = Tracker(frames.K[0], compiled=True)
     if reference:
         trackers.update({f"Open3D {m}": Open3DOdometry(frames, m, device) for m in ("Hybrid", "PointToPlane")})
     seconds = dict.fromkeys(trackers, 0.0)
@@ -115,14 +121,17 @@ def scores(estimated: np.ndarray | torch.Tensor, truth: torch.Tensor) -> dict[st
             "rpe_deg": rpe.rotation}
 
 
-def held_out_error(frames: DepthFrames, poses: torch.Tensor, device: str) -> float:
-    """Median depth error (cm) on every 10th frame of the mesh fused from the others at `poses`."""
+def held_out_error(frames: DepthFrames, poses: torch.Tensor, device: str) -> tuple[float, float]:
+    """Median depth error (cm) on every 10th frame of the mesh fused from the others at `poses`: from the held-out
+    frames' given poses, and from those poses registered to the mesh (`localised_depth_metrics`)."""
     index = torch.arange(len(frames))
     held = index % 10 == 9
     fused = DepthFrames(frames.depth[~held], frames.K[~held], poses[~held].float())
     volume = TSDFVolume(depth_bounds(fused, 0.05), 0.01, device=device, sparse=True)
     mesh = volume.integrate(fused, progress=False).extract_mesh()
-    return 100 * depth_metrics(mesh, frames[index[held]])["depth_error_median"]
+    held_out = frames[index[held]]
+    return (100 * depth_metrics(mesh, held_out)["depth_error_median"],
+            100 * localised_depth_metrics(mesh, held_out)["localised_depth_error_median"])
 
 
 def run(name: str, folder: str, device: str, max_frames: int | None, fuse: bool, reference: bool) -> None:
@@ -131,8 +140,11 @@ def run(name: str, folder: str, device: str, max_frames: int | None, fuse: bool,
     frames = DepthFrames(depth, frames.K, frames.cam_to_world, frames.colors)
     truth = frames.cam_to_world.double()
     print(f"\n== {name}: {len(frames)} frames {frames.width}x{frames.height}, device {device}")
-    warm = Tracker(frames.K[0])  # first calls (allocations, kernels) outside the timing
-    warm.track(frames.depth[0].to(device)), warm.track(frames.depth[1].to(device))
+    for compiled in (False, True) if device == "cpu" else (False,):  # first calls (allocations, compilation) untimed
+        start = time.perf_counter()
+        warm = Tracker(frames.K[0], compiled=compiled)
+        warm.track(frames.depth[0].to(device)), warm.track(frames.depth[1].to(device))
+        print(f"  warm-up {'compiled' if compiled else 'eager'}: {time.perf_counter() - start:.1f} s")
     if reference:
         colors = frames.colors if frames.colors is not None else frames.depth[..., None].expand(-1, -1, -1, 3)
         warm_open3d = Open3DOdometry(frames, "Hybrid", device)
@@ -148,13 +160,15 @@ def run(name: str, folder: str, device: str, max_frames: int | None, fuse: bool,
         print(f"  {label:22s} ATE {s['ate_cm']:6.2f} cm  RPE {s['rpe_cm']:5.2f} cm {s['rpe_deg']:5.2f} deg  "
               f"{ms:7.1f} ms/frame ({per_frame / rows[baseline][1]:.2f}x {baseline})" + (f"  ({note})" if note else ""))
     if fuse and reference:  # the meshes are ray-cast by Open3D
-        given = held_out_error(frames, truth, device)
-        print(f"  held-out median depth error, mesh fused at the given poses: {given:.2f} cm")
+        given, given_localised = held_out_error(frames, truth, device)
+        print(f"  held-out median depth error, mesh fused at the given poses: {given:.2f} cm from the given "
+              f"views, {given_localised:.2f} cm from views registered to the mesh")
         for label, (poses, _, _) in rows.items():
-            if poses is not None and label.startswith("ours"):
+            if poses is not None and label.startswith("ours") and "compiled" not in label:
                 aligned = align_trajectory(torch.as_tensor(poses), truth) @ torch.as_tensor(poses)
-                tracked = held_out_error(frames, aligned, device)
-                print(f"  ... at {label} poses: {tracked:.2f} cm ({tracked / given:.2f}x)")
+                tracked, localised = held_out_error(frames, aligned, device)
+                print(f"  ... at {label} poses: {tracked:.2f} cm ({tracked / given:.2f}x), registered views "
+                      f"{localised:.2f} cm ({localised / given_localised:.2f}x)")
 
 
 def main() -> None:

@@ -399,6 +399,7 @@ def test_a_failed_compilation_warns_and_fuses_eagerly(sphere_frames, monkeypatch
     """Without a C++ compiler torch.compile's CPU backend fails: TSDFVolume(compiled=True) says so once
     and gives the eager result."""
     from neuralsurf.baselines import tsdf
+    from neuralsurf.devices import CompiledOnCPU
 
     def no_compiler(function, **options):
         def fail(*args):
@@ -406,7 +407,7 @@ def test_a_failed_compilation_warns_and_fuses_eagerly(sphere_frames, monkeypatch
         return fail
 
     monkeypatch.setattr(torch, "compile", no_compiler)
-    monkeypatch.setattr(tsdf, "_COMPILED", {f: tsdf.CompiledOnCPU(f) for f in tsdf._COMPILED})
+    monkeypatch.setattr(tsdf, "_COMPILED", {f: CompiledOnCPU(f, "TSDF fusion") for f in tsdf._COMPILED})
     with pytest.warns(UserWarning, match="C\\+\\+ compiler"):
         compiled = TSDFVolume(BOX, VOXEL, device="cpu", compiled=True).integrate(sphere_frames[:4])
     monkeypatch.setitem(tsdf._TILE, "eager", tsdf._TILE["compiled"])

@@ -15,6 +15,10 @@ averages of the depth), with a robust kernel (Huber or Tukey) on the residuals a
 rejected beyond `max_distance` or with normals apart by more than `max_normal_angle`. Frame k starts
 from frame k-1's pose moved by the motion from frame k-2 to k-1 (constant velocity).
 
+Frames are registered at half size (`downsample=1`: 2 x 2 block means, which also average the sensor's noise)
+and fused at full size. On a CPU the two loops that dominate a frame, the raycast's volume sampling and the
+ICP iterations' sums, can run compiled (`compiled=True`; `track_frames` compiles long sequences).
+
 Tracking is lost when too few of the frame's points find an inlier (`min_inlier_share`), when their
 point-to-plane RMSE is above `max_rmse`, or when the normal equations are degenerate: the tracker raises
 `TrackingLostError` naming the frame, instead of fusing it at a wrong pose.
@@ -33,6 +37,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.baselines.tsdf import TSDFVolume
+from neuralsurf.devices import CompiledOnCPU
 from neuralsurf.errors import ConfigError, InputError, NeuralsurfError
 from neuralsurf.geometry import _depth_normals, backproject_depth_to_camera
 from neuralsurf.progress import progress_bar
@@ -157,7 +162,7 @@ def surface_maps(depth: Tensor, K: Tensor, levels: int, max_jump: float, stride:
 
 def block_slots(volume: TSDFVolume) -> Tensor:
     """Int64[Tensor, "bx by bz"]: the storage slot of every block of `volume`'s grid, -1 where none is
-    allocated (a lookup table for `sample_tsdf`, valid until the volume allocates more blocks)."""
+    allocated (a lookup table for `trilinear_tsdf`, valid until the volume allocates more blocks)."""
     counts = [int(c) for c in volume.block_counts]
     slots = torch.full(counts, -1, dtype=torch.int64, device=volume.device)
     if volume.sparse:
@@ -167,46 +172,47 @@ def block_slots(volume: TSDFVolume) -> Tensor:
     return slots
 
 
-def sample_tsdf(volume: TSDFVolume, slots: Tensor, points: Tensor) -> Tensor:
-    """Trilinear interpolation of `volume`'s fused distances at grid coordinates Float[Tensor, "m 3"] (voxel
-    units from `volume.origin`) -> Float[Tensor, "m"]; NaN where a corner is unobserved or outside.
-    `slots`: `block_slots(volume)`."""
-    size = volume.block_size
-    (nx, ny, nz), (_, by, bz) = volume.grid_shape, slots.shape
-    step = torch.tensor([0, 1], device=points.device)
+def trilinear_tsdf(tsdf: Tensor, weight: Tensor, slots: Tensor, points: Tensor, block_size: int,
+                   grid_shape: tuple[int, int, int]) -> Tensor:
+    """Trilinear interpolation of block-stored fused distances at grid coordinates Float[Tensor, "m 3"]
+    (voxel units from the grid's origin) -> Float[Tensor, "m"]; NaN where a corner is unobserved (weight 0)
+    or outside the grid. `tsdf`, `weight`: Float[Tensor, "slots block_size^3"] (a `TSDFVolume`'s storage);
+    `slots`: `block_slots` of the volume."""
+    (_, by, bz), size = slots.shape, block_size
     base = points.floor()
     fraction = points - base
     base = base.long()
-    axes = []  # per axis: (m, 2) indices of the two corners, their inside mask and interpolation weights
-    for axis, n in enumerate((nx, ny, nz)):
-        index = base[:, axis, None] + step
-        t = fraction[:, axis, None]
-        axes.append((index.clamp(0, n - 1), (index >= 0) & (index < n), torch.cat([1 - t, t], 1)))
-    (i, in_i, w_i), (j, in_j, w_j), (k, in_k, w_k) = axes
-    block = ((i[:, :, None, None] // size) * by + (j[:, None, :, None] // size)) * bz + k[:, None, None, :] // size
-    local = ((i[:, :, None, None] % size) * size + (j[:, None, :, None] % size)) * size + k[:, None, None, :] % size
-    slot = slots.view(-1)[block]  # (m, 2, 2, 2)
-    flat = slot.clamp_min(0) * size**3 + local
-    inside = in_i[:, :, None, None] & in_j[:, None, :, None] & in_k[:, None, None, :]
-    observed = inside & (slot >= 0) & (volume._weight.view(-1)[flat] > 0)
-    share = w_i[:, :, None, None] * w_j[:, None, :, None] * w_k[:, None, None, :]
-    values = torch.where(observed, volume._tsdf.view(-1)[flat].to(points), torch.nan)
-    return (values * share).flatten(1).sum(1)
+    total = torch.zeros_like(points[:, 0])
+    for corner in range(8):  # one pass per corner: each a gather and a multiply-add, fused when compiled
+        offset = ((corner >> 2) & 1, (corner >> 1) & 1, corner & 1)
+        index = [base[:, axis] + offset[axis] for axis in range(3)]
+        inside = (index[0] >= 0) & (index[1] >= 0) & (index[2] >= 0)
+        inside &= (index[0] < grid_shape[0]) & (index[1] < grid_shape[1]) & (index[2] < grid_shape[2])
+        i, j, k = (index[axis].clamp(0, grid_shape[axis] - 1) for axis in range(3))
+        slot = slots.view(-1)[((i // size) * by + j // size) * bz + k // size]
+        flat = slot.clamp_min(0) * size**3 + ((i % size) * size + j % size) * size + k % size
+        observed = inside & (slot >= 0) & (weight.view(-1)[flat] > 0)
+        share = torch.ones_like(total)
+        for axis in range(3):
+            share = share * (fraction[:, axis] if offset[axis] else 1 - fraction[:, axis])
+        total = total + torch.where(observed, tsdf.view(-1)[flat].to(points), torch.nan) * share
+    return total
 
 
 def raycast_volume(volume: TSDFVolume, guide: Tensor, K: Tensor, cam_to_world: Tensor, steps: int = 1,
-                   slots: Tensor | None = None) -> Tensor:
+                   slots: Tensor | None = None, compiled: bool = False) -> Tensor:
     """Depth of the zero crossing of `volume`'s TSDF seen by a camera, found from a guess of it.
 
     The fused distances are projective z-differences (`tsdf_voxels`), so along a ray from a camera near
     the fusing ones the surface lies at z + tsdf(z): starting at `guide`, `steps` such updates of z
-    (each a trilinear `sample_tsdf`), kept where the last sample was observed and within half the
+    (each a `trilinear_tsdf` sample), kept where the last sample was observed and within half the
     truncation of zero (not clipped: the surface is inside the band).
 
     Args:
         volume: the fused TSDF. guide: Float[Tensor, "h w"] z-depths to start from (0: no ray).
         K: Float[Tensor, "3 3"]; cam_to_world: Float[Tensor, "4 4"] the camera.
         steps: z updates per ray. slots: `block_slots(volume)` (computed when None).
+        compiled: on a CPU, sample the volume through torch.compile (`implementation`).
     Returns:
         Float[Tensor, "h w"] z-depth of the surface, 0 where none was found.
     """
@@ -220,8 +226,10 @@ def raycast_volume(volume: TSDFVolume, guide: Tensor, K: Tensor, cam_to_world: T
     grid_rays = rays[searched] @ pose[:3, :3].T / volume.voxel_size  # (m, 3) grid units per unit of z
     start = (pose[:3, 3] - origin) / volume.voxel_size
     z = guide[searched]
+    sample = implementation(trilinear_tsdf, compiled, guide.device)
     for _ in range(steps):
-        value = sample_tsdf(volume, slots, start + z[:, None] * grid_rays)
+        value = sample(volume._tsdf, volume._weight, slots, start + z[:, None] * grid_rays, volume.block_size,
+                       volume.grid_shape)
         z = z + torch.nan_to_num(value)
     depth = torch.zeros_like(guide)
     depth[searched] = torch.where(value.abs() < volume.truncation / 2, z, 0.0)  # NaN compares False
@@ -257,27 +265,35 @@ def axis_angle_to_matrix(omega: Tensor) -> Tensor:
     return eye + a * skew + b * skew @ skew
 
 
-def point_to_plane_update(source: Tensor, target: Tensor, normals: Tensor, weights: Tensor) -> Tensor | None:
-    """One Gauss-Newton step Float64[Tensor, "4 4"] of point-to-plane ICP, or None if degenerate.
+def point_to_plane_rows(source: Tensor, target: Tensor, normals: Tensor) -> Tensor:
+    """Rows [J | r] Float[Tensor, "n 7"] of point-to-plane ICP linearised at the identity: r_i = n_i . (p_i - q_i)
+    and J_i = (p_i x n_i, n_i), the derivative of r_i by a small motion (omega, t): exp(omega) p_i + t. `source`,
+    `target`, `normals`: Float[Tensor, "n 3"] matched points p, q and target normals n."""
+    (px, py, pz), (nx, ny, nz) = source.unbind(1), normals.unbind(1)
+    residual = ((source - target) * normals).sum(1)
+    return torch.stack([py * nz - pz * ny, pz * nx - px * nz, px * ny - py * nx, nx, ny, nz, residual], 1)
 
-    Linearises r_i = n_i . (exp(omega) p_i + t - q_i) at omega = 0, t = 0 and solves the weighted 6 x 6
-    normal equations (summed in the inputs' dtype, solved in float64) for x = (omega, t); returns [exp(omega) t; 0 1].
 
-    Args:
-        source, target, normals: Float[Tensor, "n 3"] matched points p, q and target normals n.
-        weights: Float[Tensor, "n"] (0 for rejected pairs).
-    """
-    residual = ((source - target) * normals).sum(1, keepdim=True)
-    rows = torch.cat([torch.linalg.cross(source, normals), normals, residual], 1)  # (n, 7): jacobian | residual
-    system = ((rows * weights[:, None]).T @ rows).double()  # (7, 7) in the inputs' dtype, then float64
+def gauss_newton_step(system: Tensor) -> Tensor | None:
+    """The motion Float64[Tensor, "4 4"] [exp(omega) t; 0 1] minimising sum w_i (J_i x + r_i)^2 from its normal
+    equations `system` = sum w_i [J_i r_i]^T [J_i r_i] (Float[Tensor, "7 7"], solved in float64); None when the
+    6 x 6 block is degenerate (a plane or a line constrains fewer than six directions)."""
+    system = system.double()
     hessian, gradient = system[:6, :6], system[:6, 6]
     eigenvalues = torch.linalg.eigvalsh(hessian)
     if not bool(eigenvalues[0] > 1e-9 * eigenvalues[-1].clamp_min(1e-300)):
         return None
     x = -torch.linalg.solve(hessian, gradient)
-    matrix = torch.eye(4, dtype=torch.float64, device=source.device)
+    matrix = torch.eye(4, dtype=torch.float64, device=system.device)
     matrix[:3, :3], matrix[:3, 3] = axis_angle_to_matrix(x[:3]), x[3:]
     return matrix
+
+
+def point_to_plane_update(source: Tensor, target: Tensor, normals: Tensor, weights: Tensor) -> Tensor | None:
+    """One Gauss-Newton step Float64[Tensor, "4 4"] of point-to-plane ICP on matched points (`point_to_plane_rows`)
+    with weights Float[Tensor, "n"] (0 for rejected pairs), or None if degenerate (`gauss_newton_step`)."""
+    rows = point_to_plane_rows(source, target, normals)
+    return gauss_newton_step((rows * weights[:, None]).T @ rows)
 
 
 @dataclass(frozen=True)
@@ -297,25 +313,48 @@ class Matches:
 def associate(points: Tensor, normals: Tensor, transform: Tensor, model: SurfaceMap, max_distance: float,
               min_cosine: float) -> Matches:
     """Projective data association: source points Float[Tensor, "n 3"] with normals Float[Tensor, "n 3"]
-    (source camera frame), moved by `transform` Float64[Tensor, "4 4"] into the model camera, each matched
+    (source camera frame), moved by `transform` Float[Tensor, "4 4"] into the model camera, each matched
     with the model pixel it projects to (nearest)."""
-    rotation, translation = transform[:3, :3].to(points), transform[:3, 3].to(points)
-    moved = points @ rotation.T + translation
-    turned = normals @ rotation.T
-    K = model.K.to(points)
+    return Matches(*projective_matches(points, normals, transform.to(points), model.packed, model.valid,
+                                       model.K.to(points), max_distance, min_cosine))
+
+
+def projective_matches(points: Tensor, normals: Tensor, transform: Tensor, model_packed: Tensor, model_valid: Tensor,
+                       model_K: Tensor, max_distance: float, min_cosine: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """`associate` on plain tensors (a model map's `packed`, `valid` and `K`, all in the points' dtype): the fields
+    of `Matches` in order."""
+    moved = points @ transform[:3, :3].T + transform[:3, 3]
+    turned = normals @ transform[:3, :3].T
     x, y, z = moved.unbind(1)
     inverse_z = 1 / torch.where(z > 0, z, 1.0)
-    u = torch.round((K[0, 0] * x + K[0, 1] * y) * inverse_z + K[0, 2])
-    v = torch.round(K[1, 1] * y * inverse_z + K[1, 2])
-    h, w = model.valid.shape
+    u = torch.round((model_K[0, 0] * x + model_K[0, 1] * y) * inverse_z + model_K[0, 2])
+    v = torch.round(model_K[1, 1] * y * inverse_z + model_K[1, 2])
+    h, w = model_valid.shape
     inside = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
     index = torch.where(inside, v * w + u, 0).long()
-    found = inside & model.valid.reshape(-1)[index]
-    matched = model.packed[index]  # (n, 6): point, normal
+    found = inside & model_valid.reshape(-1)[index]
+    matched = model_packed[index]  # (n, 6): point, normal
     target, target_normals = matched[:, :3], matched[:, 3:]
     close = (moved - target).square().sum(1) <= max_distance**2
     agree = (turned * target_normals).sum(1) >= min_cosine
-    return Matches(moved, target, target_normals, found & close & agree)
+    return moved, target, target_normals, found & close & agree
+
+
+def icp_equations(points: Tensor, normals: Tensor, transform: Tensor, model_packed: Tensor, model_valid: Tensor,
+                  model_K: Tensor, max_distance: float, min_cosine: float, kernel: str, kernel_scale: float
+                  ) -> tuple[Tensor, Tensor, Tensor]:
+    """One ICP iteration's sums over source points Float[Tensor, "n 3"] and normals Float[Tensor, "n 3"] moved by
+    `transform` Float[Tensor, "4 4"] and matched in a model map (`associate`; its `packed` Float[Tensor, "h*w 6"],
+    `valid` Bool[Tensor, "h w"] and `K`): the robustly weighted normal equations Float[Tensor, "7 7"]
+    (`point_to_plane_rows`, `robust_weights`; rejected pairs weigh 0), the inlier count Int[Tensor, ""] and the
+    inliers' sum of squared residuals Float[Tensor, ""] (one function, so that it compiles to one loop)."""
+    moved, target, target_normals, inlier = projective_matches(points, normals, transform, model_packed, model_valid,
+                                                               model_K, max_distance, min_cosine)
+    rows = point_to_plane_rows(moved, target, target_normals)
+    residual = rows[:, 6]
+    weights = robust_weights(residual, kernel, kernel_scale) * inlier
+    squares = (residual.square() * inlier).sum()
+    return (rows * weights[:, None]).T @ rows, inlier.sum(), squares
 
 
 @dataclass(frozen=True)
@@ -333,21 +372,27 @@ class FrameFit:
 
 
 def register_maps(source: list[SurfaceMap], model: list[SurfaceMap], init: Tensor, iterations: tuple[int, ...],
-                  kernel: str, kernel_scale: float, max_distance: float, min_cosine: float) -> FrameFit:
+                  kernel: str, kernel_scale: float, max_distance: float, min_cosine: float,
+                  compiled: bool = False) -> FrameFit:
     """Point-to-plane ICP of a source pyramid onto a model pyramid (lists finest first, same length),
     coarse to fine from `init` Float64[Tensor, "4 4"] (source camera -> model camera); `iterations[l]`
-    Gauss-Newton steps at level l (finest first)."""
+    Gauss-Newton steps at level l (finest first). `compiled`: on a CPU, `icp_equations` through torch.compile."""
     transform = init.double().clone()
     degenerate = False
+    equations = implementation(icp_equations, compiled, source[0].points.device)
+
+    def sums(level: int, points: Tensor, normals: Tensor) -> tuple[Tensor, int, float]:
+        target = model[level]
+        system, count, squares = equations(points, normals, transform.to(points), target.packed, target.valid,
+                                           target.K.to(points), max_distance, min_cosine, kernel, kernel_scale)
+        return system, int(count), float(squares)
+
     for level in reversed(range(len(source))):
         src, valid = source[level], source[level].valid
         points, normals = src.points[valid], src.normals[valid]
         for _ in range(iterations[level]):
-            matches = associate(points, normals, transform, model[level], max_distance, min_cosine)
-            residual = ((matches.source - matches.target) * matches.normals).sum(1)
-            weights = robust_weights(residual, kernel, kernel_scale) * matches.inlier  # rejected pairs weigh 0
-            update = None if int(matches.inlier.sum()) < 6 else point_to_plane_update(
-                matches.source, matches.target, matches.normals, weights)
+            system, count, _ = sums(level, points, normals)
+            update = None if count < 6 else gauss_newton_step(system)
             degenerate = update is None
             if degenerate:
                 break
@@ -355,15 +400,24 @@ def register_maps(source: list[SurfaceMap], model: list[SurfaceMap], init: Tenso
             if float(update[:3, 3].norm()) < 1e-4 and float((update[:3, :3].diagonal().sum() - 1) / 2) > 1 - 5e-9:
                 break  # converged: the step moved less than 0.1 mm and turned less than 1e-4 rad
     finest = source[0]
-    points, normals = finest.points[finest.valid], finest.normals[finest.valid]
-    matches = associate(points, normals, transform, model[0], max_distance, min_cosine)
-    residual = ((matches.source - matches.target) * matches.normals).sum(1)[matches.inlier]
-    share = float(matches.inlier.sum()) / max(len(points), 1)
-    rmse = float(residual.square().mean().sqrt()) if len(residual) else math.inf
-    return FrameFit(transform, share, rmse, degenerate)
+    points = finest.points[finest.valid]
+    _, count, squares = sums(0, points, finest.normals[finest.valid])
+    rmse = math.sqrt(squares / count) if count else math.inf
+    return FrameFit(transform, count / max(len(points), 1), rmse, degenerate)
 
 
 # ----------------------------------------------------------------------------- tracker
+
+
+_COMPILED_FRAMES = 200
+"""track_frames(compiled=None) compiles the tracker's loops on a CPU for sequences of this many frames or more:
+compiling takes about half a minute once per process (less from torch's on-disk cache) and saves a few hundred
+milliseconds of CPU a frame (docs/tracking.md)."""
+
+
+def implementation(function, compiled: bool, device: torch.device):
+    """`function` itself, or (`compiled` on a CPU) its torch.compile'd form, compiled once per process."""
+    return _COMPILED[function] if compiled and device.type == "cpu" else function
 
 
 class Tracker:
@@ -390,6 +444,11 @@ class Tracker:
         finest_stride: the finest level registers every finest_stride-th row and column of the frame
             (1: every pixel, as KinectFusion; 2, the default, is about 4 times cheaper there and tracked
             livingroom1 and redkitchen to the same ATE).
+        downsample: frames are registered at 1 / 2^downsample of their size (`depth_pyramid`'s block means; 0:
+            full size) and fused at full size; the pyramid's levels, the raycast and `finest_stride` count from
+            there (the default 1 tracked livingroom1 and redkitchen to the ATE of full size in a third of the time).
+        compiled: on a CPU, run the raycast's volume sampling and the ICP iterations through torch.compile
+            (`implementation`): faster a frame after a compilation of about half a minute.
     """
 
     def __init__(self, K: Tensor, mode: str = "model", levels: int = 3, iterations: tuple[int, ...] = (4, 5, 10),
@@ -397,7 +456,8 @@ class Tracker:
                  max_normal_angle: float = 30.0, min_inlier_share: float = 0.3, max_rmse: float = 0.03,
                  max_depth: float = 4.0, voxel_size: float = 0.02, truncation: float | None = None,
                  margin: float = 3.0, initial_pose: Tensor | None = None, raycast_level: int = 1,
-                 smoothing: int = 1, constant_velocity: bool = True, finest_stride: int = 2):
+                 smoothing: int = 0, constant_velocity: bool = True, finest_stride: int = 2,
+                 downsample: int = 1, compiled: bool = False):
         if mode not in MODES:
             raise ConfigError(f"tracking mode must be one of {MODES}, got {mode!r}")
         if not (isinstance(levels, int) and levels >= 1) or len(iterations) != levels:
@@ -405,6 +465,8 @@ class Tracker:
                               f"levels={levels!r}, iterations={tuple(iterations)!r}")
         if not (isinstance(finest_stride, int) and finest_stride >= 1):
             raise ConfigError(f"finest_stride must be a positive integer (1: every pixel), got {finest_stride!r}")
+        if not (isinstance(downsample, int) and downsample >= 0):
+            raise ConfigError(f"downsample must be an integer >= 0 (0: register full-size frames), got {downsample!r}")
         if not (isinstance(raycast_level, int) and 0 <= raycast_level < levels):
             raise ConfigError(f"raycast_level must be a pyramid level from 0 to {levels - 1}, got {raycast_level!r}")
         robust_weights(torch.zeros(1), kernel, kernel_scale)  # an unknown kernel fails here
@@ -416,15 +478,19 @@ class Tracker:
         self.truncation = 3 * voxel_size if truncation is None else truncation
         self.margin, self.raycast_level, self.smoothing = margin, raycast_level, int(smoothing)
         self.constant_velocity, self.finest_stride = bool(constant_velocity), int(finest_stride)
+        self.downsample, self.compiled = downsample, bool(compiled)
+        self.K_registered = K
+        for _ in range(downsample):
+            self.K_registered = downsample_intrinsics(self.K_registered)
         self.initial_pose = torch.eye(4, dtype=torch.float64) if initial_pose is None else initial_pose.double()
         self.poses: list[Tensor] = []
         self.volume: TSDFVolume | None = None
-        self._previous: Tensor | None = None  # the last frame's depth (h, w)
+        self._previous: Tensor | None = None  # the last frame's depth as registered (downsampled)
         self.last_fit: FrameFit | None = None  # the last frame's registration
 
     def _maps(self, depth: Tensor, K: Tensor | None = None, levels: int | None = None, stride: int = 1
               ) -> list[SurfaceMap]:
-        K = self.K.to(depth) if K is None else K
+        K = self.K_registered.to(depth) if K is None else K
         return surface_maps(depth, K, self.levels if levels is None else levels, self.max_distance / 2, stride)
 
     def _smooth(self, depth: Tensor) -> Tensor:
@@ -446,15 +512,17 @@ class Tracker:
         """The model's `SurfaceMap`s seen from `pose` (the previous pose), one per level."""
         if self.mode == "frame":
             return self._maps(self._smooth(self._previous))
-        guide, K = depth_pyramid(self._previous, self.K.to(self._previous), self.raycast_level + 1,
+        guide, K = depth_pyramid(self._previous, self.K_registered.to(self._previous), self.raycast_level + 1,
                                  self.max_distance / 2)[-1]
-        maps = self._maps(raycast_volume(self.volume, guide, K, pose), K, self.levels - self.raycast_level)
+        depth = raycast_volume(self.volume, guide, K, pose, compiled=self.compiled)
+        maps = self._maps(depth, K, self.levels - self.raycast_level)
         return [maps[0]] * self.raycast_level + maps
 
     def track(self, depth: Tensor) -> Tensor:
         """Register the next depth image Float[Tensor, "h w"] (metres, 0 invalid) and return its
         camera-to-world pose Float64[Tensor, "4 4"] (CPU); raises TrackingLostError naming the frame."""
         depth = torch.where(depth <= self.max_depth, depth, 0.0)
+        registered = depth_pyramid(depth, self.K.to(depth), self.downsample + 1, self.max_distance / 2)[-1][0]
         index = len(self.poses)
         if index == 0:
             pose = self.initial_pose.cpu()
@@ -462,12 +530,13 @@ class Tracker:
         else:
             previous = self.poses[-1]
             model = self._model(previous.to(depth.device))
-            source = self._maps(self._smooth(depth), stride=self.finest_stride)
+            source = self._maps(self._smooth(registered), stride=self.finest_stride)
             motion = torch.eye(4, dtype=torch.float64)
             if self.constant_velocity and index > 1:
                 motion = torch.linalg.inv(self.poses[-2]) @ previous
             fit = register_maps(source, model, motion.to(depth.device),
-                                self.iterations, self.kernel, self.kernel_scale, self.max_distance, self.min_cosine)
+                                self.iterations, self.kernel, self.kernel_scale, self.max_distance, self.min_cosine,
+                                self.compiled)
             self.last_fit = fit
             reason = ("the normal equations are degenerate" if fit.degenerate else
                       f"fewer than {self.min_inlier_share:.0%} of its points match the model"
@@ -478,17 +547,22 @@ class Tracker:
             pose = previous @ fit.transform.cpu()
         if self.mode == "model":
             self._fuse(depth, pose)
-        self._previous = depth
+        self._previous = registered
         self.poses.append(pose)
         return pose
 
 
-def track_frames(frames: DepthFrames, progress: bool = True, **settings) -> Trajectory:
-    """Camera poses of depth frames tracked in order (`Tracker(frames.K[0], **settings)`); the frames'
-    own `cam_to_world` is not used. Raises TrackingLostError at the first frame that cannot be tracked."""
+_COMPILED = {function: CompiledOnCPU(function, "camera tracking") for function in (trilinear_tsdf, icp_equations)}
+
+
+def track_frames(frames: DepthFrames, progress: bool = True, compiled: bool | None = None, **settings) -> Trajectory:
+    """Camera poses of depth frames tracked in order (`Tracker(frames.K[0], compiled=..., **settings)`); the frames'
+    own `cam_to_world` is not used. Raises TrackingLostError at the first frame that cannot be tracked.
+    `compiled`: None compiles on a CPU for sequences of `_COMPILED_FRAMES` frames or more."""
     if not isinstance(frames, DepthFrames):
         raise InputError(f"track_frames needs DepthFrames, got {type(frames).__name__}")
-    tracker = Tracker(frames.K[0], **settings)
+    compiled = len(frames) >= _COMPILED_FRAMES if compiled is None else compiled
+    tracker = Tracker(frames.K[0], compiled=compiled, **settings)
     shares, errors = [], []
     start = time.perf_counter()
     for depth in progress_bar(frames.depth, desc="tracking", unit="frame", enabled=progress):
@@ -513,6 +587,6 @@ __all__ = [
     "point_to_plane_update",
     "raycast_volume",
     "register_maps",
-    "sample_tsdf",
     "track_frames",
+    "trilinear_tsdf",
 ]

@@ -54,7 +54,7 @@ from neuralsurf.baselines.tsdf_voxels import (
     pad_image,
     pixel_weights,
 )
-from neuralsurf.devices import resolve_device
+from neuralsurf.devices import CompiledOnCPU, resolve_device
 from neuralsurf.errors import ConfigError, ExtractionError, InputError
 from neuralsurf.extract import as_bounds
 from neuralsurf.geometry import backproject_depth
@@ -145,32 +145,7 @@ _COMPILE_PIXELS = 300 * 640 * 480
 tiles and worker threads takes about 18 ms of CPU a frame there, so compiling may not pay at all."""
 
 
-class CompiledOnCPU:
-    """`function` compiled by torch.compile (dynamic shapes) for CPU tensors: one fused loop over the
-    voxels or pixels instead of a pass over memory per operation (measured on 7-Scenes at 1 cm: the
-    voxel pass 3.5x faster). torch.compile's CPU backend needs a C++ compiler: where it fails, a warning
-    (once) and `function` itself, eager, which gives the same results."""
-
-    def __init__(self, function):
-        self.function, self.compiled, self.failed = function, None, False
-
-    def __call__(self, *args):
-        if not self.failed:
-            self.compiled = self.compiled or torch.compile(self.function, dynamic=True)
-            try:
-                return self.compiled(*args)
-            except torch._dynamo.exc.BackendCompilerFailed as error:
-                self.failed = True
-                warnings.warn(
-                    f"TSDF fusion runs eager (slower): torch.compile failed for {self.function.__name__} "
-                    f"({str(error).strip().splitlines()[0]}); install a C++ compiler (Debian: apt-get install g++) "
-                    f"or pass TSDFVolume(compiled=False) to skip the attempt",
-                    stacklevel=3,
-                )
-        return self.function(*args)
-
-
-_COMPILED = {function: CompiledOnCPU(function) for function in (tile_box_codes, fuse_blocks)}
+_COMPILED = {function: CompiledOnCPU(function, "TSDF fusion") for function in (tile_box_codes, fuse_blocks)}
 
 
 class TSDFVolume:
