@@ -75,119 +75,235 @@ def _exact(query: Tensor, triangles: Tensor, elements: int) -> Tensor:
     return torch.cat([triangle_solid_angles(part, triangles) for part in query.split(rows)])
 
 
-@dataclass(frozen=True)
-class _Clusters:
-    """Small triangles grouped by the grid cell of their centroid, with each cell's expansion."""
-
-    key: Tensor
-    """Int[Tensor, "c"]: sorted linear index of each non-empty cell."""
-    order: Tensor
-    """Int[Tensor, "s"]: small triangles sorted by cell; `first[k]:first[k + 1]` are cell k's."""
-    first: Tensor
-    centre: Tensor
-    """Float[Tensor, "c 3"]: area-weighted centroid of each cell's triangles."""
-    normal: Tensor
-    """Float[Tensor, "c 3"]: sum of the area-weighted normals (the dipole)."""
-    moment: Tensor
-    """Float[Tensor, "c 3 3"]: sum of area * normal (centroid - centre)^T (the second-order term)."""
-    large: Tensor
-    """Int[Tensor, "l"]: triangles wider than half a cell, always summed exactly."""
+RAY_DIRECTIONS = torch.nn.functional.normalize(torch.tensor(
+    [[0.5377, 0.6241, 0.5668], [-0.7289, 0.2173, 0.6493], [0.1559, -0.8917, 0.4249]], dtype=torch.float64), dim=-1)
+"""Float64[Tensor, "3 3"]: the directions of the rays that count crossings: generic (none along an
+axis or a diagonal of a grid, where marching-cubes vertices and faces line up)."""
 
 
-def _clusters(triangles: Tensor, size: float, cells: int) -> _Clusters:
-    """Cluster the triangles (Float[Tensor, "f 3 3"], in [-0.5, 0.5]^3) on `cells`^3 cubes of side `size`."""
-    centroid = triangles.mean(1)
-    small = (triangles - centroid[:, None]).norm(dim=-1).amax(-1) <= size / 2
-    index = ((centroid + 0.5) / size).floor().long().clamp(0, cells - 1)
-    key = (index[:, 0] * cells + index[:, 1]) * cells + index[:, 2]
-    small_ids = torch.nonzero(small).squeeze(1)
-    unique, row = torch.unique(key[small_ids], return_inverse=True)
-    order = small_ids[torch.argsort(row, stable=True)]
-    counts = torch.bincount(row, minlength=len(unique))
-    a, b, c = triangles[small_ids].unbind(1)
-    area_normal = 0.5 * torch.linalg.cross(b - a, c - a)
-    weight = area_normal.norm(dim=-1) + 1e-12  # degenerate triangles still place their cell's centre
-
-    def total(values: Tensor) -> Tensor:
-        return values.new_zeros(len(unique), *values.shape[1:]).index_add_(0, row, values)
-
-    centre = total(weight[:, None] * centroid[small_ids]) / total(weight)[:, None]
-    offset = centroid[small_ids] - centre[row]
-    return _Clusters(unique, order, torch.cat([counts.new_zeros(1), counts.cumsum(0)]), centre, total(area_normal),
-                     total(area_normal[:, :, None] * offset[:, None, :]), torch.nonzero(~small).squeeze(1))
+def _mix(words: np.ndarray) -> np.ndarray:
+    """UInt64[..., k] -> UInt64[...]: a hash of the last axis's values (equal rows, equal hashes;
+    distinct rows collide with probability about 2^-64)."""
+    h = np.full(words.shape[:-1], 0xCBF29CE484222325, dtype=np.uint64)
+    with np.errstate(over="ignore"):
+        for i in range(words.shape[-1]):
+            h = (h ^ words[..., i].astype(np.uint64)) * np.uint64(0x100000001B3)
+            h ^= h >> np.uint64(29)
+    return h
 
 
-def _far_field(points: Tensor, clusters: _Clusters, far: Tensor) -> Tensor:
-    """Sum over the clusters marked `far` (Bool[Tensor, "m k"]) of their second-order expansion at
-    each of Float[Tensor, "m 3"] points -> Float[Tensor, "m"].
+def _edge_keys(edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct undirected edges of Int[e, 2] edges as (Int[k, 2] sorted pairs, Int[e] index of each)."""
+    pairs = np.sort(edges, axis=1).astype(np.int64)
+    n = int(pairs.max()) + 1 if len(pairs) else 1
+    keys, index = np.unique(pairs[:, 0] * n + pairs[:, 1], return_inverse=True)
+    return np.stack([keys // n, keys % n], 1), index.ravel()
 
-    With r = centre - q: w = (N . r + tr(M) - 3 r^T S r / |r|^2) / (4 pi |r|^3), S = (M + M^T) / 2, from
-    K(r) = r / (4 pi |r|^3) and its Jacobian (I / |r|^3 - 3 r r^T / |r|^5) / (4 pi). Every term
-    expanded in q is a matrix product (far clusters are a cell or more away, so float32 keeps its
-    relative precision); the near ones are computed too and masked out.
+
+def border_edges(faces: Tensor) -> Tensor:
+    """The algebraic border of oriented triangles: each edge run more often one way than the other by
+    the faces (Int[Tensor, "f 3"]), in the direction the faces run it, repeated by the difference.
+
+    An edge between two consistent faces is no border; an open boundary is, and so is an edge between
+    two faces that disagree (a flipped face: twice) or one of three faces. Every vertex has as many
+    border edges in as out: they form closed loops, whatever the mesh.
+
+    Returns:
+        Int[Tensor, "b 2"] directed edges (a, b).
     """
-    c, n = clusters.centre, clusters.normal
-    s = (clusters.moment + clusters.moment.transpose(1, 2)) / 2
-    sc = (s @ c[:, :, None])[..., 0]  # k 3
-    upper = torch.stack([s[:, 0, 0], s[:, 1, 1], s[:, 2, 2], 2 * s[:, 0, 1], 2 * s[:, 0, 2], 2 * s[:, 1, 2]], -1)
-    q = points
-    quadratic = torch.stack([q[:, 0] ** 2, q[:, 1] ** 2, q[:, 2] ** 2, q[:, 0] * q[:, 1], q[:, 0] * q[:, 2],
-                             q[:, 1] * q[:, 2]], -1)
-    r2 = ((c * c).sum(-1) - 2 * q @ c.T + (q * q).sum(-1, keepdim=True)).clamp_min_(1e-12)
-    dipole = (n * c).sum(-1) - q @ n.T
-    rmr = (c * sc).sum(-1) - 2 * q @ sc.T + quadratic @ upper.T
-    trace = clusters.moment.diagonal(dim1=-2, dim2=-1).sum(-1)
-    inverse = r2.reciprocal_()
-    value = (dipole + trace - 3 * rmr * inverse) * inverse * inverse.sqrt()
-    return torch.where(far, value, 0.0).sum(-1) / (4 * math.pi)
+    f = faces.cpu().numpy()
+    directed = np.stack([f, np.roll(f, -1, axis=1)], -1).reshape(-1, 2)
+    keys, edge = _edge_keys(directed)
+    sense = np.where(directed[:, 0] < directed[:, 1], 1, -1)
+    net = np.bincount(edge.ravel(), weights=sense, minlength=len(keys)).round().astype(np.int64)
+    border = net != 0
+    edges = np.where((net > 0)[:, None], keys, keys[:, ::-1])[border]
+    return torch.from_numpy(np.repeat(edges, np.abs(net[border]), axis=0)).long()
 
 
-def _clustered(points: Tensor, triangles: Tensor, cells: int, near: int, elements: int) -> Tensor:
-    """The winding number at Float[Tensor, "m 3"] points of Float[Tensor, "f 3 3"] triangles (both in
-    the mesh's unit box): the exact sum over the triangles of the clusters within `near` cells of a
-    point's cell and over the large triangles, the expansion of every other cluster."""
-    size = 1.0 / cells
-    clusters = _clusters(triangles, size, cells)
-    lengths = clusters.first[1:] - clusters.first[:-1]
-    steps = torch.arange(-near, near + 1)
-    offsets = torch.cartesian_prod(steps, steps, steps)  # o 3
-    cell = ((points + 0.5) / size).floor().long()  # outside the box: no cluster is near
-    out = _exact(points, triangles[clusters.large], elements)
-    rows = max(1, min(elements // (8 * len(clusters.key) + 1), elements // 64))
-    for start in range(0, len(points), rows):
-        part = slice(start, start + rows)
-        neighbour = cell[part, None] + offsets  # q o 3
-        valid = ((neighbour >= 0) & (neighbour < cells)).all(-1)
-        key = (neighbour[..., 0] * cells + neighbour[..., 1]) * cells + neighbour[..., 2]
-        found = torch.searchsorted(clusters.key, key).clamp_max(len(clusters.key) - 1)
-        valid &= clusters.key[found] == key
-        local, slot = torch.nonzero(valid, as_tuple=True)
-        cluster = found[local, slot]
-        far = torch.ones(len(key), len(clusters.key), dtype=torch.bool)
-        far[local, cluster] = False
-        out[part] += _far_field(points[part], clusters, far)
-        count = lengths[cluster]
-        pair_query = torch.repeat_interleave(local + start, count)
-        base = torch.repeat_interleave(clusters.first[cluster] - (count.cumsum(0) - count), count)
-        pair_triangle = clusters.order[base + torch.arange(len(base))]
-        for chunk in range(0, len(pair_query), elements):
-            q, t = pair_query[chunk:chunk + elements], pair_triangle[chunk:chunk + elements]
-            out.index_add_(0, q, _solid_angles(triangles[t] - points[q][:, None]))
-    return out
+@dataclass(frozen=True)
+class _Caps:
+    """Cones over the border loops of a mesh: with them the mesh is a closed surface (a 2-cycle)."""
+
+    triangles: Tensor
+    """Float64[Tensor, "h 3 3"]: (apex, b, a) for each border edge (a, b), grouped by cap."""
+    first: Tensor
+    """Int[Tensor, "k + 1"]: cap k's triangles are `triangles[first[k]:first[k + 1]]`."""
+    centre: Tensor
+    """Float64[Tensor, "k 3"]: each cap's apex, the mean of its loop's vertices."""
+    radius: Tensor
+    """Float64[Tensor, "k"]: the largest distance from the apex to a vertex of the loop: the cap
+    lies in that ball."""
+    area: Tensor
+    """Float64[Tensor, "k"]: each cap's area."""
 
 
-def winding_number(query: Tensor, mesh: Mesh, *, approximate: bool = True, near: int = 1,
-                   cells: int | None = None, elements: int = 2**20) -> Tensor:
+def _caps(vertices: Tensor, faces: Tensor) -> _Caps:
+    """One cone a connected set of border loops (`border_edges`), from Float64[Tensor, "v 3"]
+    vertices and Int[Tensor, "f 3"] faces."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    edges = border_edges(faces)
+    if len(edges) == 0:
+        empty = vertices.new_zeros(0)
+        return _Caps(vertices.new_zeros(0, 3, 3), torch.zeros(1, dtype=torch.long), vertices.new_zeros(0, 3),
+                     empty, empty)
+    used, local = torch.unique(edges, return_inverse=True)
+    e = local.numpy()
+    graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(len(used), len(used)))
+    k, label = connected_components(graph, directed=False)
+    label = torch.from_numpy(label).long()
+    points = vertices[used]
+    count = torch.bincount(label, minlength=k).double()
+    centre = points.new_zeros(k, 3).index_add_(0, label, points) / count[:, None]
+    radius = points.new_zeros(k).scatter_reduce_(0, label, (points - centre[label]).norm(dim=-1), "amax")
+    cap = label[local[:, 0]]
+    order = torch.argsort(cap, stable=True)
+    a, b = vertices[edges[order, 0]], vertices[edges[order, 1]]
+    apex = centre[cap[order]]
+    triangles = torch.stack([apex, b, a], 1)
+    area = 0.5 * torch.linalg.cross(b - apex, a - apex).norm(dim=-1)
+    sizes = torch.bincount(cap, minlength=k)
+    return _Caps(triangles, torch.cat([sizes.new_zeros(1), sizes.cumsum(0)]), centre, radius,
+                 points.new_zeros(k).index_add_(0, cap[order], area))
+
+
+class MeshWinding:
+    """A mesh prepared for exact generalised winding numbers at many points.
+
+    The mesh's border loops (`border_edges`) are closed by cones (caps H), which makes the mesh plus
+    H a closed surface: its winding number is an integer, the signed count of its faces that any ray
+    from the point crosses (+1 leaving through a face's front), read by Open3D's ray casting. The
+    mesh's own winding number is that integer less the caps' sum of solid angles: exact near the caps,
+    and neglected where a rigorous bound (a cap of area A within a ball of radius r about its apex,
+    seen from distance D > r, subtends at most A / (D - r)^2 / (4 pi)) keeps the total neglected below
+    the tolerance. A closed mesh has no caps: its winding number is the crossing count. Crossings are
+    counted along two generic rays; where they disagree (a ray through an edge) a third decides.
+    """
+
+    def __init__(self, mesh: Mesh):
+        if mesh.is_empty:
+            raise InputError("winding numbers need a mesh with faces, got an empty mesh")
+        vertices = mesh.vertices.detach().cpu().double()
+        low, high = vertices.min(0).values, vertices.max(0).values
+        self.centre, self.extent = (low + high) / 2, float((high - low).max().clamp_min(1e-12))
+        # solid angles are invariant to translation and scale: work in the mesh's unit box
+        self.vertices = (vertices - self.centre) / self.extent
+        faces = mesh.faces.cpu()
+        faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
+        self.faces = faces
+        self.caps = _caps(self.vertices, faces)
+        self._scenes: dict[int, tuple] = {}
+
+    @property
+    def closed(self) -> bool:
+        """Whether the mesh has no border (its winding number is an integer everywhere)."""
+        return len(self.caps.triangles) == 0
+
+    def unit(self, points: Tensor) -> Tensor:
+        """Float64[Tensor, "m 3"]: points in the mesh's unit box."""
+        return (points.detach().cpu().double() - self.centre) / self.extent
+
+    def _scenes_along(self, k: int) -> list[tuple]:
+        """(Open3D scene, sign): the closed surface's triangles facing along RAY_DIRECTIONS[k] (+1) and
+        against it (-1). Open3D counts hits at the same distance once (a ray through an edge crosses
+        once), so coincident copies of a triangle go to scenes of their own, one a copy."""
+        import open3d as o3d
+
+        if k not in self._scenes:
+            triangles = torch.cat([self.vertices[self.faces], self.caps.triangles]).float()
+            normal = torch.linalg.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+            facing = torch.sign(normal.double() @ RAY_DIRECTIONS[k]).long()
+            _, copy = np.unique(_mix(np.sort(_mix(triangles.numpy().view(np.uint32)), axis=1)), return_inverse=True)
+            order = np.argsort(copy.ravel(), kind="stable")
+            first = np.searchsorted(copy.ravel()[order], copy.ravel()[order])
+            layer = np.empty(len(order), np.int64)
+            layer[order] = np.arange(len(order)) - first  # 0 for the first copy, 1 for the second, ...
+            scenes = []
+            for sign in (1, -1):
+                for level in range(int(layer.max()) + 1 if len(layer) else 0):
+                    chosen = (facing == sign) & torch.from_numpy(layer == level)
+                    if chosen.any():
+                        scene = o3d.t.geometry.RaycastingScene()
+                        points = triangles[chosen].reshape(-1, 3).numpy()
+                        scene.add_triangles(o3d.core.Tensor(points),
+                                            o3d.core.Tensor(np.arange(len(points), dtype=np.uint32).reshape(-1, 3)))
+                        scenes.append((scene, sign))
+            self._scenes[k] = scenes
+        return self._scenes[k]
+
+    def _crossings(self, points: Tensor, k: int) -> Tensor:
+        """Int[Tensor, "m"]: signed crossings of the closed surface by rays from Float64[Tensor, "m 3"]
+        unit-box points along RAY_DIRECTIONS[k]."""
+        import open3d as o3d
+
+        rays = o3d.core.Tensor(torch.cat([points, RAY_DIRECTIONS[k].expand(len(points), 3)], 1).float().numpy())
+        count = torch.zeros(len(points), dtype=torch.long)
+        for scene, sign in self._scenes_along(k):
+            count += sign * torch.from_numpy(scene.count_intersections(rays).numpy()).long()
+        return count
+
+    def closed_winding(self, points: Tensor) -> Tensor:
+        """Int[Tensor, "m"]: the winding number of the mesh plus its caps at unit-box points."""
+        first, second = self._crossings(points, 0), self._crossings(points, 1)
+        differ = torch.nonzero(first != second).squeeze(1)
+        if len(differ):
+            third = self._crossings(points[differ], 2)
+            first[differ] = torch.stack([first[differ], second[differ], third], 1).median(1).values
+        return first
+
+    def cap_winding(self, points: Tensor, tolerance: float, elements: int = 2**20) -> Tensor:
+        """Float64[Tensor, "m"]: the caps' winding number at Float64[Tensor, "m 3"] unit-box points,
+        each cap summed exactly unless the bounds of the caps left out add up to at most `tolerance`."""
+        caps, out = self.caps, points.new_zeros(len(points))
+        if self.closed or len(points) == 0:
+            return out
+        rows, pairs = max(1, elements // len(caps.radius)), []
+        for start in range(0, len(points), rows):
+            gap = torch.cdist(points[start:start + rows], caps.centre) - caps.radius
+            bound = torch.where(gap > 0, caps.area / (4 * math.pi * gap.clamp_min(1e-300) ** 2), math.inf)
+            ascending, order = bound.sort(1)
+            left_out = torch.zeros_like(bound, dtype=torch.bool).scatter_(1, order, ascending.cumsum(1) <= tolerance)
+            query, cap = torch.nonzero(~left_out, as_tuple=True)
+            pairs.append(torch.stack([cap, query + start]))
+        cap, query = torch.cat(pairs, 1)[:, torch.argsort(torch.cat(pairs, 1)[0], stable=True)]
+        triangles, unit = caps.triangles.float(), points.float()
+        present, count = torch.unique_consecutive(cap, return_counts=True)
+        for k, rows_k in zip(present.tolist(), query.split(count.tolist())):
+            part = triangles[caps.first[k]:caps.first[k + 1]]
+            out[rows_k] += _exact(unit[rows_k], part, elements).double()
+        return out
+
+    def __call__(self, query: Tensor, tolerance: float = 1e-2) -> Tensor:
+        """Float64[Tensor, "m"]: the winding number at Float[Tensor, "m 3"] points (the mesh's frame),
+        within `tolerance` of the exact sum (float rounding aside)."""
+        points = self.unit(query)
+        return self.closed_winding(points).double() - self.cap_winding(points, tolerance)
+
+    def inside(self, query: Tensor, tolerance: float = 0.25) -> Tensor:
+        """Bool[Tensor, "m"]: winding number at least 1/2, certain: points whose value within
+        `tolerance` lies within `tolerance` of 1/2 are summed again with every cap exact."""
+        return self.certain(query, self(query, tolerance), tolerance) >= INSIDE_THRESHOLD
+
+    def certain(self, query: Tensor, values: Tensor, tolerance: float) -> Tensor:
+        """`values` (within `tolerance`) with those within `tolerance` of 1/2 made exact."""
+        unsure = torch.nonzero((values - INSIDE_THRESHOLD).abs() <= tolerance).squeeze(1)
+        if len(unsure) and not self.closed:
+            values = values.clone()
+            values[unsure] = self(query[unsure], 0.0)
+        return values
+
+
+def winding_number(query: Tensor, mesh: Mesh, *, approximate: bool = True, tolerance: float = 1e-2,
+                   elements: int = 2**20) -> Tensor:
     """Generalised winding number of a triangle mesh at each query point.
 
     About 1 inside and 0 outside a closed surface with outward (counter-clockwise) faces; across a
-    hole it varies smoothly, overlapping closed parts count 2. With `approximate` (and 2048 faces or
-    more), triangles are clustered on a grid of `cells`^3 cubes over the mesh's box (default from the
-    face count); clusters more than `near` cells from a query's cell enter by their second-order
-    dipole expansion (Barill et al. 2018), the others and triangles wider than half a cell exactly:
-    within a few hundredths of the exact sum at `near=1` (a few thousandths at 2, at about twice the
-    time). Computed in float32 in the mesh's unit box (solid angles do not change with translation
-    and scale).
+    hole it varies smoothly, overlapping closed parts count 2. With `approximate`, `MeshWinding`:
+    an integer read from ray crossings of the mesh closed by caps over its holes, less the caps'
+    solid angles, within `tolerance` of the exact sum (exact for a closed mesh); otherwise every
+    triangle's solid angle summed exactly (float32, in the mesh's unit box).
 
     Args:
         query: Float[Tensor, "m 3"]; mesh: Mesh in the same frame.
@@ -196,33 +312,33 @@ def winding_number(query: Tensor, mesh: Mesh, *, approximate: bool = True, near:
         Float[Tensor, "m"] on the query's device, in its dtype.
     """
     _check(query, mesh, "winding_number")
-    if near < 1:
-        raise ConfigError(f"winding_number: near must be >= 1 grid cells, got {near}")
-    vertices = mesh.vertices.detach().cpu().double()
-    low, high = vertices.min(0).values, vertices.max(0).values
-    centre, extent = (low + high) / 2, float((high - low).max().clamp_min(1e-12))
-    # solid angles are invariant to translation and scale: work in the mesh's unit box
-    triangles = ((vertices - centre) / extent)[mesh.faces.cpu()].to(torch.float32)
-    points = ((query.detach().cpu().double() - centre) / extent).to(torch.float32)
-    if not approximate or len(triangles) < 2048:
-        return _exact(points, triangles, elements).to(query)
-    cells = cells or int(np.clip(round(math.sqrt(1.25 * math.sqrt(len(triangles)))), 4, 64))
-    return _clustered(points, triangles, cells, near, elements).to(query)
+    if not tolerance >= 0:
+        raise ConfigError(f"winding_number: tolerance must be >= 0, got {tolerance}")
+    if approximate:
+        return MeshWinding(mesh)(query, tolerance).to(query)
+    winding = MeshWinding(mesh)
+    triangles = winding.vertices[winding.faces].float()
+    return _exact(winding.unit(query).float(), triangles, elements).to(query)
 
 
-def inside(points: Tensor, mesh: Mesh, **options) -> Tensor:
-    """Bool[Tensor, "n"]: points whose winding number is at least 1/2 (`winding_number`'s options)."""
-    return winding_number(points, mesh, **options) >= INSIDE_THRESHOLD
+def inside(points: Tensor, mesh: Mesh, *, approximate: bool = True) -> Tensor:
+    """Bool[Tensor, "n"]: points whose winding number is at least 1/2: with `approximate`,
+    `MeshWinding.inside` (certain: exact wherever the bounded part could change the side), otherwise
+    the exact sum over every triangle."""
+    _check(points, mesh, "inside")
+    if approximate:
+        return MeshWinding(mesh).inside(points).to(points.device)
+    return winding_number(points, mesh, approximate=False) >= INSIDE_THRESHOLD
 
 
-def signed_distance(points: Tensor, mesh: Mesh, **options) -> Tensor:
+def signed_distance(points: Tensor, mesh: Mesh, *, approximate: bool = True) -> Tensor:
     """Float[Tensor, "n"]: the exact distance to the mesh's triangles, negative where the winding
     number says inside (`inside`). Right for open, multi-sheet meshes whose faces face outward (run
     `orient_outward` first when they may not)."""
 
     _check(points, mesh, "signed_distance")
     distance = point_to_mesh_distance(points, mesh)
-    return torch.where(inside(points, mesh, **options).to(distance.device), -distance, distance)
+    return torch.where(inside(points, mesh, approximate=approximate).to(distance.device), -distance, distance)
 
 
 def _weighted_median(values: Tensor, weights: Tensor, groups: Tensor, n: int) -> Tensor:
@@ -240,7 +356,7 @@ def _weighted_median(values: Tensor, weights: Tensor, groups: Tensor, n: int) ->
     return torch.from_numpy(median)
 
 
-def boundary_faces(mesh: Mesh, offset: float = 1e-3, **options) -> Tensor:
+def boundary_faces(mesh: Mesh, offset: float = 1e-3) -> Tensor:
     """Bool[Tensor, "f"]: faces between inside and outside; faces should face outward (`orient_outward`).
 
     1. Open sheets inside or outside the shape go first, whole: an open patch (faces joined across
@@ -274,7 +390,9 @@ def boundary_faces(mesh: Mesh, offset: float = 1e-3, **options) -> Tensor:
     step = distance[:, None] * torch.nn.functional.normalize(cross, dim=-1)
     centroid = corners.mean(1)
     sides = torch.cat([centroid + step, centroid - step])  # front, back
-    wind = winding_number(sides, Mesh(vertices, faces), **options)
+    tolerance = 0.05  # the scores' thresholds are 1/4 from 1/2; sides near 1/2 are made exact below
+    winding = MeshWinding(Mesh(vertices, faces))
+    wind = winding(sides, tolerance)
     active = torch.ones(patches, dtype=torch.bool)
     while True:
         front, back = wind.chunk(2)
@@ -284,17 +402,20 @@ def boundary_faces(mesh: Mesh, offset: float = 1e-3, **options) -> Tensor:
         if not sheet.any():
             break
         active &= ~sheet
-        # winding numbers add up over faces: take the sheets' own (exact) part out
-        wind = wind - _exact(sides, corners[sheet[patch]], 2**20)
+        if not active.any():
+            return torch.zeros(len(faces), dtype=torch.bool, device=mesh.faces.device)
+        # the winding number of the faces left
+        winding = MeshWinding(Mesh(vertices, faces[active[patch]]))
+        wind = winding(sides, tolerance)
+    front, back = winding.certain(sides, wind, tolerance).chunk(2)
     return (active[patch] & ((front >= INSIDE_THRESHOLD) != (back >= INSIDE_THRESHOLD))).to(mesh.faces.device)
 
 
 def _border_faces(faces: Tensor) -> Tensor:
     """Bool[Tensor, "f"]: faces with an edge no other face has (Int[Tensor, "f 3"] faces)."""
     f = faces.numpy()
-    edges = np.sort(np.stack([f, np.roll(f, -1, axis=1)], -1).reshape(-1, 2), axis=1)
-    _, edge, count = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
-    return torch.from_numpy((count[edge.ravel()] == 1).reshape(-1, 3).any(1))
+    _, edge = _edge_keys(np.stack([f, np.roll(f, -1, axis=1)], -1).reshape(-1, 2))
+    return torch.from_numpy((np.bincount(edge)[edge] == 1).reshape(-1, 3).any(1))
 
 
 # ----------------------------------------------------------------------------- orientation
@@ -317,9 +438,8 @@ def consistent_patches(faces: Tensor) -> tuple[Tensor, Tensor]:
     n = len(f)
     directed = np.stack([f, np.roll(f, -1, axis=1)], -1).reshape(-1, 2)  # (3f, 2) half-edges
     owner = np.repeat(np.arange(n), 3)
-    undirected = np.sort(directed, axis=1)
-    _, edge, count = np.unique(undirected, axis=0, return_inverse=True, return_counts=True)
-    edge = edge.ravel()
+    _, edge = _edge_keys(directed)
+    count = np.bincount(edge)
     manifold = count[edge] == 2
     ids = np.nonzero(manifold)[0]
     ids = ids[np.argsort(edge[ids], kind="stable")]  # the two half-edges of each manifold edge side by side
