@@ -238,14 +238,28 @@ def check_frame(surface: Tensor, stats: FrameStats, where: str, size: float | No
 # ----------------------------------------------------------------------------- the collection
 
 
+def shard_part(items: list, shard: int, shards: int) -> list:
+    """Part `shard` of `shards` consecutive parts of almost equal length (a build split into jobs).
+    Raises ConfigError for a shard out of range."""
+    if not (isinstance(shards, int) and shards >= 1 and isinstance(shard, int) and 0 <= shard < shards):
+        raise ConfigError(f"shard={shard} shards={shards}: need shards >= 1 and 0 <= shard < shards; run "
+                          f"shard 0, 1, ..., {shards - 1} to build every shape once")
+    return items[shard * len(items) // shards:(shard + 1) * len(items) // shards]
+
+
+def _cache_key(entry: ShapeEntry, record: ShapeRecord, recipe: CacheRecipe, normalize: bool) -> str:
+    """What a shape's cache was built from: its record, the recipe and its file as it is now."""
+    stat = entry.path.stat() if entry.path.is_file() else (entry.path / "points.npz").stat()
+    source = {"path": str(entry.path), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}
+    return json.dumps({"record": asdict(record), "recipe": asdict(recipe), "source": source, "normalize": normalize},
+                      sort_keys=True)
+
+
 def _shape_cache(entry: ShapeEntry, record: ShapeRecord, out: str, recipe: CacheRecipe, normalize: bool,
                  layout: str, seed: int) -> tuple[str, str]:
     """Write one shape's cache unless it is there with the same source and recipe; returns (name, status)."""
     path = cache_path(Path(out), record)
-    stat = entry.path.stat() if entry.path.is_file() else (entry.path / "points.npz").stat()
-    source = {"path": str(entry.path), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}
-    key = json.dumps({"record": asdict(record), "recipe": asdict(recipe), "source": source, "normalize": normalize},
-                     sort_keys=True)
+    key = _cache_key(entry, record, recipe, normalize)
     if path.is_file() and cached_recipe(path) == key:  # unreadable: built again
         return record.name, "cached"
     shape_seed = int(hashlib.sha256(f"{seed}/{entry.category}/{entry.name}".encode()).hexdigest()[:15], 16)
@@ -383,15 +397,30 @@ class FolderCollection:
         """The files of `split`'s shapes, in the order of `records`."""
         return [e for r, e in self._entries if split is None or r.split == split]
 
-    def build(self, progress: bool = True) -> Path:
-        """Write every missing cache (resumable) and `collection.json` with the training shapes' frame
-        statistics; returns the folder. Processes building one folder together take turns."""
+    def build(self, progress: bool = True, shard: int = 0, shards: int = 1) -> Path:
+        """Write every missing cache (resumable; a progress bar with an ETA) and `collection.json` with
+        the training shapes' frame statistics; returns the folder. Processes building one folder
+        together take turns. With `shards` > 1 only part `shard` of the shapes is built (`shard_part`),
+        so that separate jobs build the parts at once; whichever finds every cache there writes
+        `collection.json`, and a later build of the whole finds every shape cached."""
         out = self.folder
-        with file_lock(out / ".build.lock"):
-            jobs = [(e, r, str(out), self.recipe, self.normalize, self.layout, self.seed) for r, e in self._entries]
+        part = shard_part(list(self._entries), shard, shards)
+        lock = ".build.lock" if shards == 1 else f".build.{shard}-of-{shards}.lock"
+        with file_lock(out / lock):
+            jobs = [(e, r, str(out), self.recipe, self.normalize, self.layout, self.seed) for r, e in part]
             run_jobs(_build_job, jobs, self.workers, progress)
+        if shards > 1 and not all(self.is_cached(record) for record in self.records()):
+            return out  # the other parts are still being built
+        with file_lock(out / ".build.lock"):
             self._write_manifest(out)
         return out
+
+    def is_cached(self, record: ShapeRecord) -> bool:
+        """Whether the shape's cache is there, readable, built from its file as it is now and with
+        these settings."""
+        entry = dict(self._entries)[record]
+        path = cache_path(self.folder, record)
+        return path.is_file() and cached_recipe(path) == _cache_key(entry, record, self.recipe, self.normalize)
 
     def _write_manifest(self, out: Path) -> None:
         surfaces, sizes = [], []

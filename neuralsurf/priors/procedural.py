@@ -160,7 +160,59 @@ class Lamp:
         return torch.tensor([[-r, 0.0, -r], [r, top, r]], dtype=torch.float64)
 
 
-SHAPE_CLASSES = {"chair": Chair, "mug": Mug, "lamp": Lamp}
+@dataclass(frozen=True)
+class SlatChair:
+    """A chair of thin parts: a seat on four legs joined by stretchers, and a back of vertical slats
+    under a top rail (the slats and stretchers a few hundredths of the chair's height across)."""
+
+    seat_width: float
+    seat_depth: float
+    seat_thickness: float
+    seat_height: float
+    leg_half: float
+    stretcher_half: float
+    stretcher_height: float
+    back_height: float
+    slats: int
+    slat_width: float
+    slat_half: float
+    rail_half: float
+
+    @classmethod
+    def random(cls, rng: np.random.Generator) -> SlatChair:
+        return cls(seat_width=_u(rng, 0.4, 0.55), seat_depth=_u(rng, 0.4, 0.55), seat_thickness=_u(rng, 0.03, 0.05),
+                   seat_height=_u(rng, 0.4, 0.5), leg_half=_u(rng, 0.02, 0.03), stretcher_half=_u(rng, 0.014, 0.02),
+                   stretcher_height=_u(rng, 0.1, 0.2), back_height=_u(rng, 0.35, 0.55), slats=int(rng.integers(2, 6)),
+                   slat_width=_u(rng, 0.02, 0.04), slat_half=_u(rng, 0.014, 0.02), rail_half=_u(rng, 0.025, 0.035))
+
+    def raw_sdf(self, p: Tensor) -> Tensor:
+        w, d, t, h = self.seat_width / 2, self.seat_depth / 2, self.seat_thickness, self.seat_height
+        parts = [csg.box(p, (0.0, h - t / 2, 0.0), (w, t / 2, d), rounding=0.005)]
+        lx, lz, top = w - self.leg_half, d - self.leg_half, h - t / 2
+        for sx in (-1, 1):
+            for sz in (-1, 1):  # legs reach into the middle of the seat: one solid
+                parts.append(csg.box(p, (sx * lx, top / 2, sz * lz), (self.leg_half, top / 2, self.leg_half)))
+        s, y = self.stretcher_half, self.stretcher_height
+        for sx in (-1, 1):  # side stretchers, front to back, and one across the front
+            parts.append(csg.box(p, (sx * lx, y, 0.0), (s, s, lz)))
+        parts.append(csg.box(p, (0.0, y, lz), (lx, s, s)))
+        rail_y = h + self.back_height
+        back_z = -lz  # the back rises from the rear legs
+        for sx in (-1, 1):  # the rear legs go on up to the rail
+            parts.append(csg.box(p, (sx * lx, (h + rail_y) / 2, back_z), (self.leg_half, (rail_y - h) / 2, self.leg_half)))
+        parts.append(csg.box(p, (0.0, rail_y, back_z), (lx + self.leg_half, self.rail_half, self.slat_half * 1.5)))
+        for i in range(self.slats):
+            x = -lx + 2 * lx * (i + 1) / (self.slats + 1)
+            parts.append(csg.box(p, (x, (h + rail_y) / 2, back_z), (self.slat_width / 2, (rail_y - h) / 2, self.slat_half)))
+        return csg.union(*parts)
+
+    def raw_bounds(self) -> Tensor:
+        w, d = self.seat_width / 2, self.seat_depth / 2
+        return torch.tensor([[-w, 0.0, -d], [w, self.seat_height + self.back_height + self.rail_half, d]],
+                            dtype=torch.float64)
+
+
+SHAPE_CLASSES = {"chair": Chair, "mug": Mug, "lamp": Lamp, "slat_chair": SlatChair}
 """Class name -> generator. The order fixes each class's seed stream: append, never reorder."""
 
 
@@ -199,7 +251,7 @@ class Shape:
     """A procedural shape in the unit frame: its bounding box centred, longest side 1."""
 
     record: ShapeRecord
-    parameters: Chair | Mug | Lamp
+    parameters: Chair | Mug | Lamp | SlatChair
     normalization: Normalization
     """Raw frame <-> unit frame."""
 
