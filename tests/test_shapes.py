@@ -10,7 +10,7 @@ import torch
 
 from neuralsurf.errors import ConfigError, FileFormatError
 from neuralsurf.geometry import mesh_contains, point_to_mesh_distance
-from neuralsurf.priors import Chair, Shape, ShapeRecord, check_shape, collection_records, csg
+from neuralsurf.priors import Chair, Shape, ShapeRecord, SlatChair, check_shape, collection_records, csg
 from neuralsurf.priors import cache as cache_module
 from neuralsurf.priors.cache import CacheRecipe, build_collection, cache_path, load_cache, shape_samples
 
@@ -104,13 +104,13 @@ def _check_generated(kind: str, indices) -> None:
         assert hi.max() <= 0.5 + 1e-3 and lo.min() >= -0.5 - 1e-3
 
 
-@pytest.mark.parametrize("kind", ["chair", "mug", "lamp"])
+@pytest.mark.parametrize("kind", ["chair", "mug", "lamp", "slat_chair"])
 def test_generated_shapes_are_watertight_one_piece_and_fill_the_unit_cube(kind):
     _check_generated(kind, [0])
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", ["chair", "mug", "lamp"])
+@pytest.mark.parametrize("kind", ["chair", "mug", "lamp", "slat_chair"])
 def test_many_generated_shapes_are_watertight_and_one_piece(kind):
     _check_generated(kind, range(1, 25))
 
@@ -127,6 +127,24 @@ def test_chair_occupancy_against_its_parts():
                         [0.19, 0.2, 0.19]],  # in a leg (centre at 0.25 - 0.02 - 0.04 = 0.19)
                        dtype=torch.float64)
     assert (chair.raw_sdf(raw) < 0).tolist() == [True, False, False, True, True]
+
+
+def test_slat_chair_occupancy_against_its_thin_parts():
+    """A slatted chair written down by hand: slats, stretchers and the top rail are inside, the gaps
+    between the slats and between the stretchers and the seat are outside."""
+    chair = SlatChair(seat_width=0.5, seat_depth=0.5, seat_thickness=0.04, seat_height=0.45, leg_half=0.025,
+                      stretcher_half=0.015, stretcher_height=0.15, back_height=0.4, slats=3, slat_width=0.03,
+                      slat_half=0.015, rail_half=0.03)
+    back_z = -(0.25 - 0.025)
+    slat_x = [-0.225 + 0.45 * (i + 1) / 4 for i in range(3)]  # between the rear legs at x = +-0.225
+    raw = torch.tensor([[slat_x[0], 0.65, back_z],  # in a slat
+                        [(slat_x[0] + slat_x[1]) / 2, 0.65, back_z],  # between two slats
+                        [0.0, 0.85, back_z],  # in the top rail
+                        [0.225, 0.15, 0.0],  # in a side stretcher
+                        [0.225, 0.3, 0.0],  # between the stretcher and the seat
+                        [0.0, 0.15, 0.225]],  # in the front stretcher
+                       dtype=torch.float64)
+    assert (chair.raw_sdf(raw) < 0).tolist() == [True, False, True, True, False, True]
 
 
 def test_cache_labels_and_distances_against_independent_oracles(tmp_path):

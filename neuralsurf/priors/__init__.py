@@ -1,7 +1,8 @@
 """Learned shape priors end to end, without Hydra: DeepSDF auto-decoders and Occupancy Networks over
 procedural shape collections.
 
-- `procedural`, `csg`: shape classes with analytic SDFs (chairs, mugs, lamps) and their records.
+- `procedural`, `csg`: shape classes with analytic SDFs (chairs, slatted chairs, mugs, lamps) and their
+  records; `mesh_folders`: procedural shapes written as folders of damaged mesh files.
 - `cache`: per-shape npz caches of training samples (`python -m neuralsurf.priors build`).
 - `collection`: `ShapeCollection`, a collection as plain settings (train.py's `data` for the priors).
 - `observations`: the supervision of priors (`CollectionSDF`, `CollectionOccupancy`, `SDFSampleSet`,
@@ -36,6 +37,7 @@ from neuralsurf.priors.procedural import (
     Mug,
     Shape,
     ShapeRecord,
+    SlatChair,
     check_shape,
     collection_records,
 )
@@ -45,7 +47,7 @@ from neuralsurf.priors.training import train_prior, trained_prior
 
 __all__ = ["EXTRACTION_BOUNDS", "SHAPE_CLASSES", "SPLITS", "UNIT_BOUNDS", "CacheRecipe", "Chair", "CollectionOccupancy",
            "CollectionSDF", "Lamp", "LatentPrior", "Mug", "SDFSampleSet", "Shape", "ShapeCollection", "ShapeRecord",
-           "TestShape", "build_collection", "check_shape", "clipped_to_cube", "collection_records", "complete_cloud",
+           "SlatChair", "TestShape", "build_collection", "check_shape", "clipped_to_cube", "collection_records", "complete_cloud",
            "complete_view", "deepsdf", "extract_unit", "load_prior", "mean_metrics", "occupancy_network",
            "reconstruct_latent", "score_completions", "shapes_cloud", "shapes_one_view", "train_prior",
            "trained_prior"]

@@ -28,7 +28,8 @@ def main(argv: list[str] | None = None) -> int:
     commands = parser.add_subparsers(dest="command", required=True)
     build = commands.add_parser("build", help="write per-shape npz caches and collection.json")
     build.add_argument("--out", required=True, help="output folder (created; reused to resume)")
-    build.add_argument("--classes", default=",".join(SHAPE_CLASSES), help="comma-separated shape classes")
+    build.add_argument("--classes", default="chair,mug,lamp",
+                       help=f"comma-separated shape classes of {', '.join(SHAPE_CLASSES)}")
     build.add_argument("--n-train", type=int, default=64, help="training shapes per class")
     build.add_argument("--n-val", type=int, default=0, help="validation shapes per class")
     build.add_argument("--n-test", type=int, default=8, help="test shapes per class")
