@@ -6,9 +6,11 @@ winding number `w(q) = sum_t Omega_t(q) / (4 pi)`, the signed solid angles of th
 `q`, is 1 inside and 0 outside a closed, outward surface, varies smoothly across holes, and counts
 overlapping parts and coincident sheets as 2 (still inside at the threshold 1/2).
 
-- `winding_number(query, mesh)`: exact solid angles near each query, a second-order dipole expansion
-  of far clusters of triangles (Barill et al. 2018) beyond `near` grid cells; `approximate=False` sums
-  every triangle exactly.
+- `winding_number(query, mesh)` through `MeshWinding`: the mesh's border loops (`border_edges`) closed
+  by cones make a closed surface, whose winding number is an integer read from signed ray crossings
+  (Open3D); the mesh's is that integer less the cones' solid angles, summed exactly wherever a
+  rigorous bound says they can matter (within `tolerance` of the exact sum; `inside` exact wherever
+  the side could change). `approximate=False` sums every triangle's solid angle.
 - `orient_outward(mesh)`: faces made consistent across manifold edges, each connected patch then
   turned to face where more random rays escape to infinity (visibility, as Takayama et al. 2014):
   repairs flipped faces and inward patches, which the winding number needs.
