@@ -13,6 +13,12 @@ the labels' share that disagrees with the clean mesh's exact inside (`folders.si
 and, on --exact-shapes shapes, --exact-points samples each, the labels against the exact sum of every
 triangle's solid angle over the cached surface (`winding_number(approximate=False)`), with the time of
 both on those points.
+
+    python benchmarks/bench_folder_build.py --single chair:80,mug:72,slat_chair:120
+
+times one damaged shape's whole cache (`folders.mesh_samples`, the same sizes) in this process instead,
+CPU and wall seconds, for one shape of each class at the given marching-cubes resolution (about 50,000
+faces at these).
 """
 
 from __future__ import annotations
@@ -29,11 +35,12 @@ import numpy as np
 import torch
 
 from neuralsurf.io import read_mesh
-from neuralsurf.priors.cache import cache_path, load_cache
-from neuralsurf.priors.folders import FolderCollection, sign_errors
-from neuralsurf.priors.mesh_folders import write_procedural_folder
+from neuralsurf.priors.cache import CacheRecipe, cache_path, load_cache
+from neuralsurf.priors.folders import FolderCollection, mesh_samples, sign_errors
+from neuralsurf.priors.mesh_folders import cad_damage, write_procedural_folder
+from neuralsurf.priors.procedural import Shape, collection_records
 from neuralsurf.structures import Mesh, Normalization
-from neuralsurf.winding import MeshWinding, winding_number
+from neuralsurf.winding import MeshWinding, damage_mesh, winding_number
 
 
 def build(source: Path, root: Path, shards: int) -> tuple[float, float]:
@@ -49,6 +56,21 @@ def build(source: Path, root: Path, shards: int) -> tuple[float, float]:
     return time.perf_counter() - started, (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
 
 
+def single(shapes: str) -> None:
+    """Time one damaged shape's cache per `class:resolution` in this process."""
+    recipe = FolderCollection(".").recipe
+    for item in shapes.split(","):
+        kind, resolution = item.split(":")
+        record = collection_records((kind,), 1, 0, 0)[0]
+        mesh = damage_mesh(Shape.from_record(record).mesh(int(resolution)), **cad_damage(record)).mesh
+        mesh = Normalization.from_points(mesh.vertices.double()).mesh_to_unit(Mesh(mesh.vertices.double(), mesh.faces))
+        mesh_samples(mesh, CacheRecipe(n_sdf=100, n_occ=50, n_surface=20))  # imports and first calls
+        cpu, wall = time.process_time(), time.perf_counter()
+        mesh_samples(mesh, recipe)
+        print(f"{record.name} at {resolution}^3, {len(mesh.faces)} faces: {time.process_time() - cpu:.2f} s CPU, "
+              f"{time.perf_counter() - wall:.2f} s wall (load average {os.getloadavg()[0]:.1f})", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default="/tmp/neuralsurf_folder_build")
@@ -59,7 +81,10 @@ def main() -> None:
     parser.add_argument("--shards", type=int, default=2)
     parser.add_argument("--exact-shapes", type=int, default=8)
     parser.add_argument("--exact-points", type=int, default=1000)
+    parser.add_argument("--single", default=None, help="class:resolution,...: time single shapes' caches instead")
     args = parser.parse_args()
+    if args.single:
+        return single(args.single)
     out = Path(args.out)
     classes = tuple(args.classes.split(","))
     started = time.perf_counter()
