@@ -11,7 +11,8 @@ with the first lost frame named). Open3D: `o3d.t.pipelines.odometry.rgbd_odometr
 default criteria (10/5/3 iterations over 3 levels, coarse to fine), depth_max as ours, method Hybrid (depth and colour)
 and PointToPlane (depth only), on the same device as ours. The trackers take the frames in turn, one
 frame each (so that load from other processes hits them alike); times are wall-clock per frame, frame 0
-excluded, after a warm-up pair; the load average is printed. On a CPU ours runs twice, eager and compiled
+excluded, after a warm-up pair, and CPU time per frame (robust to other processes' load); the load average
+is printed. On a CPU ours runs twice, eager and compiled
 (torch.compile of the raycast's sampling and the ICP iterations; the compilation is part of the warm-up,
 printed, not of the time per frame).
 
@@ -78,7 +79,7 @@ class Open3DOdometry:
 
 def interleaved(frames: DepthFrames, device: str, reference: bool) -> dict[str, tuple]:
     """Every tracker over the frames, one frame each in turn (load from other processes hits them
-    alike): {label: (poses (n, 4, 4) or None, seconds per frame after the first, error or None)}."""
+    alike): {label: (poses (n, 4, 4) or None, wall and CPU seconds per frame after the first, error or None)}."""
     colors = frames.colors if frames.colors is not None else frames.depth[..., None].expand(-1, -1, -1, 3) / MAX_DEPTH
     depth = frames.depth.to(device)
     trackers = {f"ours ({mode})": Tracker(frames.K[0], mode=mode) for mode in ("model", "frame")}
@@ -86,13 +87,13 @@ def interleaved(frames: DepthFrames, device: str, reference: bool) -> dict[str, 
         trackers["ours (model, compiled)"] = Tracker(frames.K[0], compiled=True)
     if reference:
         trackers.update({f"Open3D {m}": Open3DOdometry(frames, m, device) for m in ("Hybrid", "PointToPlane")})
-    seconds = dict.fromkeys(trackers, 0.0)
+    seconds, cpu = dict.fromkeys(trackers, 0.0), dict.fromkeys(trackers, 0.0)
     lost: dict[str, Exception] = {}
     for i in range(len(frames)):
         for label, tracker in trackers.items():
             if label in lost:
                 continue
-            start = time.perf_counter()
+            start, start_cpu = time.perf_counter(), time.process_time()
             try:
                 if isinstance(tracker, Tracker):
                     tracker.track(depth[i])
@@ -104,12 +105,13 @@ def interleaved(frames: DepthFrames, device: str, reference: bool) -> dict[str, 
                 lost[label] = error
             if i > 0:
                 seconds[label] += time.perf_counter() - start
+                cpu[label] += time.process_time() - start_cpu
     rows = {}
     for label, tracker in trackers.items():
         poses = None if label in lost else np.stack([np.asarray(p) for p in tracker.poses])
         note = lost.get(label) or (None if isinstance(tracker, Tracker) or tracker.first_unfit is None
                                    else f"fitness < 0.3 first at frame {tracker.first_unfit}")
-        rows[label] = (poses, seconds[label] / (len(frames) - 1), note)
+        rows[label] = (poses, seconds[label] / (len(frames) - 1), cpu[label] / (len(frames) - 1), note)
     return rows
 
 
@@ -151,19 +153,20 @@ def run(name: str, folder: str, device: str, max_frames: int | None, fuse: bool,
         warm_open3d.track(frames.depth[0], colors[0]), warm_open3d.track(frames.depth[1], colors[1])
     rows = interleaved(frames, device, reference)
     baseline = "Open3D Hybrid" if reference else "ours (model)"
-    for label, (poses, per_frame, note) in rows.items():
+    for label, (poses, per_frame, cpu_per_frame, note) in rows.items():
         if poses is None:
             print(f"  {label:22s} stopped: {note}")
             continue
         s = scores(poses, truth)
-        ms = 1000 * per_frame
+        wall, cpu = per_frame / rows[baseline][1], cpu_per_frame / rows[baseline][2]
         print(f"  {label:22s} ATE {s['ate_cm']:6.2f} cm  RPE {s['rpe_cm']:5.2f} cm {s['rpe_deg']:5.2f} deg  "
-              f"{ms:7.1f} ms/frame ({per_frame / rows[baseline][1]:.2f}x {baseline})" + (f"  ({note})" if note else ""))
+              f"{1000 * per_frame:6.1f} ms/frame ({wall:.2f}x), CPU {1000 * cpu_per_frame:6.1f} ms ({cpu:.2f}x "
+              f"{baseline})" + (f"  ({note})" if note else ""))
     if fuse and reference:  # the meshes are ray-cast by Open3D
         given, given_localised = held_out_error(frames, truth, device)
         print(f"  held-out median depth error, mesh fused at the given poses: {given:.2f} cm from the given "
               f"views, {given_localised:.2f} cm from views registered to the mesh")
-        for label, (poses, _, _) in rows.items():
+        for label, (poses, *_) in rows.items():
             if poses is not None and label.startswith("ours") and "compiled" not in label:
                 aligned = align_trajectory(torch.as_tensor(poses), truth) @ torch.as_tensor(poses)
                 tracked, localised = held_out_error(frames, aligned, device)

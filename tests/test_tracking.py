@@ -80,7 +80,7 @@ def capture(poses: torch.Tensor, mesh: Mesh | None = None, seed: int = 0, K: tor
                       cam_to_world=poses, K=K.expand(len(poses), 3, 3))
 
 
-SETTINGS = {"voxel_size": 0.02, "margin": 1.0, "downsample": 0, "smoothing": 1}  # small frames: full size, filtered
+SETTINGS = {"voxel_size": 0.02, "margin": 1.0, "smoothing": 1}  # small noisy frames: filtered
 
 
 # ----------------------------------------------------------------------------- tracking

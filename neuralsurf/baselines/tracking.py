@@ -15,8 +15,8 @@ averages of the depth), with a robust kernel (Huber or Tukey) on the residuals a
 rejected beyond `max_distance` or with normals apart by more than `max_normal_angle`. Frame k starts
 from frame k-1's pose moved by the motion from frame k-2 to k-1 (constant velocity).
 
-Frames are registered at half size (`downsample=1`: 2 x 2 block means, which also average the sensor's noise)
-and fused at full size. On a CPU the two loops that dominate a frame, the raycast's volume sampling and the
+VGA frames are registered and fused at half size (`downsample`: 2 x 2 block means, which also average the sensor's
+noise; a 2 cm voxel still spans pixels there). On a CPU the two loops that dominate a frame, the raycast's volume sampling and the
 ICP iterations' sums, can run compiled (`compiled=True`; `track_frames` compiles long sequences).
 
 Tracking is lost when too few of the frame's points find an inlier (`min_inlier_share`), when their
@@ -444,9 +444,10 @@ class Tracker:
         finest_stride: the finest level registers every finest_stride-th row and column of the frame
             (1: every pixel, as KinectFusion; 2, the default, is about 4 times cheaper there and tracked
             livingroom1 and redkitchen to the same ATE).
-        downsample: frames are registered at 1 / 2^downsample of their size (`depth_pyramid`'s block means; 0:
-            full size) and fused at full size; the pyramid's levels, the raycast and `finest_stride` count from
-            there (the default 1 tracked livingroom1 and redkitchen to the ATE of full size in a third of the time).
+        downsample: frames are registered and fused at 1 / 2^downsample of their size (`depth_pyramid`'s block
+            means; 0: full size); the pyramid's levels, the raycast and `finest_stride` count from there. None:
+            the most halvings that keep the width at 320 pixels or more (1 for VGA frames, which tracked
+            livingroom1 and redkitchen to the ATE of full size in a third of the time).
         compiled: on a CPU, run the raycast's volume sampling and the ICP iterations through torch.compile
             (`implementation`): faster a frame after a compilation of about half a minute.
     """
@@ -457,7 +458,7 @@ class Tracker:
                  max_depth: float = 4.0, voxel_size: float = 0.02, truncation: float | None = None,
                  margin: float = 3.0, initial_pose: Tensor | None = None, raycast_level: int = 1,
                  smoothing: int = 0, constant_velocity: bool = True, finest_stride: int = 2,
-                 downsample: int = 1, compiled: bool = False):
+                 downsample: int | None = None, compiled: bool = False):
         if mode not in MODES:
             raise ConfigError(f"tracking mode must be one of {MODES}, got {mode!r}")
         if not (isinstance(levels, int) and levels >= 1) or len(iterations) != levels:
@@ -465,8 +466,8 @@ class Tracker:
                               f"levels={levels!r}, iterations={tuple(iterations)!r}")
         if not (isinstance(finest_stride, int) and finest_stride >= 1):
             raise ConfigError(f"finest_stride must be a positive integer (1: every pixel), got {finest_stride!r}")
-        if not (isinstance(downsample, int) and downsample >= 0):
-            raise ConfigError(f"downsample must be an integer >= 0 (0: register full-size frames), got {downsample!r}")
+        if not (downsample is None or isinstance(downsample, int) and downsample >= 0):
+            raise ConfigError(f"downsample must be None (by frame size) or an integer >= 0 (0: full size), got {downsample!r}")
         if not (isinstance(raycast_level, int) and 0 <= raycast_level < levels):
             raise ConfigError(f"raycast_level must be a pyramid level from 0 to {levels - 1}, got {raycast_level!r}")
         robust_weights(torch.zeros(1), kernel, kernel_scale)  # an unknown kernel fails here
@@ -479,9 +480,7 @@ class Tracker:
         self.margin, self.raycast_level, self.smoothing = margin, raycast_level, int(smoothing)
         self.constant_velocity, self.finest_stride = bool(constant_velocity), int(finest_stride)
         self.downsample, self.compiled = downsample, bool(compiled)
-        self.K_registered = K
-        for _ in range(downsample):
-            self.K_registered = downsample_intrinsics(self.K_registered)
+        self.K_registered: Tensor | None = None  # K of the registered frames, set by the first frame
         self.initial_pose = torch.eye(4, dtype=torch.float64) if initial_pose is None else initial_pose.double()
         self.poses: list[Tensor] = []
         self.volume: TSDFVolume | None = None
@@ -497,9 +496,10 @@ class Tracker:
         return bilateral_filter(depth, self.smoothing) if self.smoothing > 0 else depth
 
     def _fuse(self, depth: Tensor, pose: Tensor) -> None:
-        frame = DepthFrames(depth[None], self.K.to(depth)[None], pose.to(depth)[None])
+        K = self.K_registered.to(depth)
+        frame = DepthFrames(depth[None], K[None], pose.to(depth)[None])
         if self.volume is None:
-            points = backproject_depth_to_camera(depth[None], self.K.to(depth)[None])[0][depth > 0]
+            points = backproject_depth_to_camera(depth[None], K[None])[0][depth > 0]
             if not len(points):
                 raise InputError("the first frame has no valid depth pixel; start the sequence at a frame with depth")
             world = points.double() @ pose[:3, :3].T.to(points.device) + pose[:3, 3].to(points.device)
@@ -522,6 +522,12 @@ class Tracker:
         """Register the next depth image Float[Tensor, "h w"] (metres, 0 invalid) and return its
         camera-to-world pose Float64[Tensor, "4 4"] (CPU); raises TrackingLostError naming the frame."""
         depth = torch.where(depth <= self.max_depth, depth, 0.0)
+        if self.K_registered is None:
+            if self.downsample is None:
+                self.downsample = max(int(math.log2(depth.shape[-1] / 320)), 0) if depth.shape[-1] >= 320 else 0
+            self.K_registered = self.K
+            for _ in range(self.downsample):
+                self.K_registered = downsample_intrinsics(self.K_registered)
         registered = depth_pyramid(depth, self.K.to(depth), self.downsample + 1, self.max_distance / 2)[-1][0]
         index = len(self.poses)
         if index == 0:
@@ -546,7 +552,7 @@ class Tracker:
                 raise TrackingLostError(index, fit.inlier_share, fit.rmse, reason)
             pose = previous @ fit.transform.cpu()
         if self.mode == "model":
-            self._fuse(depth, pose)
+            self._fuse(registered, pose)
         self._previous = registered
         self.poses.append(pose)
         return pose
