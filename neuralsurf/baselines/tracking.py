@@ -296,33 +296,13 @@ def point_to_plane_update(source: Tensor, target: Tensor, normals: Tensor, weigh
     return gauss_newton_step((rows * weights[:, None]).T @ rows)
 
 
-@dataclass(frozen=True)
-class Matches:
-    """Projective correspondences of source points in a model map."""
-
-    source: Tensor
-    """Float[Tensor, "n 3"]: source points in the model camera frame."""
-    target: Tensor
-    """Float[Tensor, "n 3"]: the model point of the pixel each projects to."""
-    normals: Tensor
-    """Float[Tensor, "n 3"]: the model normal there."""
-    inlier: Tensor
-    """Bool[Tensor, "n"]: found, within max_distance and with agreeing normals."""
-
-
-def associate(points: Tensor, normals: Tensor, transform: Tensor, model: SurfaceMap, max_distance: float,
-              min_cosine: float) -> Matches:
-    """Projective data association: source points Float[Tensor, "n 3"] with normals Float[Tensor, "n 3"]
-    (source camera frame), moved by `transform` Float[Tensor, "4 4"] into the model camera, each matched
-    with the model pixel it projects to (nearest)."""
-    return Matches(*projective_matches(points, normals, transform.to(points), model.packed, model.valid,
-                                       model.K.to(points), max_distance, min_cosine))
-
-
 def projective_matches(points: Tensor, normals: Tensor, transform: Tensor, model_packed: Tensor, model_valid: Tensor,
                        model_K: Tensor, max_distance: float, min_cosine: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """`associate` on plain tensors (a model map's `packed`, `valid` and `K`, all in the points' dtype): the fields
-    of `Matches` in order."""
+    """Projective data association: source points Float[Tensor, "n 3"] with normals Float[Tensor, "n 3"] (source
+    camera frame), moved by `transform` Float[Tensor, "4 4"] into the model camera, each matched with the model
+    pixel it projects to (nearest) in a model map given by its `SurfaceMap.packed`, `valid` and `K` (all in the
+    points' dtype). Returns the moved points, the matched model points and normals (Float[Tensor, "n 3"] each),
+    and the inliers Bool[Tensor, "n"]: found, within `max_distance` and with normals agreeing to `min_cosine`."""
     moved = points @ transform[:3, :3].T + transform[:3, 3]
     turned = normals @ transform[:3, :3].T
     x, y, z = moved.unbind(1)
@@ -344,7 +324,7 @@ def icp_equations(points: Tensor, normals: Tensor, transform: Tensor, model_pack
                   model_K: Tensor, max_distance: float, min_cosine: float, kernel: str, kernel_scale: float
                   ) -> tuple[Tensor, Tensor, Tensor]:
     """One ICP iteration's sums over source points Float[Tensor, "n 3"] and normals Float[Tensor, "n 3"] moved by
-    `transform` Float[Tensor, "4 4"] and matched in a model map (`associate`; its `packed` Float[Tensor, "h*w 6"],
+    `transform` Float[Tensor, "4 4"] and matched in a model map (`projective_matches`; its `packed` Float[Tensor, "h*w 6"],
     `valid` Bool[Tensor, "h w"] and `K`): the robustly weighted normal equations Float[Tensor, "7 7"]
     (`point_to_plane_rows`, `robust_weights`; rejected pairs weigh 0), the inlier count Int[Tensor, ""] and the
     inliers' sum of squared residuals Float[Tensor, ""] (one function, so that it compiles to one loop)."""
@@ -590,7 +570,11 @@ __all__ = [
     "depth_pyramid",
     "downsample_depth",
     "downsample_intrinsics",
+    "gauss_newton_step",
+    "icp_equations",
+    "point_to_plane_rows",
     "point_to_plane_update",
+    "projective_matches",
     "raycast_volume",
     "register_maps",
     "track_frames",
