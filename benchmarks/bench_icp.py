@@ -34,7 +34,8 @@ import time
 import numpy as np
 import torch
 
-from neuralsurf.baselines.icp import _fpfh, register_global, register_icp
+from neuralsurf.baselines.registration import register_global, register_icp
+from neuralsurf.baselines.registration.global_registration import _fpfh
 from neuralsurf.geometry import cloud_from_mesh
 from neuralsurf.scenes import bunny
 from neuralsurf.scenes.recipes import data_root

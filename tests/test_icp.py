@@ -1,4 +1,4 @@
-"""Rigid registration (baselines.icp): known motions, Open3D side by side, real range scans."""
+"""Rigid registration (baselines.registration): known motions, Open3D side by side, real range scans."""
 
 import functools
 
@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from neuralsurf.baselines.icp import (
+from neuralsurf.baselines.registration import (
     Registration,
-    _transform,
     evaluate_registration,
     kabsch,
     ransac_rigid,
@@ -17,6 +16,7 @@ from neuralsurf.baselines.icp import (
     register_multiway,
     voxel_downsample,
 )
+from neuralsurf.baselines.registration.estimation import apply_transform
 from neuralsurf.errors import ConfigError, InputError, NeuralsurfError
 from neuralsurf.geometry import cloud_from_mesh
 from neuralsurf.structures import PointCloud
@@ -146,7 +146,8 @@ def test_open3d_engine_agrees_with_the_reference_steps(bunny, target, method, ke
 def test_open3d_tensor_pipeline_recovers_the_motion(bunny, target, pyramid):
     """The GPU path (Open3D's tensor ICP / multi-scale ICP), run on the CPU here, against the
     reference on an exact motion of the same sample."""
-    from neuralsurf.baselines.icp import LEAST_SQUARES, ICPProblem, _icp_open3d_tensor
+    from neuralsurf.baselines.registration.estimation import LEAST_SQUARES
+    from neuralsurf.baselines.registration.icp import ICPProblem, _icp_open3d_tensor
     from neuralsurf.strategies import choose
 
     _, size = bunny
@@ -305,7 +306,7 @@ def test_ransac_finds_the_motion_among_outlier_matches():
     rng = np.random.default_rng(0)
     truth = random_motion(4, 120.0, 0.5)
     source = rng.uniform(-1, 1, (400, 3))
-    target = _transform(source, truth)
+    target = apply_transform(source, truth)
     target[200:] = rng.uniform(-1, 1, (200, 3))
     transform, inliers = ransac_rigid(source, target, 1e-6, np.random.default_rng(0))
     np.testing.assert_allclose(transform, truth, atol=1e-9)

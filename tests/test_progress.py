@@ -9,7 +9,7 @@ import torch
 
 import neuralsurf.progress
 from neuralsurf.baselines import TSDFVolume
-from neuralsurf.baselines.icp import register_multiway
+from neuralsurf.baselines.registration import register_multiway
 from neuralsurf.extract import extract_mesh
 from neuralsurf.io import read_range_scan_frames, read_range_scans, read_rgbd_folder
 from neuralsurf.structures import DepthFrames, PointCloud

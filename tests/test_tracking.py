@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-from neuralsurf.baselines.icp import point_to_plane_step
+from neuralsurf.baselines.registration import point_to_plane_step
 from neuralsurf.baselines.tracking import (
     Tracker,
     TrackingLostError,

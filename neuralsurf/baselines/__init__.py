@@ -1,6 +1,7 @@
 """Classical baselines: same inputs (neuralsurf.structures), same Mesh out, same metrics."""
 
-from neuralsurf.baselines.icp import (
+from neuralsurf.baselines.poisson import reconstruct_poisson
+from neuralsurf.baselines.registration import (
     Registration,
     evaluate_registration,
     register_global,
@@ -8,7 +9,6 @@ from neuralsurf.baselines.icp import (
     register_meshes,
     register_multiway,
 )
-from neuralsurf.baselines.poisson import reconstruct_poisson
 from neuralsurf.baselines.tsdf import TSDFVolume, depth_bounds
 
 __all__ = [
