@@ -14,8 +14,8 @@ import torch
 from scipy.spatial import cKDTree
 
 from neuralsurf.baselines import TSDFVolume, depth_bounds
-from neuralsurf.baselines.tsdf_bands import candidate_blocks
-from neuralsurf.baselines.tsdf_voxels import camera_to_grid, pixel_weights
+from neuralsurf.baselines.tsdf.bands import candidate_blocks
+from neuralsurf.baselines.tsdf.voxels import camera_to_grid, pixel_weights
 from neuralsurf.errors import ConfigError, DeviceError, ExtractionError, InputError, NeuralsurfError
 from neuralsurf.geometry import backproject_depth, kinect_sigma, point_to_mesh_distance
 from neuralsurf.scenes import Sphere, bunny, scan_depth
@@ -171,7 +171,7 @@ def test_observed_voxels_are_the_dense_grids_weighted_points(sphere_frames, spar
 def test_block_extraction_equals_one_marching_cubes_call(sphere_frames, monkeypatch):
     from skimage.measure import marching_cubes
 
-    from neuralsurf.baselines import tsdf
+    from neuralsurf.baselines.tsdf import volume as tsdf
 
     monkeypatch.setattr(tsdf, "_MESH_BLOCKS", 300)  # several marching-cubes calls, merged
     volume = TSDFVolume(BOX, 0.01, block_size=4, device="cpu", sparse=True).integrate(sphere_frames[:12])
@@ -364,7 +364,7 @@ def test_compiled_fusion_equals_eager_fusion(sphere_frames):
     """compiled=True runs `tile_box_codes` and `fuse_blocks` through torch.compile: the same candidate
     blocks and the same fused values (depth weights, a weight cap, colour) as the same code run eagerly
     with the same tiles, and a mesh within a hundredth of a voxel of the eager default's."""
-    from neuralsurf.baselines import tsdf
+    from neuralsurf.baselines.tsdf import volume as tsdf
 
     points = backproject_depth(sphere_frames)
     frames = DepthFrames(sphere_frames.depth, sphere_frames.K, sphere_frames.cam_to_world, points.abs().clamp(0, 1))
@@ -382,7 +382,7 @@ def test_compiled_fusion_equals_eager_fusion(sphere_frames):
         assert len(blocks[0]) > 20 and torch.equal(*blocks)
     compiled = make(True).integrate(frames)
     with pytest.MonkeyPatch.context() as patch:  # the eager run with the compiled run's tiles
-        patch.setitem(tsdf._TILE, "eager", tsdf._TILE["compiled"])
+        patch.setitem(tsdf.TILE, "eager", tsdf.TILE["compiled"])
         volume.integrate(frames)
     assert compiled.n_blocks == volume.n_blocks and torch.equal(compiled._keys, volume._keys)
     (tsdf_c, weight_c), (tsdf_e, weight_e) = compiled.to_dense(), volume.to_dense()
@@ -398,7 +398,7 @@ def test_compiled_fusion_equals_eager_fusion(sphere_frames):
 def test_a_failed_compilation_warns_and_fuses_eagerly(sphere_frames, monkeypatch):
     """Without a C++ compiler torch.compile's CPU backend fails: TSDFVolume(compiled=True) says so once
     and gives the eager result."""
-    from neuralsurf.baselines import tsdf
+    from neuralsurf.baselines.tsdf import volume as tsdf
     from neuralsurf.devices import CompiledOnCPU
 
     def no_compiler(function, **options):
@@ -410,7 +410,7 @@ def test_a_failed_compilation_warns_and_fuses_eagerly(sphere_frames, monkeypatch
     monkeypatch.setattr(tsdf, "_COMPILED", {f: CompiledOnCPU(f, "TSDF fusion") for f in tsdf._COMPILED})
     with pytest.warns(UserWarning, match="C\\+\\+ compiler"):
         compiled = TSDFVolume(BOX, VOXEL, device="cpu", compiled=True).integrate(sphere_frames[:4])
-    monkeypatch.setitem(tsdf._TILE, "eager", tsdf._TILE["compiled"])
+    monkeypatch.setitem(tsdf.TILE, "eager", tsdf.TILE["compiled"])
     eager = TSDFVolume(BOX, VOXEL, device="cpu").integrate(sphere_frames[:4])
     assert torch.equal(compiled.to_dense()[1], eager.to_dense()[1])
     with warnings.catch_warnings():
@@ -421,7 +421,7 @@ def test_a_failed_compilation_warns_and_fuses_eagerly(sphere_frames, monkeypatch
 def test_long_integrations_are_compiled_by_default(sphere_frames, monkeypatch):
     """compiled=None compiles an integrate call of _COMPILE_PIXELS depth pixels or more, not a shorter one;
     True and False force it either way."""
-    from neuralsurf.baselines import tsdf
+    from neuralsurf.baselines.tsdf import volume as tsdf
 
     calls = []
     spy = lambda function: lambda *args: (calls.append(function.__name__), function(*args))[1]

@@ -12,11 +12,11 @@ The volume
     surfaces, not the box. Stored values are signed distances in metres, in [-truncation, truncation].
 
 Integration, a pass of `frames_per_pass` frames at a time (one on a CPU, 32 on a GPU)
-    1. The blocks that the frames' truncation bands touch (`tsdf_bands.candidate_blocks`), for every
+    1. The blocks that the frames' truncation bands touch (`bands.candidate_blocks`), for every
        pass first (allocated in sparse mode): as in Open3D's VoxelBlockGrid, a frame updates the
        voxels of these only.
     2. Their voxels' running weighted averages of the projective signed distance, nearest pixel,
-       frame after frame (`tsdf_voxels.fuse_blocks`), in chunks of _CHUNK_OBSERVATIONS.
+       frame after frame (`voxels.fuse_blocks`), in chunks of _CHUNK_OBSERVATIONS.
     On a CPU, eager: each torch op on one thread (many short ops, whose thread synchronisation costs
     more than it gains on a few cores), the passes' blocks found on `threads` worker threads side by
     side, then each thread fusing its share of the blocks through all passes. Compiled (`compiled`, by default for calls of
@@ -45,9 +45,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from neuralsurf.baselines.tsdf_bands import _TILE, candidate_blocks, candidates_by_pass, tile_box_codes
-from neuralsurf.baselines.tsdf_files import load_volume, save_volume
-from neuralsurf.baselines.tsdf_voxels import (
+from neuralsurf.baselines.tsdf.bands import TILE, candidate_blocks, candidates_by_pass, tile_box_codes
+from neuralsurf.baselines.tsdf.files import load_volume, save_volume
+from neuralsurf.baselines.tsdf.voxels import (
     camera_to_grid,
     fuse_blocks,
     grid_to_pixel,
@@ -426,7 +426,7 @@ class TSDFVolume:
         return candidate_blocks(
             depth, to(K), to(rotation), to(translation), self.truncation, self.free_space, self.block_size,
             self.block_counts, _COMPILED[tile_box_codes] if compiled else tile_box_codes,
-            _TILE["compiled" if compiled else "eager"],
+            TILE["compiled" if compiled else "eager"],
         )
 
     def _integrate_frames(

@@ -64,7 +64,7 @@ def box_keys(lo: Tensor, hi: Tensor, block_counts: Tensor, tags: Tensor | None =
     return torch.cat(keys)
 
 
-_TILE = {"compiled": 1, "eager": 4}
+TILE = {"compiled": 1, "eager": 4}
 """Pixels per side of the tiles that `candidate_blocks` boxes. Measured on 7-Scenes at 1 cm (one frame:
 tiles of 1 pixel give 2,737 blocks, of 2 pixels 2,782, of 4 pixels 2,826; on 50 frames, eager fusion
 took 23.4, 20.5 and 28.6 ms of CPU a frame with tiles of 2, 4 and 8 pixels): compiled, single pixels (a
@@ -153,7 +153,7 @@ def candidate_blocks(
     block_size: int,
     block_counts: Tensor,
     box_codes=tile_box_codes,
-    tile: int = _TILE["eager"],
+    tile: int = TILE["eager"],
 ) -> tuple[Tensor, Tensor | None]:
     """The blocks that the bands of some frames touch: those meeting the segment z in
     [d - truncation - free_space, d + truncation] of a valid pixel's footprint (depth d).
@@ -169,7 +169,7 @@ def candidate_blocks(
         rotation, translation: camera -> grid, x_grid = rotation @ x_camera + translation, Float[Tensor,
             "f 3 3"] and "f 3" (grid units = voxels);
         truncation, free_space: metres; block_size: voxels per block side;
-        block_counts: Int[Tensor, "3"] blocks per axis; tile: see _TILE.
+        block_counts: Int[Tensor, "3"] blocks per axis; tile: see TILE.
     Returns:
         keys: Int64[Tensor, "b"] sorted unique block keys, the union over the frames; and with more
         than one frame, frame_keys: Int64[Tensor, "k"] sorted unique frame * blocks + key (which
