@@ -1,6 +1,7 @@
 """neuralsurf: neural implicit surfaces and classical baselines for 3D surface reconstruction."""
 
 from neuralsurf import baselines, geometry, io, losses, metrics, models, observations, photometric, scenes
+from neuralsurf.checkpoints import load_field
 from neuralsurf.errors import (
     CheckpointError,
     ConfigError,
@@ -14,7 +15,7 @@ from neuralsurf.errors import (
 )
 from neuralsurf.extract import GridSamples, extract_mesh, sample_grid
 from neuralsurf.structures import DepthFrames, Mesh, Normalization, PointCloud
-from neuralsurf.training import FitResult, fit, load_field
+from neuralsurf.training import FitResult, fit
 
 __version__ = "0.3.0"  # the one version source: pyproject.toml reads it
 

@@ -23,6 +23,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from neuralsurf.baselines import register_meshes
+from neuralsurf.checkpoints import CHECKPOINT_NAME, load_checkpoint
 from neuralsurf.config_checks import check_config, check_sweep_arguments
 from neuralsurf.devices import resolve_device
 from neuralsurf.distributed import (
@@ -50,7 +51,7 @@ from neuralsurf.priors.folders import FolderCollection
 from neuralsurf.rooms import RoomSettings, fit_room
 from neuralsurf.runlock import busy_message, claim, run_lock
 from neuralsurf.structures import Mesh
-from neuralsurf.training import CHECKPOINT_NAME, fit, load_checkpoint
+from neuralsurf.training import fit
 
 log = logging.getLogger("neuralsurf")
 

@@ -5,31 +5,27 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import time
 import warnings
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import torch
 from torch import nn
 
+from neuralsurf.checkpoints import CHECKPOINT_NAME, field_state, load_checkpoint, save_checkpoint
 from neuralsurf.devices import resolve_device
 from neuralsurf.distributed import mean_over_ranks, rank_and_world
 from neuralsurf.errors import CheckpointError, ConfigError, ExtractionError, InputError, NeuralsurfError
 from neuralsurf.extract import extract_mesh, field_slice, slice_image
 from neuralsurf.graphs import GraphedStep, graphable
 from neuralsurf.models.field import NormalizedField
-from neuralsurf.models.spec import REBUILDABLE, build_checked, check_tensors, check_weights, model_spec
 from neuralsurf.observations import Observation, PointSamples, union_bounds
 from neuralsurf.structures import Normalization, PointCloud
 
 log = logging.getLogger(__name__)
-
-CHECKPOINT_NAME = "last.pt"
 
 
 def cosine_schedule(step: int, steps: int, warmup_steps: int, min_ratio: float) -> float:
@@ -38,50 +34,6 @@ def cosine_schedule(step: int, steps: int, warmup_steps: int, min_ratio: float) 
         return (step + 1) / warmup_steps
     progress = (step - warmup_steps) / max(1, steps - warmup_steps)
     return min_ratio + (1 - min_ratio) * 0.5 * (1 + math.cos(math.pi * min(progress, 1.0)))
-
-
-def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    """Write `state` atomically: a temporary file in the same folder, then a rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(path.name + ".tmp")
-    torch.save(state, temporary)
-    os.replace(temporary, path)
-
-
-def load_checkpoint(path: Path) -> dict[str, Any]:
-    """Read a checkpoint written by `save_checkpoint` (tensors and plain containers only)."""
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # noqa: BLE001 - a truncated or foreign file, whatever torch raises
-        raise CheckpointError(f"cannot read checkpoint {path}: {error}; delete it to start afresh") from None
-    if not isinstance(state, dict):
-        raise CheckpointError(f"{path} holds a {type(state).__name__}, not a neuralsurf checkpoint (a dict of "
-                              f"'model', 'model_spec', ...); pass the last.pt of a run or a file of FitResult.save")
-    check_tensors(state, str(path))
-    return state
-
-
-PRIOR_CLASSES = ("AutoDecoder", "OccupancyNetwork")
-"""Model classes of learned priors (`neuralsurf.priors.load_prior`), not single-shape fields."""
-
-
-def stored_class(state: dict[str, Any]) -> str | None:
-    """The model class name a checkpoint's spec names (None when it has no spec)."""
-    spec = state.get("model_spec")
-    return spec.get("class") if isinstance(spec, dict) and isinstance(spec.get("class"), str) else None
-
-
-MAX_MARGIN = 10.0
-"""The largest box margin a checkpoint may carry (unit-cube widths on each side of the data)."""
-
-
-def stored_margin(state: dict[str, Any], path: Path) -> float:
-    """A checkpoint's box margin: a number in 0..MAX_MARGIN, else a CheckpointError naming `path`."""
-    margin = state["margin"]
-    if isinstance(margin, bool) or not isinstance(margin, (int, float)) or not 0 <= margin <= MAX_MARGIN:
-        raise CheckpointError(f"{path}: margin is {margin!r:.60}, not a number in 0..{MAX_MARGIN:g} (unit-cube "
-                              f"widths around the data); the checkpoint was tampered with or is damaged")
-    return float(margin)
 
 
 @dataclass
@@ -107,69 +59,6 @@ class FitResult:
         back with `load_field(path)`."""
         save_checkpoint(Path(path), field_state(self.model, self.normalization, self.field.margin, self.steps))
 
-
-def field_state(model: nn.Module, normalization: Normalization, margin: float, steps: int) -> dict[str, Any]:
-    """What `load_field` needs: the model as plain data, its weights, the unit frame and the box margin."""
-    spec = model_spec(model) if REBUILDABLE.get(type(model).__name__) is type(model) else None
-    return {"model_spec": spec, "model": model.state_dict(),
-            "normalization": normalization.state_dict(), "margin": float(margin), "step": int(steps)}
-
-
-def load_model(path: str | Path, prior: bool = False, model: nn.Module | None = None) -> tuple[nn.Module, dict]:
-    """The model of a neuralsurf checkpoint and the checkpoint's state: a single-shape field (what
-    `load_field` reads) or, with `prior`, a learned prior (`neuralsurf.priors.load_prior`).
-
-    The model is rebuilt from its stored constructor arguments (an allowlist of neuralsurf's model
-    classes and plain values: nothing in the file can choose code to run), or a field's weights are
-    loaded into `model`. Raises CheckpointError for a missing file, a file that is not such a
-    checkpoint, or one that holds the other kind of model.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"prior checkpoint {path} not found; pass the checkpoints/last.pt of a train.py "
-                              f"experiment=shapes_* run" if prior else
-                              f"checkpoint {path} not found; pass the last.pt of a run or a file of FitResult.save")
-    state = load_checkpoint(path)
-    name = stored_class(state)
-    if prior and (not isinstance(state.get("model_spec"), dict) or "model" not in state):
-        raise CheckpointError(f"{path} holds no rebuildable model; it was not written by a neuralsurf fit")
-    if prior and name in REBUILDABLE and name not in PRIOR_CLASSES:
-        raise CheckpointError(f"{path} holds a {name}, not a learned prior (AutoDecoder or OccupancyNetwork): a "
-                              f"single-shape field; load it with neuralsurf.load_field")
-    missing = [key for key in ("model", "normalization", "margin") + (("model_spec",) if model is None else ())
-               if key not in state]
-    if not prior and missing:
-        raise CheckpointError(f"{path} lacks {missing}: it was not written by neuralsurf's fit or FitResult.save "
-                              f"(checkpoints of neuralsurf before 0.2 cannot be loaded; fit again)")
-    if not prior and model is None and state["model_spec"] is None:
-        raise CheckpointError(f"{path} holds a model of a class neuralsurf cannot rebuild; pass it: "
-                              f"load_field(path, model=YourModel(...))")
-    if not prior and name in PRIOR_CLASSES:
-        raise CheckpointError(f"{path} holds a learned prior ({name}), not a single-shape field; "
-                              f"load it with neuralsurf.priors.load_prior and complete a shape with complete_cloud")
-    if model is None:
-        return build_checked(state["model_spec"], state["model"], f"{path}: model"), state
-    try:
-        model.load_state_dict(check_weights(state["model"], f"{path}: model"))
-    except (RuntimeError, KeyError, TypeError, ValueError) as error:
-        raise CheckpointError(f"{path} does not match its model: {error}") from None
-    return model, state
-
-
-def load_field(path: str | Path, model: nn.Module | None = None, device: str | torch.device = "cpu") -> NormalizedField:
-    """The world-frame field saved by `FitResult.save` or by a fit's checkpoint (`run/checkpoints/last.pt`):
-    its model rebuilt by `load_model` (or pass `model` to load the weights into one of your own).
-    Raises CheckpointError for a file that is not such a checkpoint."""
-    model, state = load_model(path, model=model)
-    margin = stored_margin(state, Path(path))
-    try:
-        normalization = Normalization.from_state_dict(state["normalization"])
-    except (RuntimeError, KeyError, TypeError, ValueError, AttributeError) as error:
-        raise CheckpointError(f"{path}: its normalization is not readable: {error}") from None
-    if not bool(torch.isfinite(normalization.center).all()):
-        raise CheckpointError(f"{path}: its normalization centre is {normalization.center.tolist()}, not finite; the "
-                              f"checkpoint was tampered with or is damaged")
-    return NormalizedField(model, normalization, margin=margin).to(resolve_device(device)).eval()
 
 
 def default_optimizer(params, lr: float = 1e-3, eps: float = 1e-15) -> torch.optim.Optimizer:

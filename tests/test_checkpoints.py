@@ -7,12 +7,13 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from neuralsurf.checkpoints import load_field, save_checkpoint
 from neuralsurf.errors import CheckpointError, ConfigError
 from neuralsurf.models import SDFMLP, HashGrid
 from neuralsurf.models.spec import build_model, model_spec
 from neuralsurf.observations import PointSamples
 from neuralsurf.scenes import Sphere
-from neuralsurf.training import fit, load_field, save_checkpoint
+from neuralsurf.training import fit
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 TINY = {"steps": 5, "device": "cpu", "progress": False, "image_every": 0}

@@ -11,11 +11,12 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
+from neuralsurf.checkpoints import load_checkpoint
 from neuralsurf.priors import ShapeRecord, deepsdf
 from neuralsurf.priors.cache import CacheRecipe, build_collection
 from neuralsurf.priors.observations import CollectionSDF, CollectionSDFSampler
 from neuralsurf.structures import Normalization
-from neuralsurf.training import default_optimizer, fit, load_checkpoint
+from neuralsurf.training import default_optimizer, fit
 
 pytestmark = pytest.mark.skipif(not dist.is_available(), reason="this PyTorch has no torch.distributed")
 

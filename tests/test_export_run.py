@@ -12,11 +12,11 @@ from hydra import compose as hydra_compose
 from hydra import initialize_config_dir
 from omegaconf import OmegaConf
 
+from neuralsurf.checkpoints import load_field
 from neuralsurf.errors import ConfigError
 from neuralsurf.export import export_run, main
 from neuralsurf.extract import extract_mesh
 from neuralsurf.io import read_mesh
-from neuralsurf.training import load_field
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = REPO / "configs"

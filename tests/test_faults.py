@@ -9,11 +9,11 @@ from pathlib import Path
 import pytest
 import torch
 
+from neuralsurf.checkpoints import field_state, load_checkpoint, load_field, save_checkpoint
 from neuralsurf.errors import CheckpointError
 from neuralsurf.models import SDFMLP, HashGrid
 from neuralsurf.priors import deepsdf, load_prior
 from neuralsurf.structures import Normalization
-from neuralsurf.training import field_state, load_checkpoint, load_field, save_checkpoint
 
 
 def small_field():

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from neuralsurf.training import load_checkpoint
+from neuralsurf.checkpoints import load_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = ["trainer.steps=4", "trainer.progress=false", "trainer.checkpoint_every=4", "device=cpu",

@@ -378,9 +378,10 @@ def test_occupancy_network_trained_on_two_shapes_recovers_them_from_their_clouds
 
 
 def test_load_prior_rebuilds_a_trained_prior_and_refuses_other_checkpoints(tmp_path, auto_decoder):
+    from neuralsurf.checkpoints import load_checkpoint, save_checkpoint
     from neuralsurf.errors import CheckpointError
     from neuralsurf.priors import load_prior
-    from neuralsurf.training import FitResult, load_checkpoint, save_checkpoint
+    from neuralsurf.training import FitResult
 
     path = tmp_path / "prior.pt"
     auto_decoder.save(path)

@@ -1,13 +1,14 @@
 import pytest
 import torch
 
+from neuralsurf.checkpoints import load_checkpoint
 from neuralsurf.errors import DeviceError, InputError, NeuralsurfError
 from neuralsurf.models import SDFMLP, HashGrid
 from neuralsurf.observations import PointSamples
 from neuralsurf.observations.points import PointSampler
 from neuralsurf.scenes import Sphere
 from neuralsurf.structures import PointCloud
-from neuralsurf.training import cosine_schedule, fit, load_checkpoint, resolve_device
+from neuralsurf.training import cosine_schedule, fit, resolve_device
 
 TINY = {"image_every": 0, "log_every": 5, "progress": False, "device": "cpu"}
 

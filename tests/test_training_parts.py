@@ -7,9 +7,10 @@ import pytest
 import torch
 from torch import nn
 
+from neuralsurf.checkpoints import load_checkpoint
 from neuralsurf.errors import CheckpointError, NeuralsurfError
 from neuralsurf.structures import Normalization
-from neuralsurf.training import Checkpoints, FitDiverged, TrainStep, cosine_schedule, load_checkpoint
+from neuralsurf.training import Checkpoints, FitDiverged, TrainStep, cosine_schedule
 
 
 class LineSampler:

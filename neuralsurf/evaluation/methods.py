@@ -18,6 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from neuralsurf.baselines import TSDFVolume, reconstruct_poisson
+from neuralsurf.checkpoints import load_field
 from neuralsurf.devices import resolve_device
 from neuralsurf.errors import NeuralsurfError
 from neuralsurf.extract import NearPointsField, extract_mesh
@@ -26,7 +27,7 @@ from neuralsurf.observations.observed import ObservedSurface, extract_observed
 from neuralsurf.priors import complete_cloud, complete_view, extract_unit, load_prior, trained_prior
 from neuralsurf.scenes import Scene
 from neuralsurf.structures import Mesh
-from neuralsurf.training import default_optimizer, fit, load_field
+from neuralsurf.training import default_optimizer, fit
 
 
 class NotApplicable(NeuralsurfError):

@@ -13,8 +13,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from neuralsurf.checkpoints import load_model
 from neuralsurf.models import SDFMLP, AutoDecoder, CBNDecoder, LatentCodes, OccupancyNetwork, PointNetEncoder
-from neuralsurf.training import load_model
 
 
 def deepsdf(n_shapes: int, latent_dim: int = 64, width: int = 256, depth: int = 8, skip_layers=(4,),

@@ -10,11 +10,12 @@ from pathlib import Path
 
 from torch import nn
 
+from neuralsurf.checkpoints import CHECKPOINT_NAME, load_checkpoint
 from neuralsurf.locks import file_lock
 from neuralsurf.models import OccupancyNetwork
 from neuralsurf.priors.collection import ShapeCollection
 from neuralsurf.structures import Normalization
-from neuralsurf.training import CHECKPOINT_NAME, FitResult, default_optimizer, fit, load_checkpoint
+from neuralsurf.training import FitResult, default_optimizer, fit
 
 log = logging.getLogger("neuralsurf")
 
