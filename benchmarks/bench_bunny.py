@@ -74,7 +74,7 @@ def main() -> None:
 
     rows: list = []
     gt = ns.scenes.bunny()
-    cloud = ns.scenes.sample_surface(gt, n=100_000, noise=0.0, seed=0)
+    cloud = ns.geometry.cloud_from_mesh(gt, n=100_000, noise=0.0, seed=0)
     observation = instantiate(cfg.observation.points, _convert_="all")(ns.scenes.Scene("bunny", cloud, gt))
     if device.type == "cuda":  # the CUDA context and kernel loading, once per process: not the fit's
         timed("CUDA warm-up: a 20-step fit", rows, ns.fit, instantiate(cfg.model, _convert_="all"), observation,

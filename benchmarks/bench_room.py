@@ -41,7 +41,7 @@ from neuralsurf.evaluation.distances import held_out_error_image
 from neuralsurf.evaluation.methods import extract_scene_mesh, tsdf
 from neuralsurf.evaluation.rooms import open3d_tsdf
 from neuralsurf.evaluation.runner import peak_memory_mb, reset_peak_memory
-from neuralsurf.geometry import render_depth
+from neuralsurf.cameras import render_depth
 from neuralsurf.metrics import common_pixel_errors, depth_metrics, held_out_errors
 from neuralsurf.rooms import RoomSettings, fit_room
 from neuralsurf.scenes.recipes import SceneUnavailable

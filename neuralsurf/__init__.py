@@ -1,6 +1,6 @@
 """neuralsurf: neural implicit surfaces and classical baselines for 3D surface reconstruction."""
 
-from neuralsurf import baselines, geometry, io, losses, metrics, models, observations, photometric, scenes
+from neuralsurf import baselines, cameras, geometry, io, losses, metrics, models, observations, photometric, scenes
 from neuralsurf.checkpoints import load_field
 from neuralsurf.errors import (
     CheckpointError,
@@ -21,7 +21,7 @@ __version__ = "0.3.0"  # the one version source: pyproject.toml reads it
 
 __all__ = [
     # subpackages of the public API
-    "baselines", "geometry", "io", "losses", "metrics", "models", "observations", "photometric", "scenes",
+    "baselines", "cameras", "geometry", "io", "losses", "metrics", "models", "observations", "photometric", "scenes",
     # structures
     "DepthFrames", "Mesh", "Normalization", "PointCloud",
     # fitting and extraction

@@ -5,6 +5,7 @@ Inputs and outputs are tensors in the caller's frame; nothing here normalises or
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import numpy as np
@@ -12,7 +13,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.structures import Mesh, PointCloud, float_colors
+from neuralsurf.structures import Mesh, PointCloud
 
 # largest query x point count searched by brute force on a GPU (the bunny's sample pool: 1.25M queries x
 # 100k points); beyond it, and on the CPU, a k-d tree
@@ -426,217 +427,88 @@ def noisy_cloud(surface: Tensor, n_points: int, noise: float, seed: int) -> Tens
 
 
 # ---------------------------------------------------------------------------------------------
-# depth images: back-projection, projection, depth -> point cloud
-#
-# Pixel convention (OpenCV): pixel (u, v) is column u, row v, and its centre lies at the integer
-# coordinates (u, v); a camera-frame point (x, y, z) lands at u = fx x / z + cx, v = fy y / z + cy.
-
-from neuralsurf.structures import DepthFrames  # used by the depth-image functions below
+# mesh vertices
 
 
-def pixel_grid(height: int, width: int, dtype: torch.dtype = torch.float32, device=None) -> Tensor:
-    """Float[Tensor, "h w 2"]: (u, v) = (column, row) of every pixel centre (integers)."""
-    rows = torch.arange(height, dtype=dtype, device=device)
-    columns = torch.arange(width, dtype=dtype, device=device)
-    v, u = torch.meshgrid(rows, columns, indexing="ij")
-    return torch.stack([u, v], dim=-1)
+def merge_duplicate_vertices(
+    vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Merge vertices with bit-identical position (and colour), keeping first-occurrence order.
 
-
-def backproject_depth_to_camera(depth: Tensor, K: Tensor) -> Tensor:
-    """Camera-frame points of depth images (OpenCV: x right, y down, z forward).
-
-    Args:
-        depth: Float[Tensor, "n h w"] z-depth (0 = invalid).
-        K: Float[Tensor, "n 3 3"] intrinsics (a zero skew K[0, 1] is not assumed: it is used).
-    Returns:
-        Float[Tensor, "n h w 3"]: (x, y, z) with z = depth; invalid pixels give (0, 0, 0).
+    vertices (v, 3), faces (f, 3), colors (v, 3) or None -> the same with v' <= v vertices; the
+    faces keep their order and orientation. Nothing changes when there are no duplicates.
     """
-    uv = pixel_grid(depth.shape[1], depth.shape[2], depth.dtype, depth.device)  # (h, w, 2)
-    K = K.to(depth)
-    fx, fy, cx, cy, skew = (K[:, i, j][:, None, None] for i, j in ((0, 0), (1, 1), (0, 2), (1, 2), (0, 1)))
-    y = (uv[..., 1] - cy) / fy  # (n, h, w), per unit depth
-    x = (uv[..., 0] - cx - skew * y) / fx
-    return torch.stack([x * depth, y * depth, depth], dim=-1)
+    key = vertices + 0.0  # -0.0 -> 0.0
+    if colors is not None:
+        key = np.concatenate([key, colors.astype(key.dtype)], axis=1)
+    key = np.ascontiguousarray(key)
+    rows = key.view(np.dtype((np.void, key.dtype.itemsize * key.shape[1]))).ravel()
+    _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
+    if len(first) == len(vertices):
+        return vertices, faces, colors
+    order = np.argsort(first)  # unique rows by first occurrence
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    keep = first[order]
+    new_faces = rank[inverse.ravel()][faces]
+    return vertices[keep], new_faces, None if colors is None else colors[keep]
 
 
-def backproject_depth(frames: DepthFrames) -> Tensor:
-    """World-frame points of every pixel of every frame.
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals: vertices (v, 3), faces (f, 3) -> (v, 3) in the vertices' dtype.
 
-    Args:
-        frames: DepthFrames with depth (n, h, w), K (n, 3, 3), cam_to_world (n, 4, 4).
-    Returns:
-        Float[Tensor, "n h w 3"] in the frames' dtype and device: the point seen at the centre of
-        pixel (u, v) (integer coordinates, OpenCV convention) at its z-depth. Pixels with depth 0
-        map to their camera's centre; select valid points with `frames.depth > 0`.
+    Each face adds its cross product (b - a) x (c - a) (twice its area times its unit normal) to its
+    three vertices, so the normals point to the side from which the faces are counter-clockwise:
+    outward on a neuralsurf mesh. A vertex of no face of non-zero area gets (0, 0, 0).
     """
-    camera = backproject_depth_to_camera(frames.depth, frames.K)
-    pose = frames.cam_to_world.to(camera)
-    return torch.einsum("nij,nhwj->nhwi", pose[:, :3, :3], camera) + pose[:, None, None, :3, 3]
-
-
-def project_points(points: Tensor, K: Tensor, cam_to_world: Tensor) -> tuple[Tensor, Tensor]:
-    """Project world points into cameras (the inverse of `backproject_depth`).
-
-    Args:
-        points: Float[Tensor, "n m 3"] world points, m per camera (or "m 3" for one camera).
-        K: Float[Tensor, "n 3 3"] (or "3 3"); cam_to_world: Float[Tensor, "n 4 4"] (or "4 4").
-    Returns:
-        uv Float[Tensor, "n m 2"]: pixel coordinates, centres at integers (round to index a pixel);
-        z Float[Tensor, "n m"]: depth along the optical axis (<= 0 behind the camera, where uv is
-        meaningless).
-    """
-    single = points.ndim == 2
-    points, K, pose = (points[None], K[None], cam_to_world[None]) if single else (points, K, cam_to_world)
-    pose, K = pose.to(points), K.to(points)
-    rotation, translation = pose[:, :3, :3], pose[:, :3, 3]
-    camera = torch.einsum("nji,nmj->nmi", rotation, points - translation[:, None])  # R^T (p - t)
-    z = camera[..., 2]
-    pixels = torch.einsum("nij,nmj->nmi", K, camera)
-    uv = pixels[..., :2] / torch.where(z.abs() > 0, z, torch.ones_like(z))[..., None]
-    return (uv[0], z[0]) if single else (uv, z)
-
-
-def _depth_normals(camera: Tensor, max_depth_jump: float, stride: int = 1) -> tuple[Tensor, Tensor]:
-    """Normals of camera-frame depth points from their image neighbours, at every `stride`-th pixel.
-
-    Args:
-        camera: Float[Tensor, "n h w 3"] from `backproject_depth_to_camera`.
-        max_depth_jump: neighbours whose depth differs by more than this fraction of the pixel's
-            depth are across a discontinuity and not used.
-        stride: evaluate at rows and columns 0, stride, 2 stride, ... (neighbours stay at +-1 pixel).
-    Returns:
-        normals Float[Tensor, "n h' w' 3"] unit, facing the camera (n . p < 0), and
-        Bool[Tensor, "n h' w'"]: where a normal exists (a valid pixel with a usable neighbour both
-        horizontally and vertically), with h' = ceil(h / stride), w' = ceil(w / stride). Central
-        differences where both neighbours are usable, one-sided ones where only one is.
-    """
-    h, w = camera.shape[1:3]
-    padded = torch.nn.functional.pad(camera.permute(0, 3, 1, 2), (1, 1, 1, 1)).permute(0, 2, 3, 1)
-    centre = camera[:, ::stride, ::stride]
-    z = centre[..., 2]
-
-    def neighbour(dv: int, du: int) -> tuple[Tensor, Tensor]:
-        other = padded[:, 1 + dv : 1 + dv + h : stride, 1 + du : 1 + du + w : stride]
-        usable = (z > 0) & (other[..., 2] > 0) & ((other[..., 2] - z).abs() <= max_depth_jump * z)
-        return other, usable
-
-    def difference(forward: tuple[Tensor, Tensor], backward: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor]:
-        (after, ok_after), (before, ok_before) = forward, backward
-        one_sided = torch.where(ok_after[..., None], after - centre, centre - before)
-        return torch.where((ok_after & ok_before)[..., None], after - before, one_sided), ok_after | ok_before
-
-    du, has_u = difference(neighbour(0, 1), neighbour(0, -1))
-    dv, has_v = difference(neighbour(1, 0), neighbour(-1, 0))
-    normals = torch.linalg.cross(du, dv)
-    length = normals.norm(dim=-1)
-    has = has_u & has_v & (length > 0)
-    sign = torch.where((normals * centre).sum(-1) > 0, -1.0, 1.0)  # face the camera at the origin
-    normals = normals * (sign / torch.where(has, length, torch.ones_like(length)))[..., None]
-    return normals, has
-
-
-def depth_to_cloud(
-    frames: DepthFrames,
-    stride: int = 1,
-    with_normals: bool = True,
-    max_depth_jump: float = 0.05,
-    chunk: int = 8,
-) -> PointCloud:
-    """One world-frame PointCloud of the valid pixels of all frames (with colours when the frames
-    have them).
-
-    Normals come from each pixel's image neighbours at full resolution: the cross product of the
-    horizontal and vertical differences of the back-projected points (central where both
-    neighbours are usable, one-sided otherwise), turned towards the camera and rotated into the
-    world. A neighbour is usable when its depth is valid and within `max_depth_jump` (a fraction)
-    of the pixel's depth. With `with_normals=True`, valid pixels without a usable neighbour both
-    horizontally and vertically (isolated speckles) have no normal and are left out.
-
-    Args:
-        frames: DepthFrames (n, h, w).
-        stride: keep every `stride`-th row and column (pixel (0, 0) always kept).
-        with_normals: compute normals as above (else normals is None and every valid pixel is kept).
-        max_depth_jump: relative depth difference that marks a discontinuity (0.05 = 5 %).
-        chunk: frames processed at once (bounds memory; does not change the result).
-    Returns:
-        PointCloud with points (p, 3), normals (p, 3) or None, colours (p, 3) or None, in the
-        frames' float32; points are ordered by frame, then row, then column.
-    """
-    if not isinstance(stride, int) or stride < 1:
-        raise InputError(f"stride must be a positive integer (keep every stride-th pixel), got {stride!r}")
-    if not max_depth_jump > 0:
-        raise InputError(f"max_depth_jump must be a positive fraction of the depth, got {max_depth_jump}")
-    points, normals, colors = [], [], []
-    for start in range(0, len(frames), max(1, int(chunk))):
-        part = slice(start, start + max(1, int(chunk)))
-        camera = backproject_depth_to_camera(frames.depth[part], frames.K[part])
-        keep = frames.depth[part, ::stride, ::stride] > 0
-        if with_normals:
-            local, has = _depth_normals(camera, max_depth_jump, stride)
-            keep = keep & has
-        pose = frames.cam_to_world[part].to(camera)
-        rotation = pose[:, None, None, :3, :3]
-        world = (rotation @ camera[:, ::stride, ::stride, :, None])[..., 0] + pose[:, None, None, :3, 3]
-        points.append(world[keep])
-        if with_normals:
-            normals.append((rotation @ local[..., None])[..., 0][keep])
-        if frames.colors is not None:
-            colors.append(float_colors(frames.colors[part, ::stride, ::stride][keep]))
-    points = torch.cat(points)
-    if len(points) == 0:
-        raise InputError(
-            "the depth frames have no valid pixel" + (" with a normal" if with_normals else "")
-            + "; check that depth is in metres with 0 for missing readings"
-        )
-    normals = torch.cat(normals) if with_normals else None
-    return PointCloud(points, normals, torch.cat(colors) if colors else None)
+    corners = vertices.astype(np.float64)[faces]
+    weighted = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    sums = np.zeros((len(vertices), 3))
+    for k in range(3):
+        np.add.at(sums, faces[:, k], weighted)
+    length = np.linalg.norm(sums, axis=1, keepdims=True)
+    normals = np.divide(sums, length, out=np.zeros_like(sums), where=length > 0)
+    return normals.astype(vertices.dtype if vertices.dtype in (np.float32, np.float64) else np.float64)
 
 
 # ---------------------------------------------------------------------------------------------
-# sensor geometry: depth cameras (used by the synthetic scanner, the range-scan loader and TSDF weights)
+# oriented point clouds: spacing, areas, generalised winding number
 
 
-def kinect_sigma(z: Tensor) -> Tensor:
-    """Axial noise of a Kinect v1 (Nguyen et al. 2012): z [...] metres -> standard deviation [...] metres."""
-    return 0.0012 + 0.0019 * (z - 0.4) ** 2
+def cloud_spacing(points: Tensor) -> float:
+    """Median distance from a point to its nearest other point. points: Float[Tensor, "n 3"]."""
+    distance, _ = knn(points, points, 2)
+    return float(distance[:, 1].median())
 
 
-def render_depth(
-    mesh: Mesh, K: Tensor, cam_to_world: Tensor, width: int, height: int
-) -> tuple[Tensor, Tensor]:
-    """Exact z-depth of `mesh` seen by pinhole cameras, by Open3D's ray casting.
+def point_areas(points: Tensor, k: int = 8) -> Tensor:
+    """Surface area each point stands for, pi r_k^2 / k with r_k the distance to its k-th nearest
+    neighbour (k points per disc of that radius). points: Float[Tensor, "n 3"] -> Float[Tensor, "n"]."""
+    distance, _ = knn(points, points, min(k + 1, len(points)))
+    return math.pi * distance[:, -1] ** 2 / k
+
+
+def cloud_winding_number(query: Tensor, points: Tensor, normals: Tensor, areas: Tensor, chunk: int = 512) -> Tensor:
+    """Generalised winding number of an oriented point cloud (Barill et al. 2018, direct sum):
+    w(q) = sum_i a_i n_i . (p_i - q) / (4 pi |p_i - q|^3), about 1 inside a closed surface and 0 outside,
+    away from the points (closer than their spacing it is noisy).
 
     Args:
-        mesh: non-empty Mesh (world frame); K: Float[Tensor, "n 3 3"]; cam_to_world: Float[Tensor, "n 4 4"].
+        query: Float[Tensor, "m 3"]; points, normals: Float[Tensor, "n 3"] (unit, outward);
+        areas: Float[Tensor, "n"] (`point_areas`); chunk: queries per step (memory chunk x n).
     Returns:
-        depth Float32[Tensor, "n h w"] (0 where the ray misses) and cos_incidence Float32[Tensor,
-        "n h w"]: |cos| of the angle between the ray and the hit triangle's normal (0 on misses).
+        Float[Tensor, "m"].
     """
-    import open3d as o3d
-
-    K, pose = K.double().cpu(), cam_to_world.double().cpu()
-    center = mesh.vertices.detach().double().cpu().mean(0)  # float32 ray casting, re-centred for precision
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor((mesh.vertices.detach().double().cpu() - center).float().numpy()),
-        o3d.core.Tensor(mesh.faces.cpu().numpy().astype(np.uint32)),
-    )
-    v, u = torch.meshgrid(
-        torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij"
-    )
-    depth, cosine = [], []
-    for k, p in zip(K, pose):  # one camera at a time bounds memory
-        x = (u - k[0, 2] - k[0, 1] * (v - k[1, 2]) / k[1, 1]) / k[0, 0]
-        y = (v - k[1, 2]) / k[1, 1]
-        direction = torch.nn.functional.normalize(
-            torch.stack([x, y, torch.ones_like(x)], -1), dim=-1
-        )  # (h, w, 3)
-        world = direction @ p[:3, :3].T
-        origin = (p[:3, 3] - center).expand_as(world)
-        hit = scene.cast_rays(o3d.core.Tensor(torch.cat([origin, world], -1).float().numpy()))
-        t = torch.from_numpy(hit["t_hit"].numpy()).double()
-        normal = torch.from_numpy(hit["primitive_normals"].numpy()).double()
-        found = torch.isfinite(t)
-        depth.append(torch.where(found, t * direction[..., 2], 0.0).float())
-        cosine.append(torch.where(found, (normal * world).sum(-1).abs(), 0.0).float())
-    return torch.stack(depth), torch.stack(cosine)
+    offset = (points * normals).sum(-1)  # n_i . p_i
+    squared = (points**2).sum(-1)
+    # two (chunk, n) buffers reused by every chunk: allocating them anew each time grew glibc's heap
+    # by about one buffer per chunk (4.5 GB for the bunny's 250k free points)
+    dot_buffer = query.new_empty(min(chunk, len(query)), len(points))
+    r2_buffer = torch.empty_like(dot_buffer)
+    out = []
+    for part in query.split(chunk):
+        dot = torch.addmm(offset, part, normals.T, alpha=-1, out=dot_buffer[: len(part)])  # n_i . (p_i - q)
+        r2 = torch.add(squared, (part**2).sum(-1, keepdim=True), out=r2_buffer[: len(part)])
+        inverse = r2.addmm_(part, points.T, alpha=-2).clamp_min_(1e-12).rsqrt_()
+        out.append(dot.mul_(inverse).mul_(inverse).mul_(inverse) @ areas)
+    return torch.cat(out) / (4 * math.pi)

@@ -28,8 +28,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from neuralsurf.cameras import render_depth
 from neuralsurf.errors import InputError
-from neuralsurf.geometry import closest_on_mesh, knn, mesh_contains, render_depth, sample_mesh_surface
+from neuralsurf.geometry import closest_on_mesh, knn, mesh_contains, sample_mesh_surface
 from neuralsurf.structures import Mesh, Normalization, PointCloud
 
 __all__ = [

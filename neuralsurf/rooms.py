@@ -22,12 +22,10 @@ import torch
 from torch import Tensor
 
 from neuralsurf.baselines import TSDFVolume
+from neuralsurf.cameras import depth_rays, kinect_sigma, project_points, stride_frames, strided_hits
 from neuralsurf.errors import ConfigError, ExtractionError, InputError
-from neuralsurf.geometry import kinect_sigma, project_points
 from neuralsurf.marching import cube_triangles, merge_edge_vertices
 from neuralsurf.models.grid import VoxelSDF
-from neuralsurf.observations.observed import stride_frames, strided_hits
-from neuralsurf.observations.rays import depth_rays
 from neuralsurf.structures import DepthFrames, Mesh, Normalization, float_colors
 
 

@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import InputError
-from neuralsurf.geometry import knn
+from neuralsurf.geometry import cloud_spacing, cloud_winding_number, knn, point_areas
 from neuralsurf.structures import PointCloud
 
 
@@ -39,45 +39,6 @@ def approximate_sdf(query: Tensor, points: Tensor, normals: Tensor, spacing: flo
     return torch.where(distance < 2 * spacing, plane, torch.sign(plane) * distance)
 
 
-def cloud_spacing(points: Tensor) -> float:
-    """Median distance from a point to its nearest other point. points: Float[Tensor, "n 3"]."""
-    distance, _ = knn(points, points, 2)
-    return float(distance[:, 1].median())
-
-
-def point_areas(points: Tensor, k: int = 8) -> Tensor:
-    """Surface area each point stands for, pi r_k^2 / k with r_k the distance to its k-th nearest
-    neighbour (k points per disc of that radius). points: Float[Tensor, "n 3"] -> Float[Tensor, "n"]."""
-    distance, _ = knn(points, points, min(k + 1, len(points)))
-    return math.pi * distance[:, -1] ** 2 / k
-
-
-def winding_number(query: Tensor, points: Tensor, normals: Tensor, areas: Tensor, chunk: int = 512) -> Tensor:
-    """Generalised winding number of an oriented point cloud (Barill et al. 2018, direct sum):
-    w(q) = sum_i a_i n_i . (p_i - q) / (4 pi |p_i - q|^3), about 1 inside a closed surface and 0 outside,
-    away from the points (closer than their spacing it is noisy).
-
-    Args:
-        query: Float[Tensor, "m 3"]; points, normals: Float[Tensor, "n 3"] (unit, outward);
-        areas: Float[Tensor, "n"] (`point_areas`); chunk: queries per step (memory chunk x n).
-    Returns:
-        Float[Tensor, "m"].
-    """
-    offset = (points * normals).sum(-1)  # n_i . p_i
-    squared = (points**2).sum(-1)
-    # two (chunk, n) buffers reused by every chunk: allocating them anew each time grew glibc's heap
-    # by about one buffer per chunk (4.5 GB for the bunny's 250k free points)
-    dot_buffer = query.new_empty(min(chunk, len(query)), len(points))
-    r2_buffer = torch.empty_like(dot_buffer)
-    out = []
-    for part in query.split(chunk):
-        dot = torch.addmm(offset, part, normals.T, alpha=-1, out=dot_buffer[: len(part)])  # n_i . (p_i - q)
-        r2 = torch.add(squared, (part**2).sum(-1, keepdim=True), out=r2_buffer[: len(part)])
-        inverse = r2.addmm_(part, points.T, alpha=-2).clamp_min_(1e-12).rsqrt_()
-        out.append(dot.mul_(inverse).mul_(inverse).mul_(inverse) @ areas)
-    return torch.cat(out) / (4 * math.pi)
-
-
 def winding_signs(
     query: Tensor, points: Tensor, normals: Tensor, n_points: int, seed: int = 0
 ) -> tuple[Tensor, float]:
@@ -96,7 +57,7 @@ def winding_signs(
     # a CPU: (chunk, n_points) buffers of ~1.3 MB, which stay in cache (64 rows of 5,000 points: 2x
     # faster than 512); a GPU: its width
     chunk = max(16, 320_000 // len(subsample)) if query.device.type == "cpu" else 16_384
-    winding = winding_number(query, subsample, sub_normals, point_areas(subsample), chunk=chunk)
+    winding = cloud_winding_number(query, subsample, sub_normals, point_areas(subsample), chunk=chunk)
     return torch.where(winding < 0.5, 1.0, -1.0), reach
 
 

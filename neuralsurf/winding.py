@@ -31,8 +31,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.geometry import point_to_mesh_distance
-from neuralsurf.io.meshes import vertex_normals
+from neuralsurf.geometry import point_to_mesh_distance, vertex_normals
 from neuralsurf.structures import Mesh
 
 INSIDE_THRESHOLD = 0.5

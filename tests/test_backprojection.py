@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
+from neuralsurf.cameras import backproject_depth, depth_to_cloud, project_points
 from neuralsurf.errors import InputError
-from neuralsurf.geometry import backproject_depth, depth_to_cloud, project_points
 from neuralsurf.structures import DepthFrames
 
 K = torch.tensor([[500.0, 0.0, 31.5], [0.0, 480.0, 23.5], [0.0, 0.0, 1.0]])

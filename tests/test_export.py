@@ -12,8 +12,9 @@ import trimesh
 
 from neuralsurf.errors import ConfigError
 from neuralsurf.extract import extract_mesh
+from neuralsurf.geometry import vertex_normals
 from neuralsurf.io import read_mesh, write_mesh
-from neuralsurf.io.meshes import mesh_format, vertex_normals
+from neuralsurf.io.meshes import mesh_format
 from neuralsurf.structures import Mesh
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -9,6 +9,7 @@ import torch
 import trimesh
 
 from neuralsurf.errors import FileFormatError, InputError, NeuralsurfError
+from neuralsurf.geometry import merge_duplicate_vertices
 from neuralsurf.io import (
     MESH_EXTENSIONS,
     POINT_CLOUD_EXTENSIONS,
@@ -17,7 +18,6 @@ from neuralsurf.io import (
     write_mesh,
     write_point_cloud,
 )
-from neuralsurf.io.meshes import merge_duplicate_vertices
 from neuralsurf.structures import Mesh, PointCloud
 
 # ---------------------------------------------------------------------------------------------

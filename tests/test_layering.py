@@ -50,9 +50,16 @@ def test_an_import_up_the_layers_breaks_the_contract(contracts, tmp_path):
     assert "neuralsurf.geometry -> neuralsurf.training" in result.stdout
 
 
-def test_sensor_geometry_lives_in_geometry_and_scanner_reexports_it():
-    from neuralsurf import geometry
-    from neuralsurf.scenes import scanner
+def test_camera_operations_have_one_home():
+    """Every name of neuralsurf.cameras is defined there only: a module that has one imported it."""
+    import importlib
+    import pkgutil
 
-    assert scanner.render_depth is geometry.render_depth
-    assert scanner.kinect_sigma is geometry.kinect_sigma
+    import neuralsurf
+    from neuralsurf import cameras
+
+    modules = [importlib.import_module(info.name) for info in pkgutil.walk_packages(neuralsurf.__path__, "neuralsurf.")
+               if ".configs" not in info.name and not info.name.endswith("__main__")]
+    elsewhere = [(module.__name__, name) for module in modules for name in cameras.__all__
+                 if getattr(getattr(module, name, None), "__module__", "neuralsurf.cameras") != "neuralsurf.cameras"]
+    assert len(modules) > 50 and elsewhere == []

@@ -4,7 +4,8 @@ exact normals, comes out closer to the true depth than the measurement; then TSD
 import pytest
 import torch
 
-from neuralsurf.baselines.nehab import fuse_depth_normals, fuse_frames, pixel_rays
+from neuralsurf.baselines.nehab import fuse_depth_normals, fuse_frames
+from neuralsurf.cameras import pixel_rays
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.structures import DepthFrames
 
@@ -70,7 +71,7 @@ def test_zero_confidence_switches_the_normals_off():
 
 def test_fuse_frames_upsamples_half_resolution_depth_and_tsdf_meshes_it():
     from neuralsurf.baselines import TSDFVolume
-    from neuralsurf.baselines.nehab import resample_depth
+    from neuralsurf.cameras import resample_depth
 
     z, normals = sphere_view()
     low = K.clone()

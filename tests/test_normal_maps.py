@@ -4,7 +4,7 @@ term, wrong normals or a wrong field a positive one; depth maps of half the reso
 import pytest
 import torch
 
-from neuralsurf.baselines.nehab import resample_depth
+from neuralsurf.cameras import resample_depth
 from neuralsurf.errors import InputError
 from neuralsurf.observations import DepthRays, NormalMaps, NotObserved
 from neuralsurf.scenes import look_at

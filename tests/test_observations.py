@@ -5,9 +5,10 @@ import math
 import pytest
 import torch
 
+from neuralsurf.cameras import depth_rays
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.models import SDFMLP, HashGrid
-from neuralsurf.observations import DepthRays, PointSamples, depth_rays
+from neuralsurf.observations import DepthRays, PointSamples
 from neuralsurf.observations.rays import box_entry, carve_labels, denoise_hits, ray_terms, winding_labels
 from neuralsurf.scenes import Sphere, look_at
 from neuralsurf.structures import DepthFrames, Normalization

@@ -7,14 +7,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from neuralsurf.observations.observed import (
-    ObservedSurface,
-    extract_observed,
-    stride_frames,
-    strided_hits,
-    view_votes,
-)
-from neuralsurf.observations.rays import depth_rays
+from neuralsurf.cameras import depth_rays, stride_frames, strided_hits
+from neuralsurf.observations.observed import ObservedSurface, extract_observed, view_votes
 from neuralsurf.structures import DepthFrames, Mesh
 
 WIDTH, HEIGHT, F = 64, 48, 60.0
@@ -119,7 +113,7 @@ def test_depth_rays_pixel_stride_fits_the_strided_pixels_and_names_a_bad_stride(
     from neuralsurf.observations import DepthRays
 
     frames = plane_frames()
-    rays = DepthRays(frames, pixel_stride=2)._world_rays()
+    rays = DepthRays(frames, pixel_stride=2).world_rays
     assert len(rays.hit) == 3 * (HEIGHT // 2) * (WIDTH // 2)
     with pytest.raises(ConfigError, match="pixel_stride"):
         DepthRays(frames, pixel_stride=0)

@@ -11,8 +11,8 @@ import pytest
 import torch
 from scipy import ndimage
 
+from neuralsurf.cameras import backproject_depth_to_camera, render_depth
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.geometry import backproject_depth_to_camera
 from neuralsurf.photometric import (
     angular_error,
     calibrate_chrome_ball,
@@ -36,7 +36,6 @@ from neuralsurf.scenes.photometric_rig import (
     render_photometric,
     ring_lights,
 )
-from neuralsurf.scenes.scanner import render_depth
 from neuralsurf.structures import Mesh, PhotometricCapture
 
 

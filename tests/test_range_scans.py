@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 import torch
 
+from neuralsurf.cameras import quaternion_to_matrix
 from neuralsurf.errors import FileFormatError, NeuralsurfError
 from neuralsurf.geometry import knn, point_to_mesh_distance
 from neuralsurf.io import read_mesh, read_range_scan, read_range_scan_conf, read_range_scans
-from neuralsurf.io.range_scans import conf_transform, quaternion_to_matrix, triangulate_range_grid
+from neuralsurf.io.range_scans import conf_transform, triangulate_range_grid
 
 
 def write_range_grid_ply(path, points, grid):
@@ -217,7 +218,7 @@ def test_corrupt_range_grid(tmp_path):
 def test_scan_frames_back_project_onto_the_reconstruction(shared_data):
     """Each scan rendered as a depth image from its scanner's side: its pixels back-project (through
     the frame's pose into the .conf frame) onto bun_zipper.ply, as the raw scan points do."""
-    from neuralsurf.geometry import depth_to_cloud
+    from neuralsurf.cameras import depth_to_cloud
     from neuralsurf.io import read_range_scan_frames
 
     folder = shared_data / "stanford_bunny"

@@ -6,10 +6,10 @@ import warnings
 import pytest
 import torch
 
+from neuralsurf.cameras import Rays, depth_rays, stride_frames
 from neuralsurf.errors import ConfigError
-from neuralsurf.observations import DepthRays, depth_rays
-from neuralsurf.observations.observed import stride_frames
-from neuralsurf.observations.rays import Rays, budget_stride, strided_count
+from neuralsurf.observations import DepthRays
+from neuralsurf.observations.rays import budget_stride, strided_count
 from neuralsurf.scenes import look_at
 from neuralsurf.structures import DepthFrames, Normalization
 
@@ -63,7 +63,7 @@ def test_rays_under_budget_are_every_pixel_and_no_warning():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         observation = DepthRays(frames, max_rays=counted(3, 1))
-        rays = observation._world_rays()
+        rays = observation.world_rays
     assert observation.stride == 1
     expected = depth_rays(frames)
     for name in Rays.__dataclass_fields__:
@@ -87,7 +87,7 @@ def test_rays_over_budget_are_the_full_frames_rays_of_the_strided_pixels_with_on
     rows, cols = torch.meshgrid(torch.arange(HEIGHT), torch.arange(WIDTH), indexing="ij")
     valid = frames.depth > 0
     kept = (valid & (rows % 3 == 0) & (cols % 3 == 0))[valid]
-    rays = observation._world_rays()
+    rays = observation.world_rays
     for name in Rays.__dataclass_fields__:
         torch.testing.assert_close(getattr(rays, name), getattr(full, name)[kept], atol=1e-6, rtol=0, msg=name)
     # the same rays as the strided frames' (`stride_frames`), but for the normals' neighbours

@@ -11,8 +11,8 @@ import torch
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
+from neuralsurf.cameras import backproject_depth, project_points
 from neuralsurf.errors import ConfigError, FileFormatError, InputError
-from neuralsurf.geometry import backproject_depth, project_points
 from neuralsurf.io import read_rgbd_folder
 from neuralsurf.io.rgbd import (
     MARKERS,

@@ -2,7 +2,8 @@ import pytest
 import torch
 
 from neuralsurf.errors import InputError
-from neuralsurf.sampling import approximate_sdf, draw_batch, make_sdf_samples, point_areas, winding_number
+from neuralsurf.geometry import cloud_winding_number, point_areas
+from neuralsurf.sampling import approximate_sdf, draw_batch, make_sdf_samples
 from neuralsurf.scenes import Box, Sphere, Torus
 
 
@@ -69,7 +70,7 @@ def test_winding_number_is_one_inside_and_zero_outside_a_sampled_sphere(sphere):
     points, normals = cloud.points.float(), cloud.normals.float()
     query = (torch.rand(4000, 3, generator=torch.Generator().manual_seed(1)) - 0.5) * 1.2
     clear = sphere.sdf(query.double()).abs() > 0.05  # away from the samples' spacing (~0.015)
-    w = winding_number(query[clear], points, normals, point_areas(points))
+    w = cloud_winding_number(query[clear], points, normals, point_areas(points))
     inside = sphere.sdf(query[clear].double()) < 0
     assert (w[inside] - 1).abs().max() < 0.05 and w[~inside].abs().max() < 0.05
     assert point_areas(points).sum() == pytest.approx(4 * torch.pi * 0.3**2, rel=0.1)  # the sphere's area

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 import torch
 
+from neuralsurf.cameras import backproject_depth, kinect_sigma, project_points
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.geometry import backproject_depth, point_to_mesh_distance, project_points
+from neuralsurf.geometry import point_to_mesh_distance
 from neuralsurf.scenes import Sphere, look_at, orbit_cameras, scan_depth
-from neuralsurf.scenes.scanner import depth_edges, fibonacci_sphere, intrinsics_from_fov, kinect_sigma
+from neuralsurf.scenes.scanner import depth_edges, fibonacci_sphere, intrinsics_from_fov
 from neuralsurf.structures import DepthFrames, Mesh
 
 SPHERE = Sphere(center=(0.1, -0.2, 1.5), radius=0.3)

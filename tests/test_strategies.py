@@ -65,7 +65,7 @@ def test_a_normal_source_of_ones_own_supplies_the_fits_normals():
 
 
 def test_depth_rays_take_their_noise_sigma_from_the_registry():
-    from neuralsurf.geometry import kinect_sigma
+    from neuralsurf.cameras import kinect_sigma
     from neuralsurf.observations import DepthRays
 
     z = torch.linspace(0.5, 4.0, 8)

@@ -16,8 +16,9 @@ from scipy.spatial import cKDTree
 from neuralsurf.baselines import TSDFVolume, depth_bounds
 from neuralsurf.baselines.tsdf.bands import candidate_blocks
 from neuralsurf.baselines.tsdf.voxels import camera_to_grid, pixel_weights
+from neuralsurf.cameras import backproject_depth, kinect_sigma
 from neuralsurf.errors import ConfigError, DeviceError, ExtractionError, InputError, NeuralsurfError
-from neuralsurf.geometry import backproject_depth, kinect_sigma, point_to_mesh_distance
+from neuralsurf.geometry import point_to_mesh_distance
 from neuralsurf.scenes import Sphere, bunny, scan_depth
 from neuralsurf.structures import DepthFrames, Mesh
 

@@ -20,7 +20,7 @@ normals; robust photometric stereo on a calibrated rig has little such bias). Pi
 discontinuity of the measured depth get no tangent row.
 
 A depth map of lower resolution than the normal map (a Kinect beside a camera) is first resampled
-to the normal map's pixels (`resample_depth`: bilinear where the four neighbours are valid and
+to the normal map's pixels (`cameras.resample_depth`: bilinear where the four neighbours are valid and
 close in depth, else missing).
 """
 
@@ -30,54 +30,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from neuralsurf.cameras import pixel_rays, resample_depth
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.structures import DepthFrames
-
-
-def pixel_rays(K: Tensor, height: int, width: int) -> Tensor:
-    """Float64[Tensor, "h w 3"]: camera-frame rays K^-1 (u, v, 1) of every pixel centre (z = 1)."""
-    K = torch.as_tensor(K, dtype=torch.float64).cpu()
-    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64),
-                          indexing="ij")
-    y = (v - K[1, 2]) / K[1, 1]
-    x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
-    return torch.stack([x, y, torch.ones_like(x)], -1)
-
-
-def resample_depth(depth: Tensor, K_depth: Tensor, K: Tensor, height: int, width: int,
-                   max_depth_jump: float = 0.05) -> Tensor:
-    """The z-depth of a camera seen through other intrinsics of the same pose (e.g. a half-resolution
-    depth map at the pixels of a full-resolution normal map).
-
-    Args:
-        depth: Float[Tensor, "h' w'"] z-depth in metres, 0 = missing.
-        K_depth: Float[Tensor, "3 3"] intrinsics of `depth`; K: those of the target pixels.
-        height, width: target image size.
-        max_depth_jump: where the four source neighbours' depths spread by more than this fraction
-            of their mean (a discontinuity), the target pixel is missing.
-    Returns:
-        Float[Tensor, "height width"] (depth's dtype): bilinear z-depth where all four neighbours are
-        valid and close, 0 elsewhere (z-depth is the same for both intrinsics: same pose, same z axis).
-    """
-    depth = torch.as_tensor(depth)
-    if depth.ndim != 2:
-        raise InputError(f"resample_depth takes one depth map (h, w), got shape {tuple(depth.shape)}")
-    source = depth.double().cpu()
-    rays = pixel_rays(K, height, width)  # (h, w, 3), z = 1
-    Kd = torch.as_tensor(K_depth, dtype=torch.float64).cpu()
-    pixels = rays @ Kd.T
-    us, vs = pixels[..., 0], pixels[..., 1]
-    h, w = source.shape
-    u0, v0 = torch.floor(us).long(), torch.floor(vs).long()
-    inside = (u0 >= 0) & (v0 >= 0) & (u0 + 1 < w) & (v0 + 1 < h)
-    u0c, v0c = u0.clamp(0, w - 2), v0.clamp(0, h - 2)
-    corners = torch.stack([source[v0c, u0c], source[v0c, u0c + 1], source[v0c + 1, u0c], source[v0c + 1, u0c + 1]])
-    a, b = us - u0c, vs - v0c
-    weights = torch.stack([(1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b])
-    value = (weights * corners).sum(0)
-    lo, hi = corners.min(0).values, corners.max(0).values
-    ok = inside & (lo > 0) & (hi - lo <= max_depth_jump * corners.mean(0))
-    return torch.where(ok, value, 0.0).to(depth.dtype if depth.is_floating_point() else torch.float32)
 
 
 def fuse_depth_normals(depth: Tensor, normals: Tensor, K: Tensor, confidence: Tensor | None = None,
@@ -116,7 +71,7 @@ def fuse_depth_normals(depth: Tensor, normals: Tensor, K: Tensor, confidence: Te
         raise InputError("fuse_depth_normals: every depth pixel is missing (0); nothing to fuse")
     index = np.full((h, w), -1, dtype=np.int64)
     index[valid] = np.arange(int(valid.sum()))
-    rays = pixel_rays(K, h, w).numpy()
+    rays = pixel_rays(torch.as_tensor(K, dtype=torch.float64).cpu(), h, w).numpy()
     m = int(valid.sum())
     rows, cols, vals, rhs = [], [], [], []
     # positions: sqrt(lambda) |r| (z - z0)
@@ -181,4 +136,4 @@ def fuse_frames(frames: DepthFrames, normals: Tensor, K: Tensor, confidence: Ten
     return DepthFrames(torch.stack(fused), K.float(), frames.cam_to_world.float())
 
 
-__all__ = ["fuse_depth_normals", "fuse_frames", "pixel_rays", "resample_depth"]
+__all__ = ["fuse_depth_normals", "fuse_frames"]

@@ -37,9 +37,10 @@ import torch
 from torch import Tensor
 
 from neuralsurf.baselines.tsdf import TSDFVolume
+from neuralsurf.cameras import backproject_depth_to_camera
+from neuralsurf.cameras import depth_normals as _depth_normals
 from neuralsurf.devices import CompiledOnCPU
 from neuralsurf.errors import ConfigError, InputError, NeuralsurfError
-from neuralsurf.geometry import _depth_normals, backproject_depth_to_camera
 from neuralsurf.progress import progress_bar
 from neuralsurf.structures import DepthFrames
 

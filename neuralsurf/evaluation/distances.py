@@ -22,10 +22,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from neuralsurf.cameras import render_depth
 from neuralsurf.errors import FileFormatError
 from neuralsurf.evaluation.filenames import NPZ, row_stem, safe_name, stored_file
 from neuralsurf.evaluation.render import default_view, labelled_row, shade, viridis
-from neuralsurf.geometry import closest_on_mesh, render_depth
+from neuralsurf.geometry import closest_on_mesh
 from neuralsurf.io import write_mesh
 from neuralsurf.io.npz import read_npz
 from neuralsurf.locks import replaced, write_atomic

@@ -19,7 +19,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from neuralsurf.baselines.nehab import fuse_frames, pixel_rays
+from neuralsurf.baselines.nehab import fuse_frames
+from neuralsurf.cameras import pixel_rays
 from neuralsurf.errors import InputError
 from neuralsurf.evaluation.methods import NotApplicable, tsdf
 from neuralsurf.evaluation.render import colormap, labelled_row
@@ -85,7 +86,8 @@ def photometric_normals(scene: Scene, *, method: str = "robust", integrate: str 
             pieces.append(None if capture.normals is None else
                           continuous_pieces(capture.depth, capture.normals, mask, K=capture.K))
             seen = capture.depth > 0
-            points = pixel_rays(capture.K, capture.height, capture.width)[seen] * capture.depth[seen, None].double()
+            rays = pixel_rays(torch.as_tensor(capture.K, dtype=torch.float64).cpu(), capture.height, capture.width)
+            points = rays[seen] * capture.depth[seen, None].double()
             sizes.append(float((points.max(0).values - points.min(0).values).max()))
     return NormalMapResult(tuple(normals), tuple(truth), tuple(masks), tuple(depth), tuple(true_depth), tuple(sizes),
                            tuple(pieces))

@@ -12,9 +12,9 @@ import torch
 from torch import Tensor
 
 from neuralsurf.baselines.tracking import Tracker, TrackingLostError, track_frames
+from neuralsurf.cameras import render_depth
 from neuralsurf.devices import resolve_device
 from neuralsurf.evaluation.methods import NotApplicable, input_box, scene_input
-from neuralsurf.geometry import render_depth
 from neuralsurf.metrics import absolute_trajectory_error, align_trajectory, depth_metrics, relative_pose_error
 from neuralsurf.rooms import RoomSettings, fit_room
 from neuralsurf.scenes import Scene

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from neuralsurf.errors import ConfigError, FileFormatError, InputError
+from neuralsurf.geometry import merge_duplicate_vertices, vertex_normals
 from neuralsurf.io.pointclouds import (
     PathLike,
     colors_to_uint8,
@@ -39,30 +40,6 @@ FORMATS = tuple(ext[1:] for ext in SUPPORTED)
 
 _MERGED = (".obj", ".stl", ".glb")
 """Formats whose loaders may duplicate vertices (soups, seams, scene parts)."""
-
-
-def merge_duplicate_vertices(
-    vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Merge vertices with bit-identical position (and colour), keeping first-occurrence order.
-
-    vertices (v, 3), faces (f, 3), colors (v, 3) or None -> the same with v' <= v vertices; the
-    faces keep their order and orientation. Nothing changes when there are no duplicates.
-    """
-    key = vertices + 0.0  # -0.0 -> 0.0
-    if colors is not None:
-        key = np.concatenate([key, colors.astype(key.dtype)], axis=1)
-    key = np.ascontiguousarray(key)
-    rows = key.view(np.dtype((np.void, key.dtype.itemsize * key.shape[1]))).ravel()
-    _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
-    if len(first) == len(vertices):
-        return vertices, faces, colors
-    order = np.argsort(first)  # unique rows by first occurrence
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    keep = first[order]
-    new_faces = rank[inverse.ravel()][faces]
-    return vertices[keep], new_faces, None if colors is None else colors[keep]
 
 
 def _load_trimesh(path: Path, ext: str):
@@ -128,23 +105,6 @@ def read_mesh(path: PathLike) -> Mesh:
 
 # ---------------------------------------------------------------------------------------------
 # writers
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals: vertices (v, 3), faces (f, 3) -> (v, 3) in the vertices' dtype.
-
-    Each face adds its cross product (b - a) x (c - a) (twice its area times its unit normal) to its
-    three vertices, so the normals point to the side from which the faces are counter-clockwise:
-    outward on a neuralsurf mesh. A vertex of no face of non-zero area gets (0, 0, 0).
-    """
-    corners = vertices.astype(np.float64)[faces]
-    weighted = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    sums = np.zeros((len(vertices), 3))
-    for k in range(3):
-        np.add.at(sums, faces[:, k], weighted)
-    length = np.linalg.norm(sums, axis=1, keepdims=True)
-    normals = np.divide(sums, length, out=np.zeros_like(sums), where=length > 0)
-    return normals.astype(vertices.dtype if vertices.dtype in (np.float32, np.float64) else np.float64)
 
 
 def _write_ply(path: Path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None) -> None:

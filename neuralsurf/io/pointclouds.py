@@ -131,7 +131,7 @@ def ply_header(data: bytes):
     return header, end.end()
 
 
-def _ascii_rows(data: bytes, offset: int, header, name: str) -> list[str]:
+def ascii_rows(data: bytes, offset: int, header, name: str) -> list[str]:
     """The body lines of element `name` of an ASCII PLY (elements before it skipped, list
     properties included: one row per line); FileFormatError when the file has fewer lines."""
     lines = data[offset:].decode("ascii", errors="replace").splitlines()
@@ -187,7 +187,7 @@ def read_ply_vertices(path: Path, data: bytes | None = None) -> tuple[dict[str, 
         raise FileFormatError(
             "the PLY vertex element has list properties; a point cloud needs one x, y, z per vertex"
         )
-    rows = _ascii_rows(data, offset, header, "vertex")
+    rows = ascii_rows(data, offset, header, "vertex")
     count = len(rows)
     try:
         table = np.array(" ".join(rows).split(), dtype=np.float64).reshape(count, len(properties))

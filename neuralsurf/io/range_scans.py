@@ -31,12 +31,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from neuralsurf.cameras import quaternion_to_matrix, render_depth
 from neuralsurf.errors import ConfigError, FileFormatError, InputError
-from neuralsurf.geometry import render_depth
 from neuralsurf.io.meshes import read_mesh
 from neuralsurf.io.pointclouds import (
     PathLike,
-    _ascii_rows,
+    ascii_rows,
     build_cloud,
     named,
     ply_header,
@@ -56,19 +56,6 @@ bridge depth discontinuities)."""
 
 # ---------------------------------------------------------------------------------------------
 # .conf
-
-
-def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(x, y, z, w) quaternion (4,), normalised here -> Hamilton rotation matrix (3, 3), float64
-    (scipy's `Rotation.from_quat`, whose default order is the same scalar-last one). InputError for a
-    quaternion of zero length or with NaN."""
-    from scipy.spatial.transform import Rotation
-
-    q = np.asarray(q, dtype=np.float64)
-    if q.shape != (4,) or not np.isfinite(q).all() or not np.linalg.norm(q) > 1e-12:
-        raise InputError(f"quaternion (x y z w) {q.tolist()} is not a rotation (zero length, NaN or not 4 "
-                         f"numbers); correct the pose")
-    return Rotation.from_quat(q).as_matrix()
 
 
 def conf_transform(translation: np.ndarray, quaternion: np.ndarray) -> np.ndarray:
@@ -380,7 +367,7 @@ def _ply_triangles(path: Path, data: bytes, points: np.ndarray) -> np.ndarray | 
         return None
     count = header[wanted].count
     if header.text:
-        counts, flat, starts = _ascii_lists(_ascii_rows(data, offset, header, wanted), wanted, len(points))
+        counts, flat, starts = _ascii_lists(ascii_rows(data, offset, header, wanted), wanted, len(points))
     else:
         element = read_ply_binary(path)[wanted]
         lists = [prop.name for prop in element.properties if isinstance(prop, _ListProperty())]

@@ -38,9 +38,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from neuralsurf.cameras import quaternion_to_matrix
 from neuralsurf.errors import ConfigError, FileFormatError, InputError
 from neuralsurf.io.pointclouds import PathLike
-from neuralsurf.io.range_scans import quaternion_to_matrix
 from neuralsurf.io.trajectories import sensor_intrinsics
 from neuralsurf.progress import progress_bar
 from neuralsurf.structures import DepthFrames, check_intrinsics

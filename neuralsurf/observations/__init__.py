@@ -3,6 +3,6 @@
 from neuralsurf.observations.base import NotObserved, Observation, Sampler, union_bounds
 from neuralsurf.observations.normals import NormalBatch, NormalMaps
 from neuralsurf.observations.points import PointSamples
-from neuralsurf.observations.rays import DepthRays, RayBatch, Rays, depth_rays
+from neuralsurf.observations.rays import DepthRays, RayBatch
 
-__all__ = ["DepthRays", "NormalBatch", "NormalMaps", "NotObserved", "Observation", "PointSamples", "RayBatch", "Rays", "Sampler", "depth_rays", "union_bounds"]
+__all__ = ["DepthRays", "NormalBatch", "NormalMaps", "NotObserved", "Observation", "PointSamples", "RayBatch", "Sampler", "union_bounds"]

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
-from neuralsurf.baselines.nehab import pixel_rays, resample_depth
+from neuralsurf.cameras import pixel_rays, resample_depth
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.observations.base import NotObserved, Observation, Sampler, check_weights
 from neuralsurf.structures import DepthFrames, Normalization
@@ -71,7 +71,7 @@ def normal_pixels(normals: Tensor, confidence: Tensor, K: Tensor, cam_to_world: 
         n = normals[i].double().cpu()
         keep = (z > 0) & (n.norm(dim=-1) > 0.5) & (confidence[i].cpu() > 0)
         pose = cam_to_world[i].double().cpu()
-        camera = pixel_rays(K[i], h, w)[keep] * z[keep][:, None]
+        camera = pixel_rays(torch.as_tensor(K[i], dtype=torch.float64).cpu(), h, w)[keep] * z[keep][:, None]
         points.append(camera @ pose[:3, :3].T + pose[:3, 3])
         world_normals.append(torch.nn.functional.normalize(n[keep], dim=-1) @ pose[:3, :3].T)
         weights.append(confidence[i].cpu().double()[keep])

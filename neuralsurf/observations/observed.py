@@ -22,50 +22,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from neuralsurf.cameras import frame_readings, kinect_sigma, strided_hits
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.extract import _field_device, evaluate_grid_points, make_grid, marching_cubes
-from neuralsurf.geometry import backproject_depth, kinect_sigma, project_points
 from neuralsurf.structures import DepthFrames, Mesh
 
 
 def _dilate(mask: Tensor) -> Tensor:
     """Bool[Tensor, "X Y Z"] -> the mask grown by one voxel along every axis and diagonal."""
     return torch.nn.functional.max_pool3d(mask[None, None].float(), 3, 1, 1)[0, 0] > 0
-
-
-def stride_frames(frames: DepthFrames, stride: int) -> DepthFrames:
-    """`frames` at every `stride`-th pixel along both axes: pixel (i, j) of the result is pixel
-    (stride i, stride j) of the frame, so the intrinsics' first two rows are divided by `stride`
-    (the same rays; `stride` 1 returns `frames`)."""
-    if stride == 1:
-        return frames
-    K = frames.K.clone()
-    K[:, :2] /= stride
-    return DepthFrames(frames.depth[:, ::stride, ::stride].contiguous(), K, frames.cam_to_world)
-
-
-def strided_hits(frames: DepthFrames, pixel_stride: int = 1) -> Tensor:
-    """Float64[Tensor, "n 3"]: world points of the valid readings of every `pixel_stride`-th pixel (both
-    directions) of every frame."""
-    parts = []
-    for index in range(len(frames)):
-        frame = stride_frames(frames[index : index + 1].to("cpu"), pixel_stride)
-        parts.append(backproject_depth(frame)[frame.depth > 0].double())
-    return torch.cat(parts)
-
-
-def frame_readings(points: Tensor, depth: Tensor, K: Tensor, cam_to_world: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """World points Float64[Tensor, "n 3"] in depth images Float[Tensor, "f h w"] seen by K Float64[Tensor,
-    "f 3 3"] at cam_to_world Float64[Tensor, "f 4 4"] -> (z, reading, seen), each [f, n]: the points' depth
-    along each optical axis, the depth read at their nearest pixel (float64; 0 where not `seen`), and
-    whether they project into the image in front of the camera."""
-    height, width = depth.shape[-2:]
-    uv, z = project_points(points.expand(len(depth), -1, -1), K, cam_to_world)
-    pixel = uv.round().long()
-    seen = (z > 0) & (pixel[..., 0] >= 0) & (pixel[..., 0] < width) & (pixel[..., 1] >= 0) & (pixel[..., 1] < height)
-    flat = (pixel[..., 1].clamp(0, height - 1) * width + pixel[..., 0].clamp(0, width - 1))
-    reading = torch.gather(depth.reshape(len(depth), -1).double(), 1, flat)
-    return z, torch.where(seen, reading, 0.0), seen
 
 
 def view_votes(centres: Tensor, frames: DepthFrames, band: float, sigma_of_depth=kinect_sigma,

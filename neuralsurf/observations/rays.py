@@ -34,18 +34,12 @@ from functools import cached_property
 import torch
 from torch import Tensor, nn
 
+from neuralsurf.cameras import Rays, depth_rays, frame_readings, kinect_sigma
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.geometry import (
-    _depth_normals,
-    backproject_depth_to_camera,
-    kinect_sigma,
-    knn,
-    quadric_heights,
-)
+from neuralsurf.geometry import cloud_spacing, cloud_winding_number, knn, point_areas, quadric_heights
 from neuralsurf.losses import eikonal_loss
 from neuralsurf.observations.base import NotObserved, Observation, Sampler, check_weights
-from neuralsurf.observations.observed import ObservedSurface, frame_readings, observed_points
-from neuralsurf.sampling import cloud_spacing, point_areas, winding_number
+from neuralsurf.observations.observed import ObservedSurface, observed_points
 from neuralsurf.strategies import choose, names, register
 from neuralsurf.structures import DepthFrames, Normalization
 
@@ -54,7 +48,7 @@ RAY_TERMS = ("surface", "band", "free", "carve", "normal", "eikonal")
 
 @register("depth sigma", "kinect")
 def kinect_depth_sigma(z: Tensor, sigma: float) -> Tensor:
-    """Kinect v1's axial noise sigma at depths z [...] metres (`geometry.kinect_sigma`; `sigma` unused)."""
+    """Kinect v1's axial noise sigma at depths z [...] metres (`cameras.kinect_sigma`; `sigma` unused)."""
     return kinect_sigma(z)
 
 
@@ -63,62 +57,6 @@ def constant_depth_sigma(z: Tensor, sigma: float) -> Tensor:
     """`sigma` metres at every depth z [...]."""
     return torch.full_like(z, sigma)
 DEFAULT_RAY_WEIGHTS = {"surface": 3.0, "band": 1.0, "free": 100.0, "carve": 1.0, "normal": 0.5, "eikonal": 0.03}
-
-
-@dataclass(frozen=True)
-class Rays:
-    """Rays of valid pixels in one frame of reference (world or unit)."""
-
-    origins: Tensor
-    """Float[Tensor, "r 3"]: camera centres."""
-    directions: Tensor
-    """Float[Tensor, "r 3"]: unit directions."""
-    hit: Tensor
-    """Float[Tensor, "r"]: distance along the ray to the measured surface."""
-    sigma: Tensor
-    """Float[Tensor, "r"]: sensor noise standard deviation along the ray at the hit."""
-    cosine: Tensor
-    """Float[Tensor, "r"]: |cos| between the ray and the depth map's normal at the hit (1 where unknown)."""
-    normals: Tensor
-    """Float[Tensor, "r 3"]: the depth map's normal at the hit, facing the camera, of length its confidence
-    1 / (1 + (sigma / pixel spacing)^2)^2, pixel spacing = depth / fx (0 where unknown)."""
-
-
-def depth_rays(frames: DepthFrames, sigma_of_depth=kinect_sigma, max_depth_jump: float = 0.05,
-               chunk: int = 8, pixel_stride: int = 1) -> Rays:
-    """World-frame rays of the valid pixels of `frames` at every `pixel_stride`-th row and column, ordered
-    by frame, row, column.
-
-    The measured z-depth becomes a distance along the ray (z |d| for the camera-frame direction
-    d = K^-1 (u, v, 1)); `sigma_of_depth` maps z-depth to the axial noise sigma (metres), scaled
-    the same way. Normals and their confidence come from the full-resolution depth map (neighbours one
-    pixel away, `geometry._depth_normals`) whatever the stride. `chunk` frames are processed at once
-    (bounds memory, same result). Raises InputError when no pixel is valid.
-    """
-    if not (frames.depth > 0).any():
-        raise InputError(f"all {frames.depth.numel()} depth pixels of the {len(frames)} frames are missing (0); "
-                         f"nothing to fit: check the depth scale (metres) and the invalid-value code")
-    s = pixel_stride
-    parts = []
-    for start in range(0, len(frames), chunk):
-        full, K = frames.depth[start : start + chunk], frames.K[start : start + chunk]
-        normals, has_normal = _depth_normals(backproject_depth_to_camera(full, K), max_depth_jump, s)
-        depth = full[:, ::s, ::s]
-        valid = depth > 0
-        unit_depth = backproject_depth_to_camera(torch.ones_like(full), K)[:, ::s, ::s]  # camera rays at z = 1
-        length = unit_depth.norm(dim=-1)  # ray length per unit z-depth
-        directions = unit_depth / length[..., None]
-        cosine = torch.where(has_normal, (normals * directions).sum(-1).abs(), torch.ones_like(length))
-        pose = frames.cam_to_world[start : start + chunk].to(depth)
-        world = torch.einsum("nij,nhwj->nhwi", pose[:, :3, :3], directions)
-        # a finite-difference normal is as good as the depth noise is small against the pixel spacing
-        sigma, spacing = sigma_of_depth(depth), depth / K[:, 0, 0, None, None]
-        confidence = has_normal / (1 + (sigma / spacing.clamp_min(1e-12)) ** 2) ** 2
-        world_normals = torch.einsum("nij,nhwj->nhwi", pose[:, :3, :3], normals) * confidence[..., None]
-        origins = pose[:, None, None, :3, 3].expand_as(world)
-        parts.append(Rays(origins[valid], world[valid], (depth * length)[valid],
-                          (sigma * length)[valid], cosine[valid], world_normals[valid]))
-    return Rays(*(torch.cat([getattr(p, name) for p in parts]) for name in Rays.__dataclass_fields__))
 
 
 def strided_count(depth: Tensor, stride: int) -> int:
@@ -213,11 +151,11 @@ def winding_labels(points: Tensor, rays: Rays, n_points: int, seed: int = 0, tol
     if len(hits) < 2 or not len(points):
         return labels
     areas = point_areas(hits)
-    cameras = winding_number(rays.origins.unique(dim=0).double(), hits, normals, areas).median()
+    cameras = cloud_winding_number(rays.origins.unique(dim=0).double(), hits, normals, areas).median()
     if (cameras - cameras.round()).abs() >= tolerance / 2:
         return labels
     far = knn(points.double(), hits, 1)[0][:, 0] > 3 * cloud_spacing(hits)
-    w = winding_number(points[far].double(), hits, normals, areas)
+    w = cloud_winding_number(points[far].double(), hits, normals, areas)
     free, inside = (w - cameras).abs() < tolerance, (w - cameras - 1).abs() < tolerance
     labels[far] = torch.where(free, 1, torch.where(inside, -1, 0)).to(labels)
     return labels
@@ -467,14 +405,16 @@ class DepthRays(Observation):
                           f"raise max_rays (memory grows with it) or set pixel_stride to choose", stacklevel=3)
         return stride
 
-    def _world_rays(self) -> Rays:
+    @cached_property
+    def world_rays(self) -> Rays:
+        """The frames' world-frame rays at `stride` (`depth_rays`), built once for `bounds` and `prepare`."""
         return depth_rays(self.frames.to("cpu"), self._sigma_of_depth(), pixel_stride=self.stride)
 
     def bounds(self) -> Tensor:
-        return hit_bounds(self._world_rays())
+        return hit_bounds(self.world_rays)
 
     def prepare(self, normalization: Normalization, box: float, device: torch.device, seed: int) -> RaySampler:
-        rays = self._world_rays()
+        rays = self.world_rays
         bounds = hit_bounds(rays)  # of every ray, before the denoising
         if self.denoise_k:
             rays = denoise_hits(rays, self.denoise_k)

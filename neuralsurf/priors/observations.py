@@ -25,9 +25,9 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from neuralsurf.cameras import backproject_depth
 from neuralsurf.distributed import rank_and_world, shard_rows
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.geometry import backproject_depth
 from neuralsurf.losses import clamped_l1
 from neuralsurf.observations.base import Observation, Sampler, check_weights
 from neuralsurf.priors.cache import cache_path, load_cache, read_manifest

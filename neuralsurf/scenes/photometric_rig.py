@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.io.meshes import vertex_normals
+from neuralsurf.geometry import vertex_normals
 from neuralsurf.scenes.scanner import intrinsics_from_fov, orbit_cameras
 from neuralsurf.structures import Mesh, PhotometricCapture, check_intrinsics
 

@@ -17,9 +17,10 @@ from pathlib import Path
 import torch
 
 from neuralsurf.baselines.tracking import track_frames
+from neuralsurf.cameras import depth_to_cloud
 from neuralsurf.data import DATASETS, cache_dir, find_folder
 from neuralsurf.errors import ConfigError, MissingDependencyError, NeuralsurfError
-from neuralsurf.geometry import cloud_from_mesh, depth_to_cloud
+from neuralsurf.geometry import cloud_from_mesh
 from neuralsurf.io import (
     read_mesh,
     read_photometric,

@@ -20,8 +20,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from neuralsurf.cameras import kinect_sigma, render_depth
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.geometry import kinect_sigma, render_depth  # sensor geometry; re-exported here
 from neuralsurf.strategies import choose, names, register
 from neuralsurf.structures import DepthFrames, Mesh, check_intrinsics
 
@@ -242,10 +242,8 @@ __all__ = [
     "gaussian_noise",
     "intrinsics_from_fov",
     "kinect_noise",
-    "kinect_sigma",
     "look_at",
     "no_noise",
     "orbit_cameras",
-    "render_depth",
     "scan_depth",
 ]

@@ -54,10 +54,10 @@ from neuralsurf.baselines.tsdf.voxels import (
     pad_image,
     pixel_weights,
 )
+from neuralsurf.cameras import backproject_depth
 from neuralsurf.devices import CompiledOnCPU, resolve_device
 from neuralsurf.errors import ConfigError, ExtractionError, InputError
 from neuralsurf.extract import as_bounds
-from neuralsurf.geometry import backproject_depth
 from neuralsurf.marching import cube_triangles, merge_edge_vertices
 from neuralsurf.progress import progress_bar
 from neuralsurf.structures import DepthFrames, Mesh, float_colors

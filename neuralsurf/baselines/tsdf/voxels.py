@@ -23,7 +23,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from neuralsurf.geometry import kinect_sigma
+from neuralsurf.cameras import kinect_sigma
 
 
 def pixel_weights(depth: Tensor, weighting: str) -> Tensor:
