@@ -37,13 +37,14 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 import neuralsurf as ns
+from neuralsurf.cameras import render_depth
 from neuralsurf.evaluation.distances import held_out_error_image
-from neuralsurf.evaluation.methods import extract_scene_mesh, tsdf
+from neuralsurf.evaluation.methods import tsdf
 from neuralsurf.evaluation.rooms import open3d_tsdf
 from neuralsurf.evaluation.runner import peak_memory_mb, reset_peak_memory
-from neuralsurf.cameras import render_depth
 from neuralsurf.metrics import common_pixel_errors, depth_metrics, held_out_errors
 from neuralsurf.rooms import RoomSettings, fit_room
+from neuralsurf.scenes import extract_scene_mesh
 from neuralsurf.scenes.recipes import SceneUnavailable
 
 SCENES = ("redkitchen", "livingroom1", "tum_fr1_desk")

@@ -36,10 +36,9 @@ from neuralsurf.distributed import (
 from neuralsurf.errors import ConfigError, NeuralsurfError
 from neuralsurf.evaluation import run_benchmark
 from neuralsurf.evaluation.jobs import job_threads, row_settings, set_threads, shard_pairs
-from neuralsurf.evaluation.methods import extract_scene_mesh
 from neuralsurf.evaluation.render import interpolation_picture
 from neuralsurf.evaluation.report import metrics_table
-from neuralsurf.evaluation.runner import environment, seed_everything
+from neuralsurf.evaluation.runner import environment
 from neuralsurf.evaluation.store import cached_scene, rebuild_report, settings_key
 from neuralsurf.io import read_mesh, write_mesh
 from neuralsurf.io.meshes import mesh_format
@@ -50,8 +49,9 @@ from neuralsurf.priors import ShapeCollection, score_completions, train_prior
 from neuralsurf.priors.folders import FolderCollection
 from neuralsurf.rooms import RoomSettings, fit_room
 from neuralsurf.runlock import busy_message, claim, run_lock
+from neuralsurf.scenes import extract_scene_mesh
 from neuralsurf.structures import Mesh
-from neuralsurf.training import fit
+from neuralsurf.training import fit, seed_everything
 
 log = logging.getLogger("neuralsurf")
 

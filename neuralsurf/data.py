@@ -71,6 +71,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from neuralsurf.errors import ConfigError, DownloadError, FileFormatError, NeuralsurfError
+from neuralsurf.io.rgbd import SEVEN_SCENES_K
 from neuralsurf.progress import progress_bar
 
 __all__ = ["DATASETS", "Dataset", "cache_dir", "check_manifest", "download", "fetch", "locate", "main",
@@ -188,10 +189,6 @@ def _manifest(name: str) -> dict[str, str]:
     no such file (no checksum of its files is known)."""
     path = MANIFESTS / f"{name}.sha256"
     return read_manifest(path) if path.is_file() else {}
-
-
-SEVEN_SCENES_K = ((585.0, 0.0, 320.0), (0.0, 585.0, 240.0), (0.0, 0.0, 1.0))
-"""The intrinsics 7-Scenes publishes for its depth camera (640 x 480), 3 x 3."""
 
 
 def _matrix_text(values: Sequence[float], columns: int) -> str:

@@ -23,10 +23,10 @@ import torch
 
 from neuralsurf.checkpoints import CHECKPOINT_NAME, PRIOR_CLASSES, load_checkpoint, load_field, stored_class
 from neuralsurf.errors import ConfigError, NeuralsurfError
-from neuralsurf.evaluation.methods import extract_scene_mesh
 from neuralsurf.extract import extract_mesh
 from neuralsurf.io import write_mesh
 from neuralsurf.io.meshes import mesh_format
+from neuralsurf.scenes import extract_scene_mesh
 from neuralsurf.structures import Mesh
 
 log = logging.getLogger("neuralsurf")

@@ -137,7 +137,7 @@ def test_observed_points_lie_in_observed_voxels_and_feed_the_carve_pool():
 
 
 def test_extract_scene_mesh_meshes_a_room_where_its_frames_saw_a_surface():
-    from neuralsurf.evaluation.methods import extract_scene_mesh
+    from neuralsurf.scenes import extract_scene_mesh
     from neuralsurf.scenes.recipes import depth_scene
 
     scene = depth_scene("plane", plane_frames(), cloud_stride=4, near_distance=0.05)

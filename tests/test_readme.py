@@ -75,7 +75,8 @@ def readme_python_blocks() -> list[str]:
 def workspace(tmp_path_factory) -> Path:
     """A scratch folder with the repository's entry points linked in and the user files the README names."""
     from neuralsurf.io import write_mesh, write_point_cloud
-    from neuralsurf.scenes import Sphere, sample_surface
+    from neuralsurf.geometry import cloud_from_mesh
+    from neuralsurf.scenes import Sphere
 
     folder = tmp_path_factory.mktemp("readme")
     for name in ("train.py", "evaluate.py", "install.sh", ".venv", "pyproject.toml"):
@@ -84,7 +85,7 @@ def workspace(tmp_path_factory) -> Path:
     sphere = Sphere(radius=0.3).mesh()
     write_mesh(folder / "gt.ply", sphere)
     write_mesh(folder / "mesh.ply", Sphere(radius=0.305).mesh())
-    write_point_cloud(folder / "scan.ply", sample_surface(sphere, n=5000, noise=0.0, seed=0))
+    write_point_cloud(folder / "scan.ply", cloud_from_mesh(sphere, n=5000, noise=0.0, seed=0))
     write_capture(folder / "my_capture")
     write_frames_only_capture(folder / "my_frames")
     return folder

@@ -21,11 +21,9 @@ from neuralsurf.baselines import TSDFVolume, reconstruct_poisson
 from neuralsurf.checkpoints import load_field
 from neuralsurf.devices import resolve_device
 from neuralsurf.errors import NeuralsurfError
-from neuralsurf.extract import NearPointsField, extract_mesh
 from neuralsurf.observations import NotObserved
-from neuralsurf.observations.observed import ObservedSurface, extract_observed
 from neuralsurf.priors import complete_cloud, complete_view, extract_unit, load_prior, trained_prior
-from neuralsurf.scenes import Scene
+from neuralsurf.scenes import Scene, extract_scene_mesh
 from neuralsurf.structures import Mesh
 from neuralsurf.training import default_optimizer, fit
 
@@ -40,20 +38,6 @@ def scene_input(scene: Scene) -> str:
         return (f"{scene.name} is a photometric capture (images under known lights)"
                 f"{' with a point cloud' if scene.cloud is not None and not scene.cloud_from_truth else ''}")
     return f"{scene.name} is a point cloud"
-
-
-def extract_scene_mesh(field: nn.Module, scene: Scene, extract: dict[str, Any] | None = None) -> Mesh:
-    """`extract_mesh(field, **extract)` for a world-frame field fitted to `scene`; a room (the scene's
-    `near_distance`, or a `near_distance` option) is meshed only that close to its input points, or with an
-    `observed_voxel` option only where its frames observed a surface (`extract_observed`, voxels of that size)."""
-    options = dict(extract or {})
-    options.pop("format", None)  # the file format of train.py's mesh, not an extract_mesh argument
-    voxel = options.pop("observed_voxel", None)
-    near = options.pop("near_distance", None) or scene.near_distance
-    if voxel and near is not None and scene.frames is not None:
-        kept = {k: options[k] for k in ("resolution", "chunk_size", "level", "progress") if k in options}
-        return extract_observed(field, ObservedSurface.from_frames(scene.frames, voxel), **kept)
-    return extract_mesh(field if near is None else NearPointsField(field, scene.cloud.points, near), **options)
 
 
 def fit_and_extract(scene: Scene, model: nn.Module | None = None,

@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import math
 import platform
-import random
 import re
 import time
 import traceback
@@ -37,6 +36,7 @@ from neuralsurf.priors import mean_metrics
 from neuralsurf.scenes import Scene, SceneUnavailable
 from neuralsurf.scenes.recipes import SceneSet
 from neuralsurf.structures import Mesh
+from neuralsurf.training import seed_everything
 
 SceneFactory = Callable[[], Scene]
 MethodFactory = Callable[[], Callable[..., Mesh]]
@@ -81,12 +81,6 @@ def peak_memory_mb() -> tuple[float, float]:
         pass
     cuda = torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else math.nan
     return rss, cuda
-
-
-def seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
 
 
 def check_mesh(mesh: Any) -> Mesh:

@@ -1,8 +1,8 @@
 """Built-in data: the Stanford bunny, analytic shapes with exact SDFs, synthetic scanners, scene recipes."""
 
-from neuralsurf.geometry import cloud_from_mesh as sample_surface
 from neuralsurf.scenes.analytic import Box, Sphere, Torus, analytic_shape
 from neuralsurf.scenes.bunny import bunny, bunny_path
+from neuralsurf.scenes.photometric_rig import SpecularLobe, cap_lights, render_photometric, ring_lights  # noqa: F401
 from neuralsurf.scenes.recipes import (
     Scene,
     SceneUnavailable,
@@ -12,6 +12,7 @@ from neuralsurf.scenes.recipes import (
     bunny_specular_ps,
     data_root,
     depth_scene,
+    extract_scene_mesh,
     file_scene,
     mesh_scene,
     redkitchen,
@@ -22,9 +23,8 @@ from neuralsurf.scenes.recipes import (
     stanford_scans,
 )
 from neuralsurf.scenes.scanner import look_at, orbit_cameras, scan_depth
-from neuralsurf.scenes.photometric_rig import SpecularLobe, cap_lights, render_photometric, ring_lights  # noqa: F401
 
 __all__ = ["Box", "Scene", "SceneUnavailable", "Sphere", "Torus", "analytic_scene", "analytic_shape", "bunny",
-           "bunny_depth", "bunny_path", "bunny_points", "bunny_specular_ps", "data_root", "depth_scene", "file_scene", "look_at",
-           "mesh_scene", "orbit_cameras", "redkitchen", "rgbd_scene", "rig_fusion", "rig_lambertian", "rig_specular", "sample_surface", "scan_depth",
+           "bunny_depth", "bunny_path", "bunny_points", "bunny_specular_ps", "data_root", "depth_scene", "extract_scene_mesh", "file_scene", "look_at",
+           "mesh_scene", "orbit_cameras", "redkitchen", "rgbd_scene", "rig_fusion", "rig_lambertian", "rig_specular", "scan_depth",
            "stanford_scans"]

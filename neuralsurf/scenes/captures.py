@@ -11,7 +11,7 @@ import torch
 
 from neuralsurf.io import read_image_list
 from neuralsurf.photometric import calibrate_chrome_ball, sphere_from_mask
-from neuralsurf.scenes.recipes import Scene, SceneUnavailable, _unavailable, data_path
+from neuralsurf.scenes.recipes import Scene, SceneUnavailable, data_path, scene_unavailable
 from neuralsurf.structures import PhotometricCapture, PointCloud
 
 
@@ -44,7 +44,7 @@ def uw_gray_sphere(name: str = "uw_gray_sphere", root: str | None = None, folder
     lists = [path / f"{sphere}.txt", path / f"{chrome}.txt"]
     for needed in lists:
         if not needed.is_file():
-            raise _unavailable(needed, Path(folder).parts[0])
+            raise scene_unavailable(needed, Path(folder).parts[0])
     chrome_images, chrome_mask = read_image_list(lists[1])
     images, mask = read_image_list(lists[0])
     if chrome_mask is None or mask is None:

@@ -13,6 +13,7 @@ import warnings
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -20,6 +21,7 @@ from neuralsurf.baselines.tracking import track_frames
 from neuralsurf.cameras import depth_to_cloud
 from neuralsurf.data import DATASETS, cache_dir, find_folder
 from neuralsurf.errors import ConfigError, MissingDependencyError, NeuralsurfError
+from neuralsurf.extract import NearPointsField, extract_mesh
 from neuralsurf.geometry import cloud_from_mesh
 from neuralsurf.io import (
     read_mesh,
@@ -30,6 +32,7 @@ from neuralsurf.io import (
     read_rgbd_folder,
 )
 from neuralsurf.io.rgbd import has_poses, read_depth_frames
+from neuralsurf.observations.observed import ObservedSurface, extract_observed
 from neuralsurf.photometric import PhotometricStereoResult, integrate_least_squares, photometric_stereo
 from neuralsurf.scenes.analytic import analytic_shape
 from neuralsurf.scenes.bunny import bunny
@@ -79,6 +82,20 @@ class Scene:
     capture order) when the capture came without poses or they were not used; None otherwise."""
 
 
+def extract_scene_mesh(field: torch.nn.Module, scene: Scene, extract: dict[str, Any] | None = None) -> Mesh:
+    """`extract_mesh(field, **extract)` for a world-frame field fitted to `scene`; a room (the scene's
+    `near_distance`, or a `near_distance` option) is meshed only that close to its input points, or with an
+    `observed_voxel` option only where its frames observed a surface (`extract_observed`, voxels of that size)."""
+    options = dict(extract or {})
+    options.pop("format", None)  # the file format of train.py's mesh, not an extract_mesh argument
+    voxel = options.pop("observed_voxel", None)
+    near = options.pop("near_distance", None) or scene.near_distance
+    if voxel and near is not None and scene.frames is not None:
+        kept = {k: options[k] for k in ("resolution", "chunk_size", "level", "progress") if k in options}
+        return extract_observed(field, ObservedSurface.from_frames(scene.frames, voxel), **kept)
+    return extract_mesh(field if near is None else NearPointsField(field, scene.cloud.points, near), **options)
+
+
 def data_root(root: str | Path | None = None) -> Path:
     """The folder of real captures: `root` if given, else $NEURALSURF_DATA, else the cache that
     `python -m neuralsurf data fetch` fills (neuralsurf.data.cache_dir())."""
@@ -93,7 +110,7 @@ def data_path(root: str | Path | None, relative: str | Path) -> Path:
     return found[1] if found is not None else data_root(root) / relative
 
 
-def _unavailable(path: Path, holder: str) -> SceneUnavailable:
+def scene_unavailable(path: Path, holder: str) -> SceneUnavailable:
     """The error of a scene whose data `path` is missing: the command that fetches the data set of folder
     `holder` (when neuralsurf.data has one), or point data_root at the folder holding `holder`/."""
     name = next((name for name, dataset in DATASETS.items() if dataset.folder == holder), None)
@@ -211,7 +228,7 @@ def rgbd_capture(name: str, folder: str, root: str | None = None, stride: int = 
     (`rgbd_scene`). Raises SceneUnavailable naming the command that fetches it when the folder is absent."""
     path = data_path(root, folder)
     if not path.is_dir():
-        raise _unavailable(path, folder)
+        raise scene_unavailable(path, folder)
     return rgbd_scene(str(path), name, stride, max_frames, hold_out_every, cloud_stride, near_distance=near_distance,
                       colors=colors)
 
@@ -235,7 +252,7 @@ def stanford_scans(name: str = "stanford_scans", root: str | None = None, conf: 
     conf_path, gt_path = base / conf, base / ground_truth
     for path in (conf_path, gt_path):
         if not path.is_file():
-            raise _unavailable(path, holder)
+            raise scene_unavailable(path, holder)
     clouds = read_range_scans(conf_path)
     points = torch.cat([c.points.double() for c in clouds])
     normals = torch.cat([c.normals.double() for c in clouds]) if all(c.has_normals for c in clouds) else None
@@ -295,7 +312,7 @@ def bunny_specular_ps(name: str = "bunny_specular_ps", root: str | None = None,
     normals (orthographic, pixel units), only so that the scene is complete; score normals on it."""
     path = data_path(root, folder)
     if not path.is_dir():
-        raise _unavailable(path, folder)
+        raise scene_unavailable(path, folder)
     capture = read_photometric(path)
     if capture.normals is None:
         raise SceneUnavailable(f"{path} has no ground-truth normals (Normal_gt.png / .mat) to score against")
