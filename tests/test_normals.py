@@ -147,8 +147,8 @@ def test_direction_orientation():
     assert (normals @ direction >= 0).all()
 
 
-def test_training_call_sites_unchanged():
-    """training.prepare_cloud calls estimate_normals(points, k) then orient_normals(points, normals, k).
+def test_float32_normals_estimated_then_oriented_all_face_outward():
+    """estimate_normals(points, k) then orient_normals(points, normals, k), as a point fit prepares a cloud.
 
     float32 on purpose: rounding gave |cos| > 1, negative MST weights and 1.5 % flipped normals."""
     points = sphere_points(1000).float()

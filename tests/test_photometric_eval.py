@@ -24,7 +24,7 @@ def run(tmp_path, overrides):
     return evaluate(cfg)
 
 
-def test_photometric_suite_composes_with_the_issue_names():
+def test_photometric_suite_composes_its_scenes_and_methods():
     cfg = compose_evaluate(["suite=photometric"])
     assert list(cfg.scenes) == ["rig_lambertian", "rig_specular", "bunny_specular_ps", "rig_fusion"]
     assert list(cfg.methods) == ["ps_least_squares", "ps_robust", "neural_depth", "neural_depth_normals",

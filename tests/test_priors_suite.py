@@ -37,7 +37,7 @@ def compose_priors(tmp_path, overrides=()):
     return cfg
 
 
-def test_the_suite_has_the_issues_names():
+def test_the_priors_suite_composes_its_scenes_and_methods():
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         cfg = compose(config_name="evaluate", overrides=["suite=priors"])
     assert list(cfg.scenes) == ["shapes_cloud", "shapes_one_view"]

@@ -59,12 +59,10 @@ def test_fit_learns_a_sphere_in_the_world_frame():
     assert result.steps == 150 and len(result.history["step"]) == 30
 
 
-def test_moving_the_point_maths_into_point_samples_changed_no_number():
-    """The oracle of the move into neuralsurf.observations: this fit's loss history as the code before
-    the move (7ae1b8d, fit(model, cloud, batch_size=256, sampling=...)) printed it on this machine.
-    The move left the arithmetic unchanged and was bit-identical here (x86_64, torch 2.13 CPU); since
-    then the hash grid interpolates by three lerps (same maths, other rounding: 1.3e-7 relative at
-    most here), and other CPUs may round differently in the last digits, hence the 1e-6 tolerance."""
+def test_a_seeded_point_fit_repeats_its_recorded_loss_history():
+    """This seeded fit's loss history, recorded on x86_64 with torch 2.13 on the CPU: the point samples'
+    arithmetic is fixed. Other CPUs may round differently in the last digits (the hash grid's three lerps:
+    1.3e-7 relative at most here), hence the 1e-6 tolerance."""
     before = [0.25447213649749756, 0.1533888876438141, 0.11846824735403061, 0.1157514676451683]
     result = fit(tiny_model(), points(sphere_cloud()), steps=20, **TINY)
     assert result.history["total"] == pytest.approx(before, rel=1e-6)
