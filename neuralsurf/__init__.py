@@ -1,6 +1,17 @@
 """neuralsurf: neural implicit surfaces and classical baselines for 3D surface reconstruction."""
 
-from neuralsurf import baselines, cameras, geometry, io, losses, metrics, models, observations, photometric, scenes
+from neuralsurf import (
+    baselines,
+    cameras,
+    geometry,
+    io,
+    losses,
+    metrics,
+    models,
+    observations,
+    photometric,
+    scenes,
+)
 from neuralsurf.checkpoints import load_field
 from neuralsurf.errors import (
     CheckpointError,

@@ -74,8 +74,8 @@ def readme_python_blocks() -> list[str]:
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory) -> Path:
     """A scratch folder with the repository's entry points linked in and the user files the README names."""
-    from neuralsurf.io import write_mesh, write_point_cloud
     from neuralsurf.geometry import cloud_from_mesh
+    from neuralsurf.io import write_mesh, write_point_cloud
     from neuralsurf.scenes import Sphere
 
     folder = tmp_path_factory.mktemp("readme")
