@@ -10,7 +10,7 @@ solved by conjugate gradients (`solve_on_rays`). The field has values only at th
 so no surface appears in space no frame saw; its mesh is marching cubes of the grid itself (cells with all
 corners observed, as TSDF meshes).
 
-Sizes are metres: a room is at the sensor's scale, and its noise (`geometry.kinect_sigma`) is too. One setting
+Sizes are metres: a room is at the sensor's scale, and its noise (`cameras.kinect_sigma`) is too. One setting
 serves every room (`RoomSettings`' defaults); objects take voxels in proportion to their box instead.
 """
 

@@ -37,8 +37,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.baselines.tsdf import TSDFVolume
-from neuralsurf.cameras import backproject_depth_to_camera
-from neuralsurf.cameras import depth_normals as _depth_normals
+from neuralsurf.cameras import backproject_depth_to_camera, depth_normals, pixel_rays
 from neuralsurf.devices import CompiledOnCPU
 from neuralsurf.errors import ConfigError, InputError, NeuralsurfError
 from neuralsurf.progress import progress_bar
@@ -146,13 +145,13 @@ class SurfaceMap:
 
 def surface_maps(depth: Tensor, K: Tensor, levels: int, max_jump: float, stride: int = 1) -> list[SurfaceMap]:
     """`SurfaceMap` of every level of `depth_pyramid(depth Float[Tensor, "h w"], K, levels, max_jump)`;
-    normals from image neighbours (`geometry._depth_normals`, discontinuities above 5 % of the depth).
+    normals from image neighbours (`cameras.depth_normals`, discontinuities above 5 % of the depth).
     `stride`: level 0 keeps every stride-th row and column only (a source's points, not a model's pixels)."""
     maps = []
     for level, (level_depth, level_K) in enumerate(depth_pyramid(depth, K, levels, max_jump)):
         points = backproject_depth_to_camera(level_depth[None], level_K[None])
         step = stride if level == 0 else 1
-        normals, has = _depth_normals(points, 0.05, step)
+        normals, has = depth_normals(points, 0.05, step)
         valid = has[0] & (level_depth[::step, ::step] > 0)
         maps.append(SurfaceMap(points[0, ::step, ::step], normals[0], valid, level_K))
     return maps
@@ -204,7 +203,7 @@ def raycast_volume(volume: TSDFVolume, guide: Tensor, K: Tensor, cam_to_world: T
                    slots: Tensor | None = None, compiled: bool = False) -> Tensor:
     """Depth of the zero crossing of `volume`'s TSDF seen by a camera, found from a guess of it.
 
-    The fused distances are projective z-differences (`tsdf_voxels`), so along a ray from a camera near
+    The fused distances are projective z-differences (`baselines.tsdf.voxels`), so along a ray from a camera near
     the fusing ones the surface lies at z + tsdf(z): starting at `guide`, `steps` such updates of z
     (each a `trilinear_tsdf` sample), kept where the last sample was observed and within half the
     truncation of zero (not clipped: the surface is inside the band).
@@ -220,7 +219,7 @@ def raycast_volume(volume: TSDFVolume, guide: Tensor, K: Tensor, cam_to_world: T
     if not (isinstance(steps, int) and steps >= 1):
         raise ConfigError(f"raycast steps must be a positive integer, got {steps!r}")
     slots = block_slots(volume) if slots is None else slots
-    rays = backproject_depth_to_camera(torch.ones_like(guide)[None], K[None])[0]  # (h, w, 3), z = 1
+    rays = pixel_rays(K, *guide.shape)  # (h, w, 3), z = 1
     searched = guide > 0
     pose = cam_to_world.to(guide)
     origin = torch.as_tensor(volume.origin, dtype=guide.dtype, device=guide.device)
