@@ -389,10 +389,11 @@ def register_maps(source: list[SurfaceMap], model: list[SurfaceMap], init: Tenso
 # ----------------------------------------------------------------------------- tracker
 
 
-_COMPILED_FRAMES = 200
-"""track_frames(compiled=None) compiles the tracker's loops on a CPU for sequences of this many frames or more:
-compiling takes about half a minute once per process (less from torch's on-disk cache) and saves a few hundred
-milliseconds of CPU a frame (docs/tracking.md)."""
+_COMPILED_FRAMES = 500
+"""track_frames(compiled=None) compiles the tracker's loops on a CPU for sequences of this many frames or more.
+Measured on the 2-core CPU (benchmarks/bench_tracking.py): compiling took 11 s from torch's on-disk cache and
+about a minute without it; compiled frames took 28 ms (livingroom1) and 42 ms (redkitchen) less CPU than eager
+ones, so compiling pays from a few hundred frames on."""
 
 
 def implementation(function, compiled: bool, device: torch.device):
