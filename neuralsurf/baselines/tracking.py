@@ -407,7 +407,7 @@ class Tracker:
     Args:
         K: Float[Tensor, "3 3"] intrinsics of every frame.
         mode: "model" (frame-to-model against the fused TSDF) or "frame" (frame-to-frame).
-        levels: pyramid levels (level 0 the full image).
+        levels: pyramid levels (level 0 the registered frame, see `downsample`).
         iterations: Gauss-Newton steps per level, finest first (one per level).
         kernel, kernel_scale: robust kernel ("huber", "tukey", "none") and its scale in metres.
         max_distance: correspondences further apart (metres) are rejected.
@@ -417,20 +417,20 @@ class Tracker:
         voxel_size, truncation: the TSDF volume of mode "model" (metres; truncation default 3 voxels).
         margin: the volume's box is the first frame's points grown by this (metres) in every direction.
         initial_pose: Float[Tensor, "4 4"] pose of the first frame (default identity).
-        raycast_level: the pyramid level at which the model is raycast (0: full size; coarser is faster, and
+        raycast_level: the pyramid level at which the model is raycast (0: the registered size; coarser is faster, and
             its coarser levels are downsampled from it; finer source levels associate with it).
         smoothing: radius (pixels) of the `bilateral_filter` of the depth that is registered (0: none).
         constant_velocity: start each frame's ICP from the previous frame's motion repeated (else from
             the previous pose, as KinectFusion).
         finest_stride: the finest level registers every finest_stride-th row and column of the frame
-            (1: every pixel, as KinectFusion; 2, the default, is about 4 times cheaper there and tracked
-            livingroom1 and redkitchen to the same ATE).
+            (1: every pixel, as KinectFusion; 2, the default, is about 4 times cheaper there).
         downsample: frames are registered and fused at 1 / 2^downsample of their size (`depth_pyramid`'s block
             means; 0: full size); the pyramid's levels, the raycast and `finest_stride` count from there. None:
             the most halvings that keep the width at 320 pixels or more (1 for VGA frames, which tracked
             livingroom1 and redkitchen to the ATE of full size in a third of the time).
         compiled: on a CPU, run the raycast's volume sampling and the ICP iterations through torch.compile
-            (`implementation`): faster a frame after a compilation of about half a minute.
+            (`implementation`): about a third less CPU a frame after a compilation of 10 s (from torch's on-disk
+            cache) to a minute.
     """
 
     def __init__(self, K: Tensor, mode: str = "model", levels: int = 3, iterations: tuple[int, ...] = (4, 5, 10),
