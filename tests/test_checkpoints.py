@@ -107,6 +107,7 @@ def compose_train(overrides):
     return cfg
 
 
+@pytest.mark.slow
 def test_resuming_a_run_made_with_other_settings_names_the_keys(tmp_path):
     from neuralsurf.cli import train
 

@@ -83,6 +83,7 @@ def test_data_observation_and_optimizer_configs_instantiate():
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
+@pytest.mark.slow
 def test_every_experiment_runs_a_few_steps(experiment, tmp_path):
     from neuralsurf.cli import train
 

@@ -353,6 +353,7 @@ def _neuralsurf(*args: str, env: dict[str, str]) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.subprocess
+@pytest.mark.slow
 def test_python_dash_m_neuralsurf_data_list_and_fetch(tmp_path):
     (tmp_path / "mine" / "stanford_bunny").mkdir(parents=True)
     (tmp_path / "cache" / "7scenes_redkitchen_every10").mkdir(parents=True)

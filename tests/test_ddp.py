@@ -85,6 +85,7 @@ def collection(tmp_path_factory):
 
 
 @pytest.mark.subprocess
+@pytest.mark.slow
 def test_two_processes_match_one_with_the_same_global_batch_and_resume(collection, tmp_path):
     single = _fit(collection)
     two = _spawn(collection, tmp_path / "straight")

@@ -77,6 +77,7 @@ def sequential(tmp_path_factory) -> Path:
 
 
 @pytest.mark.subprocess
+@pytest.mark.slow
 def test_a_killed_run_keeps_its_finished_rows_and_a_rerun_computes_only_the_rest(tmp_path, sequential):
     script = tmp_path / "crashing_evaluate.py"
     script.write_text(CRASHING.format(method="poisson"))
@@ -161,6 +162,7 @@ def test_a_changed_setting_reruns_only_its_row(tmp_path, caplog):
 
 
 @pytest.mark.subprocess
+@pytest.mark.slow
 def test_joblib_jobs_give_the_rows_of_the_sequential_run_and_one_report(tmp_path, sequential):
     sweep = tmp_path / "sweep"
     out = evaluate_py(["-m", *TINY[:1], "methods=[neural_sdf],[poisson,tsdf]", "hydra/launcher=joblib",
@@ -175,6 +177,7 @@ def test_joblib_jobs_give_the_rows_of_the_sequential_run_and_one_report(tmp_path
 
 
 @pytest.mark.subprocess
+@pytest.mark.slow
 def test_submitit_local_jobs_write_one_results_folder(tmp_path, sequential):
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher", reason="pip install neuralsurf[cluster]")
     sweep = tmp_path / "sweep"

@@ -169,6 +169,7 @@ def test_neural_checkpoint_is_scored_again(tmp_path):
 
 
 @pytest.mark.subprocess
+@pytest.mark.slow
 def test_quick_suite_runs_as_a_user_runs_it(tmp_path):
     """`python evaluate.py suite=quick`, unchanged, in a subprocess: CI runs the quick suite itself (a few
     minutes on 2 cores), and its table lists every method x scene with sound numbers."""

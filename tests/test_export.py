@@ -127,6 +127,7 @@ def train(run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.subprocess
+@pytest.mark.slow
 def test_train_writes_the_extract_format(tmp_path):
     o3d = pytest.importorskip("open3d")
     done = train(tmp_path / "run", "extract.format=glb")

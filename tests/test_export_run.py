@@ -130,6 +130,7 @@ def test_export_of_an_evaluate_row_and_of_its_results_folder(tmp_path, capsys):
 
 
 @pytest.mark.subprocess
+@pytest.mark.slow
 def test_console_script_and_python_dash_m(run, tmp_path):
     script = Path(sys.executable).parent / "neuralsurf-export"
     if not script.is_file():

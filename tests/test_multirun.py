@@ -16,6 +16,7 @@ TINY = ["trainer.steps=4", "trainer.progress=false", "trainer.checkpoint_every=4
 
 
 @pytest.mark.subprocess
+@pytest.mark.slow
 def test_multirun_gives_one_run_directory_per_job(tmp_path):
     sweep = tmp_path / "sweep"
     command = [sys.executable, "train.py", "-m", "experiment=shapes_deepsdf_tiny", "model.latent_dim=8,16",

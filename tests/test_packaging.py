@@ -28,6 +28,7 @@ def test_score_compares_two_mesh_files_and_exits_0(tmp_path, capsys):
 
 
 @pytest.mark.subprocess
+@pytest.mark.slow
 def test_score_console_script_exits_0_and_its_help_is_whole(tmp_path):
     write_mesh(tmp_path / "a.ply", Sphere(radius=1.0).mesh())
     score = Path(sys.executable).parent / "neuralsurf-score"

@@ -18,6 +18,7 @@ def train(run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.subprocess
+@pytest.mark.slow
 def test_train_log_holds_a_progress_line_per_tenth_of_the_steps_and_the_warnings(tmp_path):
     overrides = ("experiment=sphere_sdf", "trainer.steps=40", "trainer.log_every=2", "extract.resolution=32",
                  "trainer.image_every=0")

@@ -361,6 +361,7 @@ def test_candidate_blocks_of_several_frames_are_each_frames_own(sphere_frames):
     assert torch.equal(keys, torch.unique(torch.cat(alone)))
 
 
+@pytest.mark.slow
 def test_compiled_fusion_equals_eager_fusion(sphere_frames):
     """compiled=True runs `tile_box_codes` and `fuse_blocks` through torch.compile: the same candidate
     blocks and the same fused values (depth weights, a weight cap, colour) as the same code run eagerly
