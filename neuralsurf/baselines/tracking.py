@@ -461,7 +461,7 @@ class Tracker:
         self.margin, self.raycast_level, self.smoothing = margin, raycast_level, int(smoothing)
         self.constant_velocity, self.finest_stride = bool(constant_velocity), int(finest_stride)
         self.downsample, self.compiled = downsample, bool(compiled)
-        self.K_registered: Tensor | None = None  # K of the registered frames, set by the first frame
+        self.K_registered: Tensor | None = None  # K of the registered (downsampled) frames
         self.initial_pose = torch.eye(4, dtype=torch.float64) if initial_pose is None else initial_pose.double()
         self.poses: list[Tensor] = []
         self.volume: TSDFVolume | None = None
@@ -503,13 +503,10 @@ class Tracker:
         """Register the next depth image Float[Tensor, "h w"] (metres, 0 invalid) and return its
         camera-to-world pose Float64[Tensor, "4 4"] (CPU); raises TrackingLostError naming the frame."""
         depth = torch.where(depth <= self.max_depth, depth, 0.0)
-        if self.K_registered is None:
-            if self.downsample is None:
-                self.downsample = max(int(math.log2(depth.shape[-1] / 320)), 0) if depth.shape[-1] >= 320 else 0
-            self.K_registered = self.K
-            for _ in range(self.downsample):
-                self.K_registered = downsample_intrinsics(self.K_registered)
-        registered = depth_pyramid(depth, self.K.to(depth), self.downsample + 1, self.max_distance / 2)[-1][0]
+        if self.downsample is None:
+            self.downsample = int(math.log2(depth.shape[-1] / 320)) if depth.shape[-1] >= 320 else 0
+        registered, self.K_registered = depth_pyramid(depth, self.K.to(depth), self.downsample + 1,
+                                                      self.max_distance / 2)[-1]
         index = len(self.poses)
         if index == 0:
             pose = self.initial_pose.cpu()

@@ -82,24 +82,23 @@ def open3d_tsdf(scene: Scene, *, voxel: float = 0.01, truncation_voxels: float =
 
 def localised_poses(mesh: Mesh, frames: DepthFrames, rounds: int = 2) -> tuple[Tensor, int]:
     """Poses of depth `frames` registered to `mesh`: from each frame's own pose, `rounds` times, the mesh's depth
-    ray-cast from the current pose and the frame's depth registered onto it (the tracker's frame-to-frame ICP, at
-full size and every pixel).
+    ray-cast from every frame's current pose (one ray-casting scene a round) and each frame's depth registered
+    onto it (the tracker's frame-to-frame ICP, at full size and every pixel).
     Returns Float64[Tensor, "n 4 4"] camera-to-world and the number of frames that could not be registered
     (they keep their pose)."""
-    poses, lost = [], 0
-    for i in range(len(frames)):
-        pose, K = frames.cam_to_world[i].double().cpu(), frames.K[i].cpu()
-        try:
-            for _ in range(rounds):
-                rendered, _ = render_depth(mesh, K[None], pose[None], frames.width, frames.height)
-                tracker = Tracker(K, mode="frame", initial_pose=pose, constant_velocity=False, downsample=0,
-                                  finest_stride=1)
-                tracker.track(rendered[0])
-                pose = tracker.track(frames.depth[i].cpu())
-        except TrackingLostError:
-            pose, lost = frames.cam_to_world[i].double().cpu(), lost + 1
-        poses.append(pose)
-    return torch.stack(poses), lost
+    given = frames.cam_to_world.double().cpu()
+    poses, K, lost = given.clone(), frames.K.cpu(), torch.zeros(len(frames), dtype=torch.bool)
+    for _ in range(rounds):
+        rendered, _ = render_depth(mesh, K, poses, frames.width, frames.height)
+        for i in torch.nonzero(~lost).flatten().tolist():
+            tracker = Tracker(K[i], mode="frame", initial_pose=poses[i], constant_velocity=False, downsample=0,
+                              finest_stride=1)
+            tracker.track(rendered[i])
+            try:
+                poses[i] = tracker.track(frames.depth[i].cpu())
+            except TrackingLostError:
+                poses[i], lost[i] = given[i], True
+    return poses, int(lost.sum())
 
 
 def localised_depth_metrics(mesh: Mesh, held_out: DepthFrames) -> dict[str, float]:
