@@ -19,16 +19,22 @@ import torch
 
 from neuralsurf.baselines.registration import point_to_plane_step
 from neuralsurf.baselines.tracking import (
+    GreyPair,
     Tracker,
     TrackingLostError,
     axis_angle_to_matrix,
     downsample_depth,
     downsample_intrinsics,
+    grey_pyramid,
+    photometric_rows,
     point_to_plane_update,
     raycast_volume,
+    register_maps,
+    surface_maps,
     track_frames,
+    with_gradients,
 )
-from neuralsurf.errors import ConfigError, FileFormatError
+from neuralsurf.errors import ConfigError, FileFormatError, InputError
 from neuralsurf.io.rgbd import read_depth_frames, read_trajectory_log, tum_trajectory_to_poses
 from neuralsurf.io.trajectories import sensor_intrinsics, write_trajectory_log, write_tum_trajectory
 from neuralsurf.metrics import absolute_trajectory_error, align_trajectory, relative_pose_error
@@ -214,6 +220,58 @@ def test_icp_step_matches_the_numpy_reference():
     assert np.allclose(ours.numpy(), reference, atol=1e-10)
 
 
+def textured_plane_view(shift: tuple[float, float], K: torch.Tensor, width: int = 160, height: int = 120
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Depth Float[Tensor, "h w"] and grey levels Float[Tensor, "h w"] of the plane z = 1 painted with
+    0.5 + 0.25 sin(2 pi X / 0.2) sin(2 pi Y / 0.15) (world X, Y), seen by a camera at (shift, 0) looking
+    along z, in closed form."""
+    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64),
+                          indexing="ij")
+    x, y = (u - K[0, 2]) / K[0, 0] + shift[0], (v - K[1, 2]) / K[1, 1] + shift[1]
+    grey = 0.5 + 0.25 * torch.sin(2 * math.pi * x / 0.2) * torch.sin(2 * math.pi * y / 0.15)
+    return torch.ones(height, width, dtype=torch.float64), grey
+
+
+def test_grey_levels_pin_down_the_slide_along_a_plane_that_depth_cannot():
+    K = torch.tensor([[150.0, 0, 79.5], [0, 150.0, 59.5], [0, 0, 1]], dtype=torch.float64)
+    shift = (0.02, -0.01)
+    model_depth, model_grey = textured_plane_view((0.0, 0.0), K)
+    source_depth, source_grey = textured_plane_view(shift, K)
+    source, model = surface_maps(source_depth, K, 3, 0.05), surface_maps(model_depth, K, 3, 0.05)
+    settings = {"iterations": (10, 10, 10), "kernel": "huber", "kernel_scale": 0.01, "max_distance": 0.1,
+                    "min_cosine": 0.9}
+    start = torch.eye(4, dtype=torch.float64)
+    assert register_maps(source, model, start, **settings).degenerate  # a plane leaves 3 of 6 motions free
+    grey = GreyPair(grey_pyramid(source_grey, 3), [with_gradients(g) for g in grey_pyramid(model_grey, 3)], 1.0)
+    fit = register_maps(source, model, start, **settings, grey=grey)
+    assert not fit.degenerate
+    assert torch.allclose(fit.transform[:3, 3], torch.tensor([*shift, 0.0], dtype=torch.float64), atol=5e-4)
+    assert torch.allclose(fit.transform[:3, :3], torch.eye(3, dtype=torch.float64), atol=1e-3)
+
+
+def test_photometric_jacobian_is_the_derivative_of_the_residual():
+    K = torch.tensor([[150.0, 0, 79.5], [0, 150.0, 59.5], [0, 0, 1]], dtype=torch.float64)
+    _, grey = textured_plane_view((0.0, 0.0), K)
+    image = with_gradients(grey)
+    g = torch.Generator().manual_seed(0)
+    points = torch.cat([torch.rand(100, 2, generator=g, dtype=torch.float64) * 0.4 - 0.2,
+                        torch.full((100, 1), 1.0, dtype=torch.float64)], 1)
+    values = torch.rand(100, generator=g, dtype=torch.float64)
+    rows, inside = photometric_rows(points, values, torch.eye(4, dtype=torch.float64), image, K)
+    assert inside.all()
+    for axis in range(6):  # central differences of the residual along each motion direction
+        step = torch.zeros(6, dtype=torch.float64)
+        step[axis] = 1e-5
+        moved = []
+        for sign in (1, -1):
+            motion = torch.eye(4, dtype=torch.float64)
+            motion[:3, :3], motion[:3, 3] = axis_angle_to_matrix(sign * step[:3]), sign * step[3:]
+            moved.append(photometric_rows(points, values, motion, image, K)[0][:, 6])
+        numeric = (moved[0] - moved[1]) / 2e-5
+        # bilinear sampling is piecewise linear: its derivative is the central difference only on average
+        assert torch.corrcoef(torch.stack([numeric, rows[:, axis]]))[0, 1] > 0.98
+
+
 def test_axis_angle_to_matrix_is_rodrigues():
     omega = torch.tensor([0.0, 0.0, math.pi / 2], dtype=torch.float64)
     expected = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]], dtype=torch.float64)
@@ -229,6 +287,11 @@ def test_bad_settings_fail_early():
         Tracker(K, kernel="cauchy")
     with pytest.raises(ConfigError, match="iterations"):
         Tracker(K, levels=2, iterations=(4, 5, 10))
+    with pytest.raises(ConfigError, match="photometric"):
+        Tracker(K, photometric=-1)
+    frames = capture(path(2))
+    with pytest.raises(InputError, match="colour images"):
+        track_frames(frames, progress=False, photometric=0.5)
 
 
 # ----------------------------------------------------------------------------- trajectory metrics
@@ -331,6 +394,9 @@ def test_a_capture_without_poses_is_tracked_when_poses_are_auto(tmp_path):
     assert torch.allclose(scene.held_out.cam_to_world, scene.trajectory[[2, 5]].float())
     frames = read_depth_frames(tmp_path, K=None, with_color=True)
     assert frames.colors.shape == (6, HEIGHT, WIDTH, 3) and torch.equal(frames.cam_to_world[3], torch.eye(4))
+    photometric = rgbd_scene(str(tmp_path), poses="auto", hold_out_every=3, photometric=0.5)  # colour read to track
+    assert absolute_trajectory_error(photometric.trajectory, truth[0].inverse() @ truth) < 0.01
+    assert photometric.frames.colors is None  # ... and not kept: the mesh is not coloured
 
 
 def test_a_capture_without_intrinsics_names_the_sensor_presets(tmp_path):

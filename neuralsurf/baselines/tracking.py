@@ -15,6 +15,11 @@ averages of the depth), with a robust kernel (Huber or Tukey) on the residuals a
 rejected beyond `max_distance` or with normals apart by more than `max_normal_angle`. Frame k starts
 from frame k-1's pose moved by the motion from frame k-2 to k-1 (constant velocity).
 
+With colour (`photometric` > 0 and colour images registered to the depth), each Gauss-Newton step also
+minimises the grey-level differences between the frame's pixels and the previous frame's image where they
+project (direct photometric alignment, as in RGB-D odometry: Steinbruecker et al. 2011, Kerl et al. 2013),
+weighted `photometric` metres per unit of grey level against the point-to-plane distances.
+
 VGA frames are registered and fused at half size (`downsample`: 2 x 2 block means, which also average the sensor's
 noise; a 2 cm voxel still spans pixels there). On a CPU the two loops that dominate a frame, the raycast's volume sampling and the
 ICP iterations' sums, can run compiled (`compiled=True`; `track_frames` compiles long sequences).
@@ -41,7 +46,7 @@ from neuralsurf.cameras import backproject_depth_to_camera, depth_normals, pixel
 from neuralsurf.devices import CompiledOnCPU
 from neuralsurf.errors import ConfigError, InputError, NeuralsurfError
 from neuralsurf.progress import progress_bar
-from neuralsurf.structures import DepthFrames
+from neuralsurf.structures import DepthFrames, float_colors
 
 MODES = ("model", "frame")
 """Frame-to-model (KinectFusion) or frame-to-frame tracking."""
@@ -155,6 +160,60 @@ def surface_maps(depth: Tensor, K: Tensor, levels: int, max_jump: float, stride:
         valid = has[0] & (level_depth[::step, ::step] > 0)
         maps.append(SurfaceMap(points[0, ::step, ::step], normals[0], valid, level_K))
     return maps
+
+
+def grey_levels(colors: Tensor) -> Tensor:
+    """Grey levels Float[Tensor, "h w"] in [0, 1] of a colour image Float[Tensor, "h w 3"] in [0, 1] (Rec. 601 luma)."""
+    return colors @ torch.tensor([0.299, 0.587, 0.114], dtype=colors.dtype, device=colors.device)
+
+
+def grey_pyramid(grey: Tensor, levels: int) -> list[Tensor]:
+    """Grey images Float[Tensor, "h_l w_l"] for levels 0 (the input Float[Tensor, "h w"]) to levels - 1, each
+    the 2 x 2 block means of the one before (the pixels of `depth_pyramid`'s levels)."""
+    pyramid = [grey]
+    for _ in range(levels - 1):
+        pyramid.append(torch.nn.functional.avg_pool2d(pyramid[-1][None, None], 2)[0, 0])
+    return pyramid
+
+
+def with_gradients(grey: Tensor) -> Tensor:
+    """Float[Tensor, "3 h w"]: a grey image Float[Tensor, "h w"] and its central-difference derivatives along u
+    and v (grey levels per pixel; 0 on the border)."""
+    du, dv = torch.zeros_like(grey), torch.zeros_like(grey)
+    du[:, 1:-1] = (grey[:, 2:] - grey[:, :-2]) / 2
+    dv[1:-1] = (grey[2:] - grey[:-2]) / 2
+    return torch.stack([grey, du, dv])
+
+
+def photometric_rows(points: Tensor, grey: Tensor, transform: Tensor, target: Tensor, K: Tensor
+                     ) -> tuple[Tensor, Tensor]:
+    """Rows [J | r] Float[Tensor, "n 7"] of the grey-level residuals r_i = I(pi(q_i)) - g_i of source points p_i
+    Float[Tensor, "n 3"] with grey levels g_i Float[Tensor, "n"], moved by `transform` Float[Tensor, "4 4"] to
+    q_i in the camera (intrinsics K) of a target image I with its derivatives (`with_gradients`, Float[Tensor,
+    "3 h w"], sampled bilinearly), linearised in a small motion (omega, t) of q_i as `point_to_plane_rows`:
+    J_i = (q_i x d_i, d_i) with d_i = grad I . d pi / d q. Also Bool[Tensor, "n"]: q_i projects inside the image."""
+    q = points @ transform[:3, :3].T + transform[:3, 3]
+    x, y, z = q.unbind(1)
+    inverse_z = 1 / torch.where(z > 0, z, 1.0)
+    u = (K[0, 0] * x + K[0, 1] * y) * inverse_z + K[0, 2]
+    v = K[1, 1] * y * inverse_z + K[1, 2]
+    h, w = target.shape[1:]
+    inside = (z > 0) & (u >= 1) & (u <= w - 2) & (v >= 1) & (v <= h - 2)
+    where = torch.stack([u / (w - 1), v / (h - 1)], -1) * 2 - 1
+    sampled = torch.nn.functional.grid_sample(target[None], where[None, None], align_corners=True)[0, :, 0]  # (3, n)
+    value, du, dv = sampled
+    fx, fy = K[0, 0] * inverse_z, K[1, 1] * inverse_z
+    d = torch.stack([du * fx, dv * fy, -(du * fx * x + dv * fy * y) * inverse_z], 1)  # (n, 3)
+    residual = torch.where(inside, value - grey, 0.0)
+    return torch.cat([torch.linalg.cross(q, d), d, residual[:, None]], 1), inside
+
+
+def photometric_equations(points: Tensor, grey: Tensor, transform: Tensor, target: Tensor, K: Tensor,
+                          kernel_scale: float) -> Tensor:
+    """Huber-weighted normal equations Float[Tensor, "7 7"] of `photometric_rows` (pixels outside the target weigh 0)."""
+    rows, inside = photometric_rows(points, grey, transform, target, K)
+    weights = robust_weights(rows[:, 6], "huber", kernel_scale) * inside
+    return (rows * weights[:, None]).T @ rows
 
 
 # ----------------------------------------------------------------------------- raycast
@@ -351,12 +410,27 @@ class FrameFit:
     """The finest level's normal equations were singular."""
 
 
+@dataclass(frozen=True)
+class GreyPair:
+    """The grey levels of a registration's source and target frames, one per pyramid level (finest first)."""
+
+    source: list[Tensor]
+    """Float[Tensor, "h_l w_l"]: the source's grey levels at its `SurfaceMap`s' pixels."""
+    target: list[Tensor]
+    """Float[Tensor, "3 h_l w_l"]: the target's grey image and its derivatives (`with_gradients`), seen by the model maps' camera."""
+    weight: float
+    """Metres per unit of grey level: the photometric rows' weight against the point-to-plane rows."""
+    kernel_scale: float = 0.1
+    """Huber scale of the grey-level residuals."""
+
+
 def register_maps(source: list[SurfaceMap], model: list[SurfaceMap], init: Tensor, iterations: tuple[int, ...],
                   kernel: str, kernel_scale: float, max_distance: float, min_cosine: float,
-                  compiled: bool = False) -> FrameFit:
+                  compiled: bool = False, grey: GreyPair | None = None) -> FrameFit:
     """Point-to-plane ICP of a source pyramid onto a model pyramid (lists finest first, same length),
     coarse to fine from `init` Float64[Tensor, "4 4"] (source camera -> model camera); `iterations[l]`
-    Gauss-Newton steps at level l (finest first). `compiled`: on a CPU, `icp_equations` through torch.compile."""
+    Gauss-Newton steps at level l (finest first). `compiled`: on a CPU, `icp_equations` through torch.compile.
+    `grey`: each step also aligns the source's grey levels with the target's (`photometric_equations`)."""
     transform = init.double().clone()
     degenerate = False
     equations = implementation(icp_equations, compiled, source[0].points.device)
@@ -372,6 +446,10 @@ def register_maps(source: list[SurfaceMap], model: list[SurfaceMap], init: Tenso
         points, normals = src.points[valid], src.normals[valid]
         for _ in range(iterations[level]):
             system, count, _ = sums(level, points, normals)
+            if grey is not None:
+                system = system + grey.weight**2 * photometric_equations(
+                    points, grey.source[level][valid], transform.to(points), grey.target[level], src.K.to(points),
+                    grey.kernel_scale)
             update = None if count < 6 else gauss_newton_step(system)
             degenerate = update is None
             if degenerate:
@@ -431,6 +509,9 @@ class Tracker:
         compiled: on a CPU, run the raycast's volume sampling and the ICP iterations through torch.compile
             (`implementation`): about a third less CPU a frame after a compilation of 10 s (from torch's on-disk
             cache) to a minute.
+        photometric: with colour, the weight (metres per unit of grey level) of the grey-level alignment with the
+            previous frame in every Gauss-Newton step (`GreyPair`); 0: depth alone. Needs colour registered to the
+            depth (`track(depth, colors)`).
     """
 
     def __init__(self, K: Tensor, mode: str = "model", levels: int = 3, iterations: tuple[int, ...] = (4, 5, 10),
@@ -439,7 +520,7 @@ class Tracker:
                  max_depth: float = 4.0, voxel_size: float = 0.02, truncation: float | None = None,
                  margin: float = 3.0, initial_pose: Tensor | None = None, raycast_level: int = 1,
                  smoothing: int = 0, constant_velocity: bool = True, finest_stride: int = 2,
-                 downsample: int | None = None, compiled: bool = False):
+                 downsample: int | None = None, compiled: bool = False, photometric: float = 0.0):
         if mode not in MODES:
             raise ConfigError(f"tracking mode must be one of {MODES}, got {mode!r}")
         if not (isinstance(levels, int) and levels >= 1) or len(iterations) != levels:
@@ -451,6 +532,8 @@ class Tracker:
             raise ConfigError(f"downsample must be None (by frame size) or an integer >= 0 (0: full size), got {downsample!r}")
         if not (isinstance(raycast_level, int) and 0 <= raycast_level < levels):
             raise ConfigError(f"raycast_level must be a pyramid level from 0 to {levels - 1}, got {raycast_level!r}")
+        if not (isinstance(photometric, (int, float)) and photometric >= 0):
+            raise ConfigError(f"photometric must be a weight >= 0 (0: depth alone), got {photometric!r}")
         robust_weights(torch.zeros(1), kernel, kernel_scale)  # an unknown kernel fails here
         self.K, self.mode, self.levels, self.iterations = K, mode, levels, tuple(int(i) for i in iterations)
         self.kernel, self.kernel_scale, self.max_distance = kernel, float(kernel_scale), float(max_distance)
@@ -460,12 +543,13 @@ class Tracker:
         self.truncation = 3 * voxel_size if truncation is None else truncation
         self.margin, self.raycast_level, self.smoothing = margin, raycast_level, int(smoothing)
         self.constant_velocity, self.finest_stride = bool(constant_velocity), int(finest_stride)
-        self.downsample, self.compiled = downsample, bool(compiled)
+        self.downsample, self.compiled, self.photometric = downsample, bool(compiled), float(photometric)
         self.K_registered: Tensor | None = None  # K of the registered (downsampled) frames
         self.initial_pose = torch.eye(4, dtype=torch.float64) if initial_pose is None else initial_pose.double()
         self.poses: list[Tensor] = []
         self.volume: TSDFVolume | None = None
         self._previous: Tensor | None = None  # the last frame's depth as registered (downsampled)
+        self._previous_grey: list[Tensor] | None = None  # its grey pyramid with derivatives (photometric)
         self.last_fit: FrameFit | None = None  # the last frame's registration
 
     def _maps(self, depth: Tensor, K: Tensor | None = None, levels: int | None = None, stride: int = 1
@@ -499,14 +583,28 @@ class Tracker:
         maps = self._maps(depth, K, self.levels - self.raycast_level)
         return [maps[0]] * self.raycast_level + maps
 
-    def track(self, depth: Tensor) -> Tensor:
-        """Register the next depth image Float[Tensor, "h w"] (metres, 0 invalid) and return its
-        camera-to-world pose Float64[Tensor, "4 4"] (CPU); raises TrackingLostError naming the frame."""
+    def _grey(self, colors: Tensor | None, shape: torch.Size) -> list[Tensor] | None:
+        """The grey pyramid of a frame's colours at the registered size (None without the photometric term)."""
+        if self.photometric == 0:
+            return None
+        if colors is None:
+            raise InputError("photometric tracking needs the frames' colour images (registered to the depth); "
+                             "load them, or set photometric=0 to track depth alone")
+        grey = grey_pyramid(grey_levels(float_colors(colors)), self.downsample + 1)[-1]
+        if grey.shape != shape:
+            raise InputError(f"colour image of {tuple(colors.shape[:2])} pixels for a depth image of another size")
+        return grey_pyramid(grey, self.levels)
+
+    def track(self, depth: Tensor, colors: Tensor | None = None) -> Tensor:
+        """Register the next depth image Float[Tensor, "h w"] (metres, 0 invalid), with its colour image
+        Float[Tensor, "h w 3"] or UInt8 (used when `photometric` > 0), and return its camera-to-world pose
+        Float64[Tensor, "4 4"] (CPU); raises TrackingLostError naming the frame."""
         depth = torch.where(depth <= self.max_depth, depth, 0.0)
         if self.downsample is None:
             self.downsample = int(math.log2(depth.shape[-1] / 320)) if depth.shape[-1] >= 320 else 0
         registered, self.K_registered = depth_pyramid(depth, self.K.to(depth), self.downsample + 1,
                                                       self.max_distance / 2)[-1]
+        grey = self._grey(colors.to(depth.device) if colors is not None else None, registered.shape)
         index = len(self.poses)
         if index == 0:
             pose = self.initial_pose.cpu()
@@ -518,9 +616,11 @@ class Tracker:
             motion = torch.eye(4, dtype=torch.float64)
             if self.constant_velocity and index > 1:
                 motion = torch.linalg.inv(self.poses[-2]) @ previous
+            pair = None if grey is None else GreyPair([grey[0][::self.finest_stride, ::self.finest_stride]]
+                                                      + grey[1:], self._previous_grey, self.photometric)
             fit = register_maps(source, model, motion.to(depth.device),
                                 self.iterations, self.kernel, self.kernel_scale, self.max_distance, self.min_cosine,
-                                self.compiled)
+                                self.compiled, pair)
             self.last_fit = fit
             reason = ("the normal equations are degenerate" if fit.degenerate else
                       f"fewer than {self.min_inlier_share:.0%} of its points match the model"
@@ -532,6 +632,7 @@ class Tracker:
         if self.mode == "model":
             self._fuse(registered, pose)
         self._previous = registered
+        self._previous_grey = None if grey is None else [with_gradients(level) for level in grey]
         self.poses.append(pose)
         return pose
 
@@ -549,8 +650,11 @@ def track_frames(frames: DepthFrames, progress: bool = True, compiled: bool | No
     tracker = Tracker(frames.K[0], compiled=compiled, **settings)
     shares, errors = [], []
     start = time.perf_counter()
-    for depth in progress_bar(frames.depth, desc="tracking", unit="frame", enabled=progress):
-        tracker.track(depth)
+    if tracker.photometric > 0 and frames.colors is None:
+        raise InputError("photometric tracking needs the frames' colour images (registered to the depth); load "
+                         "them, or set photometric=0 to track depth alone")
+    for index in progress_bar(range(len(frames)), desc="tracking", unit="frame", enabled=progress):
+        tracker.track(frames.depth[index], None if frames.colors is None else frames.colors[index])
         shares.append(tracker.last_fit.inlier_share)
         errors.append(tracker.last_fit.rmse)
     seconds = time.perf_counter() - start
@@ -560,6 +664,7 @@ def track_frames(frames: DepthFrames, progress: bool = True, compiled: bool | No
 
 __all__ = [
     "MODES",
+    "GreyPair",
     "Tracker",
     "TrackingLostError",
     "Trajectory",
@@ -569,7 +674,11 @@ __all__ = [
     "downsample_depth",
     "downsample_intrinsics",
     "gauss_newton_step",
+    "grey_levels",
+    "grey_pyramid",
     "icp_equations",
+    "photometric_equations",
+    "photometric_rows",
     "point_to_plane_rows",
     "point_to_plane_update",
     "projective_matches",
@@ -577,4 +686,5 @@ __all__ = [
     "register_maps",
     "track_frames",
     "trilinear_tsdf",
+    "with_gradients",
 ]

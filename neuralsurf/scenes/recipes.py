@@ -195,12 +195,13 @@ files, if any, are not read), or "auto": the files when the folder has them, els
 def rgbd_scene(path: str, name: str | None = None, stride: int = 1, max_frames: int | None = None,
                hold_out_every: int = 10, cloud_stride: int = 4, ground_truth: str | None = None,
                near_distance: float | None = 0.05, poses: str = "files", sensor: str | None = None,
-               colors: bool = False) -> Scene:
+               colors: bool = False, photometric: float = 0.0) -> Scene:
     """A 7-Scenes, TUM or Redwood folder (`read_rgbd_folder`, every `stride`-th frame), or a folder of depth
     (and colour) images without poses (`read_depth_frames`, intrinsics from K file or `sensor`), as a depth
     scene with every `hold_out_every`-th frame held out; an optional ground-truth mesh file. `poses`: one of
     POSES; tracked poses (`track_frames`, its default settings) start at the identity and are kept in
-    `Scene.trajectory`. `colors`: the frames carry the colour images (room meshes are coloured from them).
+    `Scene.trajectory`; `photometric` > 0: the tracker also aligns grey levels (`Tracker`, read from the colour
+    images). `colors`: the frames carry the colour images (room meshes are coloured from them).
     A room: neural fields are meshed within `near_distance`
     metres of the input (None: everywhere)."""
     if poses not in POSES:
@@ -210,10 +211,11 @@ def rgbd_scene(path: str, name: str | None = None, stride: int = 1, max_frames: 
         frames = read_rgbd_folder(path, stride=stride, max_frames=max_frames, with_color=colors)
         trajectory = None
     else:
-        frames = (read_rgbd_folder(path, stride=stride, max_frames=max_frames, with_color=colors) if with_files
-                  else read_depth_frames(path, sensor=sensor, stride=stride, max_frames=max_frames, with_color=colors))
-        trajectory = track_frames(frames).cam_to_world
-        frames = DepthFrames(frames.depth, frames.K, trajectory.float(), frames.colors)
+        loaded = colors or photometric > 0
+        frames = (read_rgbd_folder(path, stride=stride, max_frames=max_frames, with_color=loaded) if with_files
+                  else read_depth_frames(path, sensor=sensor, stride=stride, max_frames=max_frames, with_color=loaded))
+        trajectory = track_frames(frames, photometric=photometric).cam_to_world
+        frames = DepthFrames(frames.depth, frames.K, trajectory.float(), frames.colors if colors else None)
     mesh = read_mesh(ground_truth) if ground_truth else None
     scene = depth_scene(name or Path(path).name, frames, mesh, hold_out_every, cloud_stride,
                         f"real RGB-D {path}" + (", tracked poses" if trajectory is not None else ""), near_distance)
