@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-import yaml
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
 from neuralsurf.data import locate
 
@@ -33,6 +34,9 @@ NEEDS_DATA = {"redkitchen": "7scenes_redkitchen", "7scenes_redkitchen": "7scenes
 NEURALSURF_DATA nor the cache has it: the tests never download)."""
 TINY_EVALUATE = ["suite=tiny", "render_size=64"]
 """Appended to evaluate.py commands: the command's own scenes=/methods= still win over the suite's."""
+ENTRY_POINT = re.compile(r"(?:(?:\S*python3?\s+)?(train|evaluate)\.py|neuralsurf-(train|evaluate)|"
+                         r"\S*python3?\s+-m\s+neuralsurf\s+(train|evaluate))(?=\s|$)")
+"""A train.py / evaluate.py call in any of its spellings; its group names the config."""
 SUITE_ONLY = re.compile(r"(python evaluate\.py|neuralsurf-evaluate|python -m neuralsurf evaluate) suite=(\w+)")
 """An evaluate.py command naming only a suite: the tiny settings would replace that suite (the run would be
 the bare command's), so its composed config is checked instead (the suites run in test_evaluation)."""
@@ -52,7 +56,7 @@ of a collection."""
 
 def fenced_blocks(text: str) -> list[tuple[str, str]]:
     """(language, body) of every fenced code block of a Markdown text."""
-    return [(m.group(1).strip(), m.group(2)) for m in re.finditer(r"^```(\w*)[^\n]*\n(.*?)^```", text, re.M | re.S)]
+    return [(m.group(1).strip(), m.group(2)) for m in re.finditer(r"^```(\w*)[^\n]*\n(.*?)^```", text, re.MULTILINE | re.DOTALL)]
 
 
 def readme_commands() -> list[str]:
@@ -129,12 +133,20 @@ def write_capture(folder: Path) -> None:
         np.savetxt(folder / "frames" / f"frame-{i:06d}.pose.txt", frames.cam_to_world[i].cpu().numpy())
 
 
-def tiny_overrides(call: str, cwd: Path) -> list[str]:
+def composed(call: str) -> dict:
+    """The job config a train.py or evaluate.py call composes (what its `--cfg job` prints), composed in this
+    process: a subprocess would spend seconds importing the package to run nothing."""
+    match = ENTRY_POINT.search(call)
+    assert match, f"not a train.py or evaluate.py call: {call}"
+    config = next(group for group in match.groups() if group)
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
+        return OmegaConf.to_container(compose(config, shlex.split(call[match.end():])))
+
+
+def tiny_overrides(call: str) -> list[str]:
     """Overrides that shrink what a train.py call prepares (its observations' pools, its data, the
-    prior's scoring), read from its composed config (`--cfg job`, which runs nothing)."""
-    done = run(f"{call} --cfg job", cwd)
-    assert done.returncode == 0, f"{call} does not compose:\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}"
-    cfg = yaml.safe_load(done.stdout)
+    prior's scoring), read from its composed config."""
+    cfg = composed(call)
     overrides = [f"observation.{name}.{key}={value}" for name, options in (cfg.get("observation") or {}).items()
                  for kind, small in SMALL_OBSERVATIONS.items() if f".{kind}." in options.get("_target_", "")
                  for key, value in small.items() if key in options]
@@ -142,12 +154,12 @@ def tiny_overrides(call: str, cwd: Path) -> list[str]:
     return overrides + (["score.latent_steps=5"] if "latent_steps" in (cfg.get("score") or {}) else [])
 
 
-def with_tiny_settings(command: str, cwd: Path | None = None) -> str:
-    """`command` with tiny settings appended to each train.py / evaluate.py call in it (with `cwd`, the
-    train.py calls' sample pools shrunk too)."""
+def with_tiny_settings(command: str, pools: bool = False) -> str:
+    """`command` with tiny settings appended to each train.py / evaluate.py call in it (with `pools`, the
+    train.py calls' sample pools and data shrunk too)."""
     def shrink(call: str) -> str:
         if re.search(r"(train\.py|neuralsurf-train|-m neuralsurf train)(\s|$)", call):
-            extra = TINY_TRAIN + (tiny_overrides(call, cwd) if cwd is not None else [])
+            extra = TINY_TRAIN + (tiny_overrides(call) if pools else [])
         elif re.search(r"(evaluate\.py|neuralsurf-evaluate|-m neuralsurf evaluate)(\s|$)", call):
             extra = TINY_EVALUATE
         elif re.search(r"(neuralsurf-export|-m neuralsurf export)(\s|$)", call):
@@ -200,7 +212,7 @@ def test_the_readme_has_the_two_set_up_commands_and_ci_runs_the_test_command():
     commands = readme_commands()
     assert commands[0] == "./install.sh && .venv/bin/python train.py experiment=bunny_sdf"
     assert commands[1] == TEST_COMMAND
-    assert re.search(rf"^{re.escape(TEST_COMMAND)}$", (REPO / ".ci" / "run").read_text(), re.M)
+    assert re.search(rf"^{re.escape(TEST_COMMAND)}$", (REPO / ".ci" / "run").read_text(), re.MULTILINE)
     assert len(README.read_text().splitlines()) <= 260
 
 
@@ -227,14 +239,11 @@ def test_readme_command_runs(command, workspace):
     if command.split()[0] in ("tensorboard", "neuralsurf-view"):
         serves(command, workspace)
         return
-    suite = SUITE_ONLY.fullmatch(command)
-    if suite:
-        done = run(f"{command} --cfg job", workspace)
-        assert done.returncode == 0, f"{command} does not compose:\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}"
-        cfg = yaml.safe_load(done.stdout)
+    if SUITE_ONLY.fullmatch(command):
+        cfg = composed(command)
         assert cfg["scenes"] and set(cfg["scenes"]) <= set(cfg["scene"]) and set(cfg["methods"]) <= set(cfg["method"])
         return
-    done = run(with_tiny_settings(command, workspace), workspace)
+    done = run(with_tiny_settings(command, pools=True), workspace)
     assert done.returncode == 0, f"{command}\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
 
 
@@ -256,10 +265,9 @@ def test_tiny_settings_go_after_every_train_and_evaluate_call():
         "neuralsurf-export run --resolution 32 --format glb"
 
 
-@pytest.mark.subprocess
-def test_tiny_overrides_follow_the_composed_config(workspace):
-    rgbd = tiny_overrides("python train.py data=rgbd data.path=my_capture", workspace)
+def test_tiny_overrides_follow_the_composed_config():
+    rgbd = tiny_overrides("python train.py data=rgbd data.path=my_capture")
     assert "data.max_frames=6" in rgbd and "observation.rays.denoise_k=0" in rgbd
     assert not any(o.startswith("observation.points.") for o in rgbd)  # the experiment's leftover: not selected
-    assert "observation.points.n_near=20000" in tiny_overrides("python train.py experiment=bunny_sdf", workspace)
-    assert "data.n_train=2" in tiny_overrides("python train.py experiment=shapes_deepsdf", workspace)
+    assert "observation.points.n_near=20000" in tiny_overrides("python train.py experiment=bunny_sdf")
+    assert "data.n_train=2" in tiny_overrides("python train.py experiment=shapes_deepsdf")
