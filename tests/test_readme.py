@@ -3,8 +3,10 @@ block, from a scratch folder that holds the files the README names (scan.ply, me
 RGB-D folder my_capture), with tiny settings appended to train.py and evaluate.py so that the whole
 README runs in a few minutes. ```text blocks are not run."""
 
+import multiprocessing
 import os
 import re
+import runpy
 import shlex
 import socket
 import subprocess
@@ -171,12 +173,48 @@ def with_tiny_settings(command: str, pools: bool = False) -> str:
     return " && ".join(shrink(call) for call in command.split("&&"))
 
 
+PYTHON_SCRIPT = re.compile(r"(?:\S*/)?python3?\s+(?P<script>[\w./-]+\.py)(?P<arguments>(?:\s+[^&|;<>$`]*)?)")
+"""A command that is one `python SCRIPT.py ARGS` call (no shell operators): `run` starts it from a Python that has
+imported the package already."""
+PRELOADED = multiprocessing.get_context("forkserver")
+PRELOADED.set_forkserver_preload(["neuralsurf.cli"])
+"""Processes forked from a server that imported neuralsurf (torch, Open3D, Hydra) once, untouched by any test:
+each README call saves the seconds of those imports, and runs as `python SCRIPT.py ARGS` would."""
+
+
+def run_script(script: str, arguments: list[str], cwd: str, env: dict, stdout: str, stderr: str) -> None:
+    """`python script arguments` in this process (a fork of `PRELOADED`'s server), its output to two files."""
+    for fd, name in ((1, stdout), (2, stderr)):
+        with open(name, "w") as file:
+            os.dup2(file.fileno(), fd)
+    os.chdir(cwd)
+    os.environ.clear()
+    os.environ.update(env)
+    sys.argv = [script, *arguments]
+    sys.path.insert(0, str(Path(script).resolve().parent))
+    runpy.run_path(script, run_name="__main__")
+
+
 def run(command: str, cwd: Path, timeout: float = 900) -> subprocess.CompletedProcess:
+    """`command` run by bash in `cwd` (a `PYTHON_SCRIPT` call: by a preloaded Python) with the venv first on PATH,
+    progress bars off and the data cache in `cwd`."""
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
            "NEURALSURF_PROGRESS": "0", "NEURALSURF_CACHE": str(cwd / "cache")}
     env.pop("VIRTUAL_ENV", None)
-    return subprocess.run(["bash", "-c", command], cwd=cwd, env=env, capture_output=True, text=True,
-                          timeout=timeout, check=False)
+    call = PYTHON_SCRIPT.fullmatch(command.strip())
+    if call is None:
+        return subprocess.run(["bash", "-c", command], cwd=cwd, env=env, capture_output=True, text=True,
+                              timeout=timeout, check=False)
+    outputs = [cwd / f".{name}-{os.getpid()}.txt" for name in ("stdout", "stderr")]
+    process = PRELOADED.Process(target=run_script, args=(call["script"], shlex.split(call["arguments"]), str(cwd),
+                                                         env, *map(str, outputs)))
+    process.start()
+    process.join(timeout)
+    if process.is_alive():
+        process.kill()
+        process.join()
+    stdout, stderr = (path.read_text(errors="replace") for path in outputs)
+    return subprocess.CompletedProcess(command, process.exitcode, stdout, stderr)
 
 
 def free_port() -> int:
