@@ -4,7 +4,7 @@ our mesh lies from VoxelBlockGrid's (median distance of our vertices to its vert
 
     python benchmarks/bench_tsdf.py                   # 7-Scenes block and room at 1 cm, then the bunny
     python benchmarks/bench_tsdf.py --skip-bunny      # the 7-Scenes rows only
-    python benchmarks/bench_tsdf.py --compiled        # also TSDFVolume(compiled=True) (torch.compile)
+    python benchmarks/bench_tsdf.py --compiled        # also FusionSettings(compiled=True) (torch.compile)
     python benchmarks/bench_tsdf.py --threads 1       # ours on one thread (default: TSDFVolume's "auto")
 
 Settings shared by all: the same frames, voxel size and truncation (3 voxels), grids that coincide
@@ -92,10 +92,10 @@ def median_gap(ours: np.ndarray, theirs: np.ndarray, voxel: float) -> float:
     return float(np.median(cKDTree(theirs).query(ours)[0]) / voxel)
 
 
-def fuse(method: str, frames, bounds: torch.Tensor, voxel: float, **options) -> tuple[float, object]:
+def fuse(method: str, frames, bounds: torch.Tensor, voxel: float, threads: int | str = "auto") -> tuple[float, object]:
     """Seconds to make the volume and integrate all frames with `method`, and what to extract the mesh
     from; Open3D's inputs are converted before the clock starts."""
-    from neuralsurf.baselines import TSDFVolume
+    from neuralsurf.baselines import FusionSettings, TSDFVolume
 
     truncation = 3 * voxel
     if method == "vbg":
@@ -118,11 +118,9 @@ def fuse(method: str, frames, bounds: torch.Tensor, voxel: float, **options) -> 
         for item in inputs:
             volume.integrate(*item)
         return time.perf_counter() - started, volume
-    options = dict(options, sparse=method != "dense")
-    if method == "compiled":
-        options["compiled"] = True
+    fusion = FusionSettings(threads=threads, compiled=True if method == "compiled" else None)
     started = time.perf_counter()
-    volume = TSDFVolume(bounds, voxel, truncation, device="cpu", **options)
+    volume = TSDFVolume(bounds, voxel, truncation, sparse=method != "dense", device="cpu", fusion=fusion)
     volume.integrate(frames, progress=False)
     return time.perf_counter() - started, volume
 
@@ -273,7 +271,7 @@ def main() -> None:
     )
     parser.add_argument("--threads", type=int, default=None, help="our threads (default: TSDFVolume's 'auto')")
     parser.add_argument("--repeats", type=int, default=2, help="best of this many runs of every row")
-    parser.add_argument("--compiled", action="store_true", help="also TSDFVolume(compiled=True)")
+    parser.add_argument("--compiled", action="store_true", help="also FusionSettings(compiled=True)")
     parser.add_argument("--skip-7scenes", action="store_true")
     parser.add_argument("--skip-bunny", action="store_true")
     parser.add_argument("--one", help=argparse.SUPPRESS)

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from open3d_tsdf import integrate_voxel_block_grid, voxel_block_grid, voxel_block_grid_inputs  # this folder
 
-from neuralsurf.baselines import TSDFVolume, depth_bounds
+from neuralsurf.baselines import FusionSettings, TSDFVolume, depth_bounds
 from neuralsurf.scenes.recipes import data_root
 from neuralsurf.structures import DepthFrames
 
@@ -91,8 +91,8 @@ def bench_bunny(args) -> None:
               f"{'GPU/CPU':>8} {'mesh gap':>9}")
     print(header + "\n" + "-" * len(header))
     for sparse in (False, True):
-        make = lambda device, n=None, sparse=sparse: TSDFVolume(bounds, voxel, 3 * voxel, device=device,
-                                                                sparse=sparse, frames_per_pass=n)
+        make = lambda device, n=None, sparse=sparse: TSDFVolume(bounds, voxel, 3 * voxel, sparse=sparse, device=device,
+                                                                fusion=FusionSettings(frames_per_pass=n))
         cpu_seconds = timed_integration(cpu := make("cpu"), cpu_frames)
         gap = mesh_gap_voxels(make("cuda").integrate(gpu_frames[: args.cpu_views]), cpu)
         cpu_fps = len(cpu_frames) / cpu_seconds
@@ -148,7 +148,8 @@ def bench_kitchen(data: Path, frames_per_pass: list[int], threads: int | None) -
         bounds = depth_bounds(frames, margin=0.05)
         bounds = torch.stack([torch.floor(bounds[0] / voxel) * voxel, bounds[1]])  # on Open3D's grid
         make = lambda device, n=None, bounds=bounds, voxel=voxel: TSDFVolume(
-            bounds, voxel, 3 * voxel, device=device, sparse=True, frames_per_pass=n, threads=threads)
+            bounds, voxel, 3 * voxel, sparse=True, device=device,
+            fusion=FusionSettings(frames_per_pass=n, threads=threads))
         cpu_seconds = timed_integration(make("cpu"), frames)
         theirs = voxel_block_grid_cuda(frames, voxel)
         for n in frames_per_pass:
@@ -181,9 +182,9 @@ def main() -> None:
     parser.add_argument("--frames", help="load the bunny views from this .npz (from --save-frames)")
     parser.add_argument("--save-frames", help="render the bunny views, save them here, and go on")
     parser.add_argument("--data", default=data_root())
-    parser.add_argument("--threads", type=int, default=1, help="CPU threads of our CPU runs (TSDFVolume(threads=...))")
+    parser.add_argument("--threads", type=int, default=1, help="CPU threads of our CPU runs (FusionSettings(threads=...))")
     parser.add_argument("--frames-per-pass", type=int, nargs="+", default=[1, 8, 16, 32],
-                        help="GPU: frames fused per pass (TSDFVolume.frames_per_pass), one row each")
+                        help="GPU: frames fused per pass (FusionSettings.frames_per_pass), one row each")
     args = parser.parse_args()
     if not torch.cuda.is_available():
         if args.save_frames:

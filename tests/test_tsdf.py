@@ -13,7 +13,7 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from neuralsurf.baselines import TSDFVolume, depth_bounds
+from neuralsurf.baselines import FusionSettings, TSDFVolume, depth_bounds
 from neuralsurf.baselines.tsdf.bands import candidate_blocks
 from neuralsurf.baselines.tsdf.voxels import camera_to_grid, pixel_weights
 from neuralsurf.cameras import backproject_depth, kinect_sigma
@@ -273,7 +273,7 @@ def test_free_space_carves_the_blocks_in_front_of_the_band():
     Blocks along z: [0.8, 0.88), [0.88, 0.96), [0.96, 1.04), ..."""
     frames = flat_frames([1.02, 1.01])
     band = TSDFVolume(axis_box(), 0.01, truncation=0.04, device="cpu").integrate(frames)
-    carved = TSDFVolume(axis_box(), 0.01, truncation=0.04, free_space=0.105, device="cpu").integrate(frames)
+    carved = TSDFVolume(axis_box(), 0.01, truncation=0.04, device="cpu", fusion=FusionSettings(free_space=0.105)).integrate(frames)
     assert axis_value(carved, 0.92) == (pytest.approx(0.04, abs=1e-6), 2.0)
     assert axis_value(carved, 0.85) == (pytest.approx(0.04, abs=1e-6), 2.0)  # reached: 0.875 and 0.865
     for z in (0.97, 1.0, 1.05):
@@ -281,13 +281,13 @@ def test_free_space_carves_the_blocks_in_front_of_the_band():
     assert axis_value(carved, 1.07)[1] == axis_value(band, 1.07)[1] == 0.0
     assert torch.equal(band.extract_mesh().faces, carved.extract_mesh().faces)
     # each frame reaches its own blocks: 1.02 - 0.135 = 0.885 stops short of the first block
-    shorter = TSDFVolume(axis_box(), 0.01, truncation=0.04, free_space=0.095, device="cpu").integrate(frames)
+    shorter = TSDFVolume(axis_box(), 0.01, truncation=0.04, device="cpu", fusion=FusionSettings(free_space=0.095)).integrate(frames)
     assert axis_value(shorter, 0.85) == (pytest.approx(0.04, abs=1e-6), 1.0)
 
 
 def test_depth_weighting_and_max_weight():
     frames = flat_frames([1.02, 1.05])
-    volume = TSDFVolume(axis_box(), 0.01, truncation=0.06, weighting="depth", device="cpu").integrate(frames)
+    volume = TSDFVolume(axis_box(), 0.01, truncation=0.06, device="cpu", fusion=FusionSettings(weighting="depth")).integrate(frames)
     w = pixel_weights(torch.tensor([1.02, 1.05]), "depth")
     assert float(w[0]) == pytest.approx(
         float((kinect_sigma(torch.tensor(0.4)) / kinect_sigma(torch.tensor(1.02))) ** 2)
@@ -297,7 +297,7 @@ def test_depth_weighting_and_max_weight():
         pytest.approx(expected, abs=1e-6),
         pytest.approx(float(w.sum()), rel=1e-5),
     )
-    capped = TSDFVolume(axis_box(), 0.01, truncation=0.06, max_weight=1.0, device="cpu")
+    capped = TSDFVolume(axis_box(), 0.01, truncation=0.06, device="cpu", fusion=FusionSettings(max_weight=1.0))
     capped.integrate(flat_frames([1.02, 1.01, 1.05]))
     assert axis_value(capped, 1.0) == (pytest.approx(((0.02 + 0.01) / 2 + 0.05) / 2, abs=1e-6), 1.0)
 
@@ -318,7 +318,7 @@ def test_candidate_blocks_hold_every_block_a_band_meets(sphere_frames, free_spac
     nearest pixel has a depth d and whose z lies in [d - truncation - free_space, d + truncation]
     is in a candidate block (also with long segments: free_space 0.3 m), and there are few more;
     with tiles of one pixel (the compiled path's) and of 2 x 2 (the eager path's)."""
-    volume = TSDFVolume(BOX, VOXEL, block_size=4, device="cpu", free_space=free_space)
+    volume = TSDFVolume(BOX, VOXEL, block_size=4, device="cpu", fusion=FusionSettings(free_space=free_space))
     origin = torch.as_tensor(volume.origin, dtype=torch.float64)
     for i in (3, 11):
         frame = sphere_frames[i]
@@ -370,8 +370,8 @@ def test_compiled_fusion_equals_eager_fusion(sphere_frames):
 
     points = backproject_depth(sphere_frames)
     frames = DepthFrames(sphere_frames.depth, sphere_frames.K, sphere_frames.cam_to_world, points.abs().clamp(0, 1))
-    make = lambda compiled: TSDFVolume(BOX, VOXEL, device="cpu", sparse=True, weighting="depth", max_weight=5.0,
-                                       with_color=True, compiled=compiled)
+    make = lambda compiled: TSDFVolume(BOX, VOXEL, device="cpu", sparse=True, with_color=True,
+                                       fusion=FusionSettings(weighting="depth", max_weight=5.0, compiled=compiled))
     volume = make(False)
     origin = torch.as_tensor(volume.origin, dtype=torch.float64)
     rotation, translation = camera_to_grid(frames.cam_to_world[:1], origin, VOXEL)
@@ -398,7 +398,7 @@ def test_compiled_fusion_equals_eager_fusion(sphere_frames):
 
 
 def test_a_failed_compilation_warns_and_fuses_eagerly(sphere_frames, monkeypatch):
-    """Without a C++ compiler torch.compile's CPU backend fails: TSDFVolume(compiled=True) says so once
+    """Without a C++ compiler torch.compile's CPU backend fails: FusionSettings(compiled=True) says so once
     and gives the eager result."""
     from neuralsurf.baselines.tsdf import volume as tsdf
     from neuralsurf.devices import CompiledOnCPU
@@ -411,13 +411,13 @@ def test_a_failed_compilation_warns_and_fuses_eagerly(sphere_frames, monkeypatch
     monkeypatch.setattr(torch, "compile", no_compiler)
     monkeypatch.setattr(tsdf, "_COMPILED", {f: CompiledOnCPU(f, "TSDF fusion") for f in tsdf._COMPILED})
     with pytest.warns(UserWarning, match="C\\+\\+ compiler"):
-        compiled = TSDFVolume(BOX, VOXEL, device="cpu", compiled=True).integrate(sphere_frames[:4])
+        compiled = TSDFVolume(BOX, VOXEL, device="cpu", fusion=FusionSettings(compiled=True)).integrate(sphere_frames[:4])
     monkeypatch.setitem(tsdf.TILE, "eager", tsdf.TILE["compiled"])
     eager = TSDFVolume(BOX, VOXEL, device="cpu").integrate(sphere_frames[:4])
     assert torch.equal(compiled.to_dense()[1], eager.to_dense()[1])
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # once: the next call goes straight to the eager function
-        TSDFVolume(BOX, VOXEL, device="cpu", compiled=True).integrate(sphere_frames[:1])
+        TSDFVolume(BOX, VOXEL, device="cpu", fusion=FusionSettings(compiled=True)).integrate(sphere_frames[:1])
 
 
 def test_long_integrations_are_compiled_by_default(sphere_frames, monkeypatch):
@@ -433,10 +433,10 @@ def test_long_integrations_are_compiled_by_default(sphere_frames, monkeypatch):
             (False, 24): []}
     for (compiled, frames), expected in runs.items():
         calls.clear()
-        TSDFVolume(BOX, VOXEL, device="cpu", compiled=compiled).integrate(sphere_frames[:frames])
+        TSDFVolume(BOX, VOXEL, device="cpu", fusion=FusionSettings(compiled=compiled)).integrate(sphere_frames[:frames])
         assert sorted(set(calls)) == sorted(expected), (compiled, frames)
     with pytest.raises(ConfigError, match="compiled"):
-        TSDFVolume(BOX, VOXEL, compiled="yes")
+        FusionSettings(compiled="yes")
 
 
 def test_auto_device_is_cpu_without_cuda():
@@ -450,8 +450,8 @@ def test_frames_fused_in_batches_equal_frames_fused_one_by_one(sphere_frames, sp
     running averages, in the same order, with depth weights, a weight cap and colour."""
     points = backproject_depth(sphere_frames)
     frames = DepthFrames(sphere_frames.depth, sphere_frames.K, sphere_frames.cam_to_world, points.abs().clamp(0, 1))
-    make = lambda n: TSDFVolume(BOX, VOXEL, device="cpu", sparse=sparse, weighting="depth", max_weight=5.0,
-                                with_color=True, frames_per_pass=n).integrate(frames)
+    make = lambda n: TSDFVolume(BOX, VOXEL, device="cpu", sparse=sparse, with_color=True, fusion=FusionSettings(
+        weighting="depth", max_weight=5.0, frames_per_pass=n)).integrate(frames)
     one, batched = make(1), make(7)  # 24 frames: passes of 7, 7, 7 and 3
     (tsdf, weight), (batched_tsdf, batched_weight) = one.to_dense(), batched.to_dense()
     assert torch.equal(weight, batched_weight)  # every voxel saw the same pixels
@@ -461,19 +461,19 @@ def test_frames_fused_in_batches_equal_frames_fused_one_by_one(sphere_frames, sp
     torch.testing.assert_close(batched_mesh.vertex_colors, mesh.vertex_colors, rtol=0, atol=1e-5)
     assert one.n_blocks == batched.n_blocks
     with pytest.raises(ConfigError, match="frames_per_pass"):
-        TSDFVolume(BOX, VOXEL, frames_per_pass=0)
+        FusionSettings(frames_per_pass=0)
 
 
 def test_threads_are_set_for_integration_and_restored(sphere_frames):
     before = torch.get_num_threads()
     seen = []
-    volume = TSDFVolume(BOX, VOXEL, device="cpu", threads=1)
+    volume = TSDFVolume(BOX, VOXEL, device="cpu", fusion=FusionSettings(threads=1))
     original = volume._integrate_frames
     volume._integrate_frames = lambda *args: (seen.append(torch.get_num_threads()), original(*args))
     volume.integrate(sphere_frames[:2])
     assert seen == [1, 1] and torch.get_num_threads() == before
     with pytest.raises(ConfigError, match="threads"):
-        TSDFVolume(BOX, VOXEL, threads=0)
+        FusionSettings(threads=0)
 
 
 def test_chunks_on_worker_threads_give_the_same_volume(sphere_frames):
@@ -481,8 +481,8 @@ def test_chunks_on_worker_threads_give_the_same_volume(sphere_frames):
     op on one thread) and finds the next pass's blocks meanwhile: the volume is the one a single thread
     fuses, bit for bit."""
     seen = []
-    make = lambda threads: TSDFVolume(BOX, VOXEL, device="cpu", sparse=True, weighting="depth", max_weight=5.0,
-                                      with_color=True, threads=threads)
+    make = lambda threads: TSDFVolume(BOX, VOXEL, device="cpu", sparse=True, with_color=True,
+                                      fusion=FusionSettings(weighting="depth", max_weight=5.0, threads=threads))
     single, pooled = make(1), make(2)
     single._chunk_observations = pooled._chunk_observations = 4096  # many chunks a frame
     original = pooled._integrate_frames
@@ -596,7 +596,9 @@ def test_bad_input_is_explained(sphere_frames):
     with pytest.warns(UserWarning, match="smaller than a voxel"):
         TSDFVolume(BOX, VOXEL, truncation=0.5 * VOXEL, device="cpu")
     with pytest.raises(ConfigError, match="weighting"):
-        TSDFVolume(BOX, VOXEL, weighting="fancy")
+        FusionSettings(weighting="fancy")
+    with pytest.raises(ConfigError, match="fusion must be a FusionSettings"):
+        TSDFVolume(BOX, VOXEL, fusion={"weighting": "depth"})
     with pytest.raises(InputError, match="bounds"):
         TSDFVolume([[0, 0, 0], [1, -1, 1]], VOXEL)
     with pytest.raises(ConfigError, match="sparse=True"):
@@ -651,11 +653,17 @@ def test_saved_volume_loads_to_the_same_mesh_and_keeps_integrating(tmp_path, sph
     if colors:
         rgb = torch.rand(*frames.depth.shape, 3, generator=torch.Generator().manual_seed(0))
         frames = DepthFrames(frames.depth, frames.K, frames.cam_to_world, rgb)
-    settings = {"device": "cpu", "sparse": sparse, "with_color": colors, "weighting": "depth", "max_weight": 50.0}
+    settings = {"device": "cpu", "sparse": sparse, "with_color": colors,
+                "fusion": FusionSettings(weighting="depth", max_weight=50.0)}
     half = TSDFVolume(BOX, VOXEL, **settings).integrate(frames[:12])
     path = half.save(tmp_path / "volume.npz")
     assert [p.name for p in tmp_path.iterdir()] == ["volume.npz"]  # no temporary left behind
     loaded = TSDFVolume.load(path, device="cpu")
+    assert loaded.fusion == settings["fusion"]  # the file's rule, the default execution
+    with pytest.raises(ConfigError, match="keeps its fusion rule"):
+        TSDFVolume.load(path, device="cpu", fusion=FusionSettings(weighting="constant"))
+    assert TSDFVolume.load(path, device="cpu", fusion=FusionSettings(weighting="depth", max_weight=50.0,
+                                                                      threads=1)).fusion.threads == 1
     assert (loaded.frames_integrated, loaded.n_blocks, loaded.grid_shape) == (12, half.n_blocks, half.grid_shape)
     before, after = half.extract_mesh(), loaded.extract_mesh()
     assert torch.equal(before.vertices, after.vertices) and torch.equal(before.faces, after.faces)

@@ -9,9 +9,10 @@ from neuralsurf.baselines.registration import (
     register_meshes,
     register_multiway,
 )
-from neuralsurf.baselines.tsdf import TSDFVolume, depth_bounds
+from neuralsurf.baselines.tsdf import FusionSettings, TSDFVolume, depth_bounds
 
 __all__ = [
+    "FusionSettings",
     "Registration",
     "TSDFVolume",
     "depth_bounds",

@@ -41,7 +41,7 @@ from functools import cached_property
 import torch
 from torch import Tensor
 
-from neuralsurf.baselines.tsdf import TSDFVolume
+from neuralsurf.baselines.tsdf import FusionSettings, TSDFVolume
 from neuralsurf.cameras import backproject_depth_to_camera, depth_normals, pixel_rays
 from neuralsurf.devices import CompiledOnCPU
 from neuralsurf.errors import ConfigError, InputError, NeuralsurfError
@@ -569,8 +569,8 @@ class Tracker:
                 raise InputError("the first frame has no valid depth pixel; start the sequence at a frame with depth")
             world = points.double() @ pose[:3, :3].T.to(points.device) + pose[:3, 3].to(points.device)
             bounds = torch.stack([world.amin(0) - self.margin, world.amax(0) + self.margin])
-            self.volume = TSDFVolume(bounds, self.voxel_size, self.truncation, device=depth.device, sparse=True,
-                                     threads=1, compiled=False)
+            self.volume = TSDFVolume(bounds, self.voxel_size, self.truncation, sparse=True, device=depth.device,
+                                     fusion=FusionSettings(threads=1, compiled=False))
         self.volume.integrate(frame, progress=False)
 
     def _model(self, pose: Tensor) -> list[SurfaceMap]:

@@ -17,7 +17,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from neuralsurf.baselines import TSDFVolume, reconstruct_poisson
+from neuralsurf.baselines import FusionSettings, TSDFVolume, reconstruct_poisson
 from neuralsurf.checkpoints import load_field
 from neuralsurf.devices import resolve_device
 from neuralsurf.errors import NeuralsurfError
@@ -106,7 +106,8 @@ def tsdf(scene: Scene, *, voxel_fraction: float = 1 / 256, truncation_voxels: fl
     bounds, size = input_box(scene, margin_fraction)
     room = scene.near_distance is not None and room_voxel is not None
     voxel = room_voxel if room else voxel_fraction * size
-    volume = TSDFVolume(bounds, voxel, truncation_voxels * voxel, device=device, weighting=weighting, sparse=room)
+    volume = TSDFVolume(bounds, voxel, truncation_voxels * voxel, sparse=room, device=device,
+                        fusion=FusionSettings(weighting=weighting))
     return volume.integrate(scene.frames).extract_mesh()
 
 

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from neuralsurf.errors import FileFormatError
+from neuralsurf.baselines.tsdf.settings import FusionSettings
+from neuralsurf.errors import ConfigError, FileFormatError
 from neuralsurf.io.npz import write_npz
 
 TSDF_FORMAT = "neuralsurf.TSDFVolume/1"
@@ -27,9 +28,9 @@ def save_volume(volume, path) -> Path:
         "bounds": volume.bounds.cpu().numpy().astype(np.float64),
         "voxel_size": np.float64(volume.voxel_size),
         "truncation": np.float64(volume.truncation),
-        "free_space": np.float64(volume.free_space),
-        "weighting": np.array(volume.weighting),
-        "max_weight": np.float64(np.nan if volume.max_weight is None else volume.max_weight),
+        "free_space": np.float64(volume.fusion.free_space),
+        "weighting": np.array(volume.fusion.weighting),
+        "max_weight": np.float64(np.nan if volume.fusion.max_weight is None else volume.fusion.max_weight),
         "sparse": np.bool_(volume.sparse),
         "block_size": np.int64(volume.block_size),
         "with_color": np.bool_(volume.with_color),
@@ -45,8 +46,9 @@ def save_volume(volume, path) -> Path:
     return path
 
 
-def load_volume(cls, path, device="auto", frames_per_pass: int | None = None):
-    """`TSDFVolume.load`: the volume of class `cls` in the file at `path`, on `device`."""
+def load_volume(cls, path, device="auto", fusion: FusionSettings | None = None):
+    """`TSDFVolume.load`: the volume of class `cls` in the file at `path`, on `device`, fusing further frames
+    with the file's fusion rule and `fusion`'s execution (default: `FusionSettings`'s)."""
     path = Path(path)
     if not path.is_file():
         raise FileFormatError(f"TSDF volume file not found: {str(path)!r}; check the path (written by TSDFVolume.save)")
@@ -71,12 +73,18 @@ def load_volume(cls, path, device="auto", frames_per_pass: int | None = None):
             f"{TSDF_FORMAT!r}; missing {missing})"
         )
     max_weight = float(arrays["max_weight"])
+    rule = {"weighting": str(arrays["weighting"]), "max_weight": None if math.isnan(max_weight) else max_weight,
+            "free_space": float(arrays["free_space"])}
+    if fusion is None:
+        fusion = FusionSettings(**rule)
+    elif fusion.rule() != FusionSettings(**rule).rule():
+        raise ConfigError(f"{str(path)!r} was fused with {FusionSettings(**rule).rule()}, but fusion= asks for "
+                          f"{fusion.rule()}: a volume keeps its fusion rule; give fusion= the file's rule (or leave "
+                          f"it out), or fuse a new volume")
     volume = cls(
         arrays["bounds"], float(arrays["voxel_size"]), float(arrays["truncation"]), device=device,
-        weighting=str(arrays["weighting"]), max_weight=None if math.isnan(max_weight) else max_weight,
         sparse=bool(arrays["sparse"]), block_size=int(arrays["block_size"]),
-        with_color=bool(arrays["with_color"]), free_space=float(arrays["free_space"]),
-        frames_per_pass=frames_per_pass,
+        with_color=bool(arrays["with_color"]), fusion=fusion,
     )
     voxels = volume.block_size**3
     used = len(arrays["tsdf"])

@@ -1,7 +1,8 @@
 """TSDF fusion of depth frames (Curless & Levoy 1996; KinectFusion, Newcombe et al. 2011) in PyTorch.
 
-`TSDFVolume(bounds, voxel_size, ...)`, then `.integrate(frames)` any number of times, then
-`.extract_mesh()`. Vectorised over voxels, on any torch device (CPU or CUDA).
+`TSDFVolume(bounds, voxel_size, ..., fusion=FusionSettings(...))`, then `.integrate(frames)` any number of
+times, then `.extract_mesh()`. The constructor takes the grid; `FusionSettings` (`settings.py`) the fusion
+rule and its execution. Vectorised over voxels, on any torch device (CPU or CUDA).
 
 The volume
     Grid points ("voxels") sit at `bounds[0] + (i, j, k) * voxel_size` and are stored in blocks of
@@ -11,22 +12,22 @@ The volume
     slots through a sorted tensor of block keys (`torch.searchsorted`), so memory follows the observed
     surfaces, not the box. Stored values are signed distances in metres, in [-truncation, truncation].
 
-Integration, a pass of `frames_per_pass` frames at a time (one on a CPU, 32 on a GPU)
+Integration, a pass of `fusion.frames_per_pass` frames at a time (one on a CPU, 32 on a GPU)
     1. The blocks that the frames' truncation bands touch (`bands.candidate_blocks`), for every
        pass first (allocated in sparse mode): as in Open3D's VoxelBlockGrid, a frame updates the
        voxels of these only.
     2. Their voxels' running weighted averages of the projective signed distance, nearest pixel,
        frame after frame (`voxels.fuse_blocks`), in chunks of _CHUNK_OBSERVATIONS.
     On a CPU, eager: each torch op on one thread (many short ops, whose thread synchronisation costs
-    more than it gains on a few cores), the passes' blocks found on `threads` worker threads side by
-    side, then each thread fusing its share of the blocks through all passes. Compiled (`compiled`, by default for calls of
+    more than it gains on a few cores), the passes' blocks found on `fusion.threads` worker threads side by
+    side, then each thread fusing its share of the blocks through all passes. Compiled (`fusion.compiled`, by default for calls of
     _COMPILE_PIXELS depth pixels or more): the band search and the voxel pass as loops compiled by
     torch.compile (`CompiledOnCPU`), for long sequences (20-35 s of compilation once per process).
 
 Extraction
     Marching cubes in PyTorch (`neuralsurf.marching.cube_triangles`) on the blocks that may hold a sign
     change, each read as a cube of its voxels and the next point along each axis
-    (`TSDFVolume._block_cubes`), groups of blocks on `threads` worker threads, cells with an unobserved
+    (`TSDFVolume._block_cubes`), groups of blocks on `fusion.threads` worker threads, cells with an unobserved
     corner skipped; a vertex is named by the grid edge it lies on, so the blocks' meshes join without
     seams (`neuralsurf.marching.merge_edge_vertices`).
 """
@@ -35,7 +36,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import numbers
 import os
 import warnings
 from concurrent.futures import Executor, ThreadPoolExecutor
@@ -47,6 +47,7 @@ from torch import Tensor
 
 from neuralsurf.baselines.tsdf.bands import TILE, candidate_blocks, candidates_by_pass, tile_box_codes
 from neuralsurf.baselines.tsdf.files import load_volume, save_volume
+from neuralsurf.baselines.tsdf.settings import FusionSettings, positive
 from neuralsurf.baselines.tsdf.voxels import (
     camera_to_grid,
     fuse_blocks,
@@ -61,10 +62,6 @@ from neuralsurf.extract import as_bounds
 from neuralsurf.marching import cube_triangles, merge_edge_vertices
 from neuralsurf.progress import progress_bar
 from neuralsurf.structures import DepthFrames, Mesh, float_colors
-
-WEIGHTINGS = ("constant", "depth")
-"""Per-observation weights: "constant" = 1; "depth" = inverse variance of the Kinect v1 axial noise
-model (Nguyen et al. 2012), (sigma(0.4 m) / sigma(z))^2, which is 1 at 0.4 m and 0.2 at 1.5 m."""
 
 _CHUNK_OBSERVATIONS = {"cpu": 1 << 17, "compiled": 1 << 21, "cuda": 1 << 25}
 """Voxel observations (voxels x frames) per vectorised step, at most (temporary memory: ~40 bytes
@@ -114,13 +111,6 @@ def available_memory(device: torch.device) -> int:
     return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
 
 
-def _positive(value, name: str, what: str) -> float:
-    """`value` as a float, or ConfigError unless it is a positive finite number."""
-    if not (isinstance(value, numbers.Real) and math.isfinite(value) and value > 0):
-        raise ConfigError(f"{name} must be positive and finite ({what}), got {value!r}")
-    return float(value)
-
-
 def depth_bounds(frames: DepthFrames, margin: float = 0.0) -> Tensor:
     """Float64[Tensor, "2 3"]: world bounding box of every valid depth pixel, grown by `margin`."""
 
@@ -139,7 +129,7 @@ def depth_bounds(frames: DepthFrames, margin: float = 0.0) -> Tensor:
 
 
 _COMPILE_PIXELS = 300 * 640 * 480
-"""TSDFVolume(compiled=None) compiles an `integrate` call on a CPU from this many depth pixels on. Set on
+"""FusionSettings(compiled=None) compiles an `integrate` call on a CPU from this many depth pixels on. Set on
 7-Scenes at 1 cm, 2 cores: 19 ms a frame compiled after a compilation of 11 s (from torch's on-disk cache;
 20-35 s without) against 56 ms for a one-thread eager path with 2 x 2 band tiles. The eager path with 4 x 4
 tiles and worker threads takes about 18 ms of CPU a frame there, so compiling may not pay at all."""
@@ -157,30 +147,13 @@ class TSDFVolume:
         voxel_size: grid spacing in metres (> 0).
         truncation: band half-width in metres (> 0); default 3 voxels. Below one voxel it warns:
             the band then misses grid points and the surface breaks up.
-        device: "auto" (CUDA if available), "cpu", "cuda", or a torch.device.
-        weighting: "constant" or "depth" (see WEIGHTINGS).
-        max_weight: cap of the accumulated weight (a running average over the last ~max_weight
-            observations, as in KinectFusion); None = no cap (the plain average of all frames).
         sparse: allocate blocks where frames observe surfaces only (rooms); dense otherwise.
         block_size: voxels per block side (>= 2).
         with_color: also average the frames' colours (frames must carry `colors`).
-        free_space: metres (>= 0) by which the band's blocks reach further towards the camera than
-            the truncation; there every voxel in front of the surface is observed (at +truncation).
-            Default 0: the band only, as Open3D's VoxelBlockGrid. Larger values carve more free
-            space (floating outliers, holes seen from afar), at a cost in speed and memory.
+        device: "auto" (CUDA if available), "cpu", "cuda", or a torch.device.
         max_memory: bytes the dense volume may take; default 80 % of the device's available memory.
-        frames_per_pass: frames fused together in one vectorised pass over the union of their
-            candidate blocks (the result is the same as one at a time, in order); default 1 on a
-            CPU and 32 on a GPU, where per-pass costs dominate.
-        threads: CPU threads of `integrate` and `extract_mesh`. Eager fusion: worker threads that fuse
-            shares of the blocks side by side, each torch op on one thread (torch's setting restored
-            afterwards); "auto" or None: as many as torch's threads, at most _FUSION_WORKERS.
-            Compiled fusion: torch's threads ("auto" or None: torch's setting; compiled loops keep the
-            thread count of the process's first compiled fusion). Extraction: worker threads that mesh
-            groups of blocks side by side; "auto" or None: as many as torch's threads.
-        compiled: on a CPU, compile the fusion with torch.compile (see the module docstring; needs a
-            C++ compiler, else a warning and eager fusion); None: for `integrate` calls of at least
-            _COMPILE_PIXELS depth pixels, where compilation pays for itself. No effect on a GPU.
+        fusion: the fusion rule (weighting, weight cap, free space) and its execution (frames per pass,
+            threads, torch.compile on a CPU): a `FusionSettings`; default `FusionSettings()`.
     """
 
     def __init__(
@@ -188,24 +161,20 @@ class TSDFVolume:
         bounds,
         voxel_size: float,
         truncation: float | None = None,
-        device="auto",
-        weighting: str = "constant",
-        max_weight: float | None = None,
+        *,
         sparse: bool = False,
         block_size: int = 8,
         with_color: bool = False,
-        free_space: float = 0.0,
+        device="auto",
         max_memory: int | None = None,
-        frames_per_pass: int | None = None,
-        threads: int | str | None = "auto",
-        compiled: bool | None = None,
+        fusion: FusionSettings | None = None,
     ):
         box = as_bounds(bounds)
-        voxel_size = _positive(voxel_size, "voxel_size", "a length in metres")
+        voxel_size = positive(voxel_size, "voxel_size", "a length in metres")
         truncation = (
             3.0 * voxel_size
             if truncation is None
-            else _positive(truncation, "truncation", "a length in metres")
+            else positive(truncation, "truncation", "a length in metres")
         )
         if truncation < voxel_size:
             warnings.warn(
@@ -213,16 +182,10 @@ class TSDFVolume:
                 f"of the surface are often not updated and the mesh gets holes; use 2 to 5 voxels",
                 stacklevel=2,
             )
-        if not (isinstance(free_space, numbers.Real) and math.isfinite(free_space) and free_space >= 0):
-            raise ConfigError(f"free_space must be a length >= 0 in metres (0: the band only), got {free_space!r}")
-        free_space = float(free_space)
-        max_weight = (
-            None
-            if max_weight is None
-            else _positive(max_weight, "max_weight", "a weight, or None for no cap")
-        )
-        if weighting not in WEIGHTINGS:
-            raise ConfigError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
+        fusion = FusionSettings() if fusion is None else fusion
+        if not isinstance(fusion, FusionSettings):
+            raise ConfigError(f"fusion must be a FusionSettings (the fusion rule and its execution), got "
+                              f"{type(fusion).__name__}; pass fusion=FusionSettings(weighting=..., threads=...)")
         if not (isinstance(block_size, (int, np.integer)) and block_size >= 2):
             raise ConfigError(
                 f"block_size must be an integer >= 2 (voxels per block side), got {block_size!r}"
@@ -230,22 +193,10 @@ class TSDFVolume:
         self.device = resolve_device(device)
         self.bounds = torch.as_tensor(box)
         self.origin = box[0].copy()
-        self.voxel_size, self.truncation, self.free_space = voxel_size, truncation, free_space
-        self.weighting, self.max_weight = weighting, max_weight
+        self.voxel_size, self.truncation, self.fusion = voxel_size, truncation, fusion
         self.sparse, self.block_size, self.with_color = bool(sparse), int(block_size), bool(with_color)
         kind = "cuda" if self.device.type == "cuda" else "cpu"
-        frames_per_pass = _FRAMES_PER_PASS[kind] if frames_per_pass is None else frames_per_pass
-        if not (isinstance(frames_per_pass, (int, np.integer)) and frames_per_pass >= 1):
-            raise ConfigError(f"frames_per_pass must be an integer >= 1, got {frames_per_pass!r}")
-        self.frames_per_pass = int(frames_per_pass)
-        if not (threads in (None, "auto") or (isinstance(threads, (int, np.integer)) and threads >= 1)):
-            raise ConfigError(
-                f"threads must be an integer >= 1, 'auto', or None to keep torch's setting; got {threads!r}"
-            )
-        self.threads = threads if threads in (None, "auto") else int(threads)
-        if compiled not in (None, True, False):
-            raise ConfigError(f"compiled must be True, False or None (compile long integrations), got {compiled!r}")
-        self.compiled = compiled
+        self.frames_per_pass = _FRAMES_PER_PASS[kind] if fusion.frames_per_pass is None else fusion.frames_per_pass
         self._chunk_observations = _CHUNK_OBSERVATIONS[kind]
         if kind == "cuda":
             self._chunk_observations = min(self._chunk_observations, available_memory(self.device) // 400)
@@ -328,11 +279,11 @@ class TSDFVolume:
         return slots
 
     def _workers(self, most: int | None = None) -> int:
-        """Worker threads on a CPU: `threads`, or torch's intra-op thread count (at most `most`) when None
+        """Worker threads on a CPU: `fusion.threads`, or torch's intra-op thread count (at most `most`) when None
         or "auto"."""
-        if self.threads in (None, "auto"):
+        if self.fusion.threads in (None, "auto"):
             return min(torch.get_num_threads(), most or torch.get_num_threads())
-        return self.threads
+        return self.fusion.threads
 
     def _block_coords(self, keys: Tensor) -> Tensor:
         """Int64[Tensor, "b"] linear block keys -> Int64[Tensor, "b 3"] block coordinates."""
@@ -360,13 +311,13 @@ class TSDFVolume:
         colors = frames.colors.to(self.device, non_blocking=True) if self.with_color else None
         bar = progress_bar(desc="TSDF fusion", total=len(frames), unit="frame", enabled=progress)
         cpu = self.device.type == "cpu"
-        compiled = cpu and (depth.numel() >= _COMPILE_PIXELS if self.compiled is None else self.compiled)
+        compiled = cpu and (depth.numel() >= _COMPILE_PIXELS if self.fusion.compiled is None else self.fusion.compiled)
         workers = 1
         if cpu and not compiled:  # eager: shares of the blocks on `workers` threads, each torch op on one
             workers = self._workers(_FUSION_WORKERS)
             threads = 1
         else:
-            threads = None if self.threads == "auto" else self.threads
+            threads = None if self.fusion.threads == "auto" else self.fusion.threads
         with torch_threads(threads if cpu else None), ThreadPoolExecutor(workers) as pool:
             self._integrate_all(frames, depth, colors, bar, compiled, pool if workers > 1 else None, workers)
         bar.close()
@@ -424,7 +375,7 @@ class TSDFVolume:
         rotation, translation = camera_to_grid(cam_to_world, origin, self.voxel_size)
         to = lambda t: t.to(self.device, depth.dtype)
         return candidate_blocks(
-            depth, to(K), to(rotation), to(translation), self.truncation, self.free_space, self.block_size,
+            depth, to(K), to(rotation), to(translation), self.truncation, self.fusion.free_space, self.block_size,
             self.block_counts, _COMPILED[tile_box_codes] if compiled else tile_box_codes,
             TILE["compiled" if compiled else "eager"],
         )
@@ -439,10 +390,11 @@ class TSDFVolume:
         `_COMPILED` (CPU)."""
         n_frames, voxels, total = len(depth), self.block_size**3, int(self.block_counts.prod())
         padded = pad_image(depth)
-        weights = None if self.weighting == "constant" else pad_image(pixel_weights(depth, self.weighting))
+        weighting = self.fusion.weighting
+        weights = None if weighting == "constant" else pad_image(pixel_weights(depth, weighting))
         weights = None if weights is None else weights.reshape(-1)
         colors = None if colors is None else pad_image(colors).reshape(-1, 3)
-        cap = math.inf if self.max_weight is None else self.max_weight
+        cap = math.inf if self.fusion.max_weight is None else self.fusion.max_weight
         limits = torch.tensor([self.truncation, cap], dtype=depth.dtype, device=self.device)
         fuse = _COMPILED[fuse_blocks] if compiled else fuse_blocks
         chunk_observations = _CHUNK_OBSERVATIONS["compiled"] if compiled else self._chunk_observations
@@ -471,13 +423,15 @@ class TSDFVolume:
         return save_volume(self, path)
 
     @classmethod
-    def load(cls, path, device="auto", frames_per_pass: int | None = None) -> TSDFVolume:
+    def load(cls, path, device="auto", fusion: FusionSettings | None = None) -> TSDFVolume:
         """A volume written by `save`, on `device`, ready to `integrate` more frames or `extract_mesh`.
+        Its fusion rule is the file's; `fusion` sets the execution of further integrations (its rule
+        must then be the file's: a ConfigError says which field differs).
 
         Read with `numpy.load(allow_pickle=False)`: a file holding anything but plain arrays is refused.
         Raises FileFormatError for a missing, truncated or foreign file (naming it).
         """
-        return load_volume(cls, path, device, frames_per_pass)
+        return load_volume(cls, path, device, fusion)
 
     # ------------------------------------------------------------------------------- extraction
 
@@ -579,7 +533,7 @@ class TSDFVolume:
         (towards positive TSDF, i.e. the cameras), with vertex colours when `with_color`.
 
         The blocks that may own a cell with a sign change (an observed value <= 0 in them or in one of
-        the seven blocks after them), at most _MESH_BLOCKS at a time (on `threads` worker threads), are
+        the seven blocks after them), at most _MESH_BLOCKS at a time (on `fusion.threads` worker threads), are
         read as cubes (`_block_cubes`) and marched by `neuralsurf.marching.cube_triangles`, cells with an
         unobserved corner skipped. A vertex on a block's face is found from the same values in each
         block that shares it and named by its grid edge, so the mesh has no seams between blocks."""
@@ -628,4 +582,4 @@ class TSDFVolume:
         return Mesh(vertices, faces.cpu(), colors)
 
 
-__all__ = ["WEIGHTINGS", "TSDFVolume", "available_memory", "depth_bounds"]
+__all__ = ["TSDFVolume", "available_memory", "depth_bounds"]
