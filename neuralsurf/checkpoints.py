@@ -2,14 +2,16 @@
 
 A checkpoint is a dict of tensors and plain containers, written atomically (`save_checkpoint`) and read
 with `torch.load(weights_only=True)` (`load_checkpoint`). `field_state` is what a field needs (the model
-as plain data, its weights, the unit frame, the box margin); `load_model` rebuilds the model of a
-checkpoint from an allowlist (nothing in the file can choose code to run), behind `load_field` and
-`neuralsurf.priors.load_prior`.
+as plain data, its weights, the unit frame, the box margin); `read_model` reads a model checkpoint as a
+`StoredModel` record, whose `build` rebuilds the model from an allowlist (nothing in the file can choose
+code to run). Each loader checks the class it needs: `load_field` a single-shape field,
+`neuralsurf.priors.load_prior` a learned prior.
 """
 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,12 +26,13 @@ from neuralsurf.structures import Normalization
 
 __all__ = [
     "CHECKPOINT_NAME",
+    "StoredModel",
     "MAX_MARGIN",
     "PRIOR_CLASSES",
     "field_state",
     "load_checkpoint",
     "load_field",
-    "load_model",
+    "read_model",
     "save_checkpoint",
     "stored_class",
     "stored_margin",
@@ -89,52 +92,57 @@ def field_state(model: nn.Module, normalization: Normalization, margin: float, s
             "normalization": normalization.state_dict(), "margin": float(margin), "step": int(steps)}
 
 
-def load_model(path: str | Path, prior: bool = False, model: nn.Module | None = None) -> tuple[nn.Module, dict]:
-    """The model of a neuralsurf checkpoint and the checkpoint's state: a single-shape field (what
-    `load_field` reads) or, with `prior`, a learned prior (`neuralsurf.priors.load_prior`).
+@dataclass(frozen=True)
+class StoredModel:
+    """A model checkpoint as `read_model` found it: its file, its state and the model class its spec
+    names (None when it has no spec). Each loader checks the class it needs, then calls `build`."""
 
-    The model is rebuilt from its stored constructor arguments (an allowlist of neuralsurf's model
-    classes and plain values: nothing in the file can choose code to run), or a field's weights are
-    loaded into `model`. Raises CheckpointError for a missing file, a file that is not such a
-    checkpoint, or one that holds the other kind of model.
-    """
+    path: Path
+    state: dict[str, Any]
+    class_name: str | None
+
+    def build(self, model: nn.Module | None = None) -> nn.Module:
+        """The model rebuilt from its stored constructor arguments (an allowlist of neuralsurf's model
+        classes and plain values: nothing in the file can choose code to run), or the stored weights
+        loaded into `model`. CheckpointError when the weights do not fit."""
+        if model is None:
+            return build_checked(self.state["model_spec"], self.state["model"], f"{self.path}: model")
+        try:
+            model.load_state_dict(check_weights(self.state["model"], f"{self.path}: model"))
+        except (RuntimeError, KeyError, TypeError, ValueError) as error:
+            raise CheckpointError(f"{self.path} does not match its model: {error}") from None
+        return model
+
+
+def read_model(path: str | Path, missing: str) -> StoredModel:
+    """The one reader of model checkpoints: the file at `path` read weights-only (`load_checkpoint`) as a
+    `StoredModel`. CheckpointError for a missing file (`missing` says what to pass instead) or a file that
+    is not a neuralsurf checkpoint."""
     path = Path(path)
     if not path.is_file():
-        raise CheckpointError(f"prior checkpoint {path} not found; pass the checkpoints/last.pt of a train.py "
-                              f"experiment=shapes_* run" if prior else
-                              f"checkpoint {path} not found; pass the last.pt of a run or a file of FitResult.save")
+        raise CheckpointError(missing)
     state = load_checkpoint(path)
-    name = stored_class(state)
-    if prior and (not isinstance(state.get("model_spec"), dict) or "model" not in state):
-        raise CheckpointError(f"{path} holds no rebuildable model; it was not written by a neuralsurf fit")
-    if prior and name in REBUILDABLE and name not in PRIOR_CLASSES:
-        raise CheckpointError(f"{path} holds a {name}, not a learned prior (AutoDecoder or OccupancyNetwork): a "
-                              f"single-shape field; load it with neuralsurf.load_field")
-    missing = [key for key in ("model", "normalization", "margin") + (("model_spec",) if model is None else ())
-               if key not in state]
-    if not prior and missing:
-        raise CheckpointError(f"{path} lacks {missing}: it was not written by neuralsurf's fit or FitResult.save "
-                              f"(checkpoints of neuralsurf before 0.2 cannot be loaded; fit again)")
-    if not prior and model is None and state["model_spec"] is None:
-        raise CheckpointError(f"{path} holds a model of a class neuralsurf cannot rebuild; pass it: "
-                              f"load_field(path, model=YourModel(...))")
-    if not prior and name in PRIOR_CLASSES:
-        raise CheckpointError(f"{path} holds a learned prior ({name}), not a single-shape field; "
-                              f"load it with neuralsurf.priors.load_prior and complete a shape with complete_cloud")
-    if model is None:
-        return build_checked(state["model_spec"], state["model"], f"{path}: model"), state
-    try:
-        model.load_state_dict(check_weights(state["model"], f"{path}: model"))
-    except (RuntimeError, KeyError, TypeError, ValueError) as error:
-        raise CheckpointError(f"{path} does not match its model: {error}") from None
-    return model, state
+    return StoredModel(path, state, stored_class(state))
 
 
 def load_field(path: str | Path, model: nn.Module | None = None, device: str | torch.device = "cpu") -> NormalizedField:
     """The world-frame field saved by `FitResult.save` or by a fit's checkpoint (`run/checkpoints/last.pt`):
-    its model rebuilt by `load_model` (or pass `model` to load the weights into one of your own).
+    its model rebuilt from the checkpoint (`read_model`; or pass `model` to load the weights into one of your own).
     Raises CheckpointError for a file that is not such a checkpoint."""
-    model, state = load_model(path, model=model)
+    stored = read_model(path, f"checkpoint {path} not found; pass the last.pt of a run or a file of FitResult.save")
+    state, name = stored.state, stored.class_name
+    missing = [key for key in ("model", "normalization", "margin") + (("model_spec",) if model is None else ())
+               if key not in state]
+    if missing:
+        raise CheckpointError(f"{path} lacks {missing}: it was not written by neuralsurf's fit or FitResult.save "
+                              f"(checkpoints of neuralsurf before 0.2 cannot be loaded; fit again)")
+    if model is None and state["model_spec"] is None:
+        raise CheckpointError(f"{path} holds a model of a class neuralsurf cannot rebuild; pass it: "
+                              f"load_field(path, model=YourModel(...))")
+    if name in PRIOR_CLASSES:
+        raise CheckpointError(f"{path} holds a learned prior ({name}), not a single-shape field; "
+                              f"load it with neuralsurf.priors.load_prior and complete a shape with complete_cloud")
+    model = stored.build(model)
     margin = stored_margin(state, Path(path))
     try:
         normalization = Normalization.from_state_dict(state["normalization"])

@@ -13,8 +13,10 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from neuralsurf.checkpoints import load_model
+from neuralsurf.checkpoints import read_model
+from neuralsurf.errors import CheckpointError
 from neuralsurf.models import SDFMLP, AutoDecoder, CBNDecoder, LatentCodes, OccupancyNetwork, PointNetEncoder
+from neuralsurf.models.spec import REBUILDABLE
 
 
 def deepsdf(n_shapes: int, latent_dim: int = 64, width: int = 256, depth: int = 8, skip_layers=(4,),
@@ -44,4 +46,12 @@ def occupancy_network(n_shapes: int, latent_dim: int = 128, encoder_hidden: int 
 def load_prior(path: str | Path, device: str | torch.device = "cpu") -> nn.Module:
     """The trained prior (an AutoDecoder or OccupancyNetwork, unit frame, eval mode) of a run's
     `checkpoints/last.pt`. Rebuilt from the allowlist of model classes (`models.spec`)."""
-    return load_model(path, prior=True)[0].to(device).eval()
+    stored = read_model(path, f"prior checkpoint {path} not found; pass the checkpoints/last.pt of a train.py "
+                              f"experiment=shapes_* run")
+    if not isinstance(stored.state.get("model_spec"), dict) or "model" not in stored.state:
+        raise CheckpointError(f"{path} holds no rebuildable model; it was not written by a neuralsurf fit")
+    name = stored.class_name
+    if name in REBUILDABLE and not issubclass(REBUILDABLE[name], (AutoDecoder, OccupancyNetwork)):
+        raise CheckpointError(f"{path} holds a {name}, not a learned prior (AutoDecoder or OccupancyNetwork): a "
+                              f"single-shape field; load it with neuralsurf.load_field")
+    return stored.build().to(device).eval()
