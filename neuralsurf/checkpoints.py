@@ -26,9 +26,9 @@ from neuralsurf.structures import Normalization
 
 __all__ = [
     "CHECKPOINT_NAME",
-    "StoredModel",
     "MAX_MARGIN",
     "PRIOR_CLASSES",
+    "StoredModel",
     "field_state",
     "load_checkpoint",
     "load_field",

@@ -45,8 +45,7 @@ from neuralsurf.io.meshes import mesh_format
 from neuralsurf.io.trajectories import write_trajectory_log, write_tum_trajectory
 from neuralsurf.metrics import box_overlap, depth_metrics, evaluate_mesh, json_ready
 from neuralsurf.models import AutoDecoder
-from neuralsurf.priors import ShapeCollection, score_completions, train_prior
-from neuralsurf.priors.folders import FolderCollection
+from neuralsurf.priors import Collection, score_completions, train_prior
 from neuralsurf.rooms import RoomSettings, fit_room
 from neuralsurf.runlock import busy_message, claim, run_lock
 from neuralsurf.scenes import extract_scene_mesh
@@ -168,7 +167,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
         seed_everything(cfg.seed)
         scene = instantiate(cfg.data)
         log.info("scene %s: %s", scene.name, scene.description)
-        if isinstance(scene, (ShapeCollection, FolderCollection)):
+        if isinstance(scene, Collection):  # a prior's shapes: train the prior
             return train_collection(cfg, scene, run_dir, config, device, extension)
         model = instantiate(cfg.model, _convert_="all")
         if isinstance(model, RoomSettings):  # a room's voxel fit: a solve, not a training loop
@@ -218,7 +217,7 @@ def shared_run_directory(cfg: DictConfig) -> Path:
     return shared
 
 
-def train_collection(cfg: DictConfig, collection: ShapeCollection | FolderCollection, run_dir: Path, config: dict,
+def train_collection(cfg: DictConfig, collection: Collection, run_dir: Path, config: dict,
                      device: str, extension: str = ".ply") -> dict[str, float]:
     """Train a learned prior (cfg.model: a builder called with the collection's number of training
     shapes) over `collection` (built here, or found cached) with `neuralsurf.priors.train_prior`, then
@@ -227,9 +226,9 @@ def train_collection(cfg: DictConfig, collection: ShapeCollection | FolderCollec
     neuralsurf.priors.load_prior). Under torchrun every rank trains; rank 0 alone builds, scores and
     writes. An auto-decoder also writes interpolation.png: the shapes between the codes of its first
     and last training shapes. A folder in Occupancy Networks' layout has no meshes: its prior is trained
-    and kept, not scored (`FolderCollection.check_prior`, checked before building)."""
+    and kept, not scored (`Collection.check_prior`, checked before building)."""
     observations = observation_configs(cfg)
-    scored = not isinstance(collection, FolderCollection) or collection.check_prior(  # before building
+    scored = collection.check_prior(  # before building
         {name: OmegaConf.to_container(entry, resolve=True) for name, entry in observations.items()})
     if is_main_process():
         collection.build(progress=bool(cfg.trainer.progress))

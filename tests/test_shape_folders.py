@@ -216,6 +216,21 @@ def test_occupancy_layout_becomes_a_collection(tmp_path):
         assert np.array_equal(data["occ_uniform_inside"], np.linalg.norm(data["occ_uniform_points"], axis=1) < 0.4)
     with pytest.raises(ConfigError, match="no meshes to score"):
         collection.test_shapes()
+    with pytest.warns(UserWarning, match="trained and kept"):  # train.py trains it, then keeps it unscored
+        assert not collection.check_prior({"sdf": {}})
+
+
+def test_both_kinds_of_collection_follow_the_collection_protocol(tmp_path):
+    from neuralsurf.priors import Collection, ShapeCollection
+    from neuralsurf.priors.folders import FolderCollection
+    from neuralsurf.scenes import analytic_scene
+
+    procedural = ShapeCollection(classes=("mug",), n_train=1, n_test=1)
+    assert isinstance(procedural, Collection) and procedural.check_prior({"sdf": {}})
+    write_mesh_folder(tmp_path / "meshes")
+    folder = FolderCollection(source=str(tmp_path / "meshes"), root=str(tmp_path / "cache"))
+    assert isinstance(folder, Collection) and folder.check_prior({"sdf": {}})  # a mesh folder with test shapes
+    assert not isinstance(analytic_scene("sphere", n_points=100), Collection)
 
 
 def test_suite_priors_folder_sets_one_collection_for_scenes_and_priors(tmp_path):

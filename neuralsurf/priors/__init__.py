@@ -4,7 +4,8 @@ procedural shape collections.
 - `procedural`, `csg`: shape classes with analytic SDFs (chairs, slatted chairs, mugs, lamps) and their
   records; `mesh_folders`: procedural shapes written as folders of damaged mesh files.
 - `cache`: per-shape npz caches of training samples (`python -m neuralsurf.priors build`).
-- `collection`: `ShapeCollection`, a collection as plain settings (train.py's `data` for the priors).
+- `collection`: the `Collection` protocol; `ShapeCollection`, procedural shapes as plain settings (train.py's
+  `data` for the priors); `folders`: `FolderCollection`, shapes from a folder of meshes.
 - `observations`: the supervision of priors (`CollectionSDF`, `CollectionOccupancy`, `SDFSampleSet`,
   `LatentPrior`).
 - `models`: `deepsdf`, `occupancy_network` sized for a collection; `load_prior` from a checkpoint.
@@ -17,7 +18,7 @@ Everything lives in the collection's unit frame (each shape in [-0.5, 0.5]^3, `U
 """
 
 from neuralsurf.priors.cache import CacheRecipe, build_collection
-from neuralsurf.priors.collection import ShapeCollection, TestShape
+from neuralsurf.priors.collection import Collection, ShapeCollection, TestShape
 from neuralsurf.priors.completion import (
     EXTRACTION_BOUNDS,
     clipped_to_cube,
@@ -45,7 +46,7 @@ from neuralsurf.priors.scenes import shapes_cloud, shapes_one_view
 from neuralsurf.priors.scoring import mean_metrics, score_completions
 from neuralsurf.priors.training import train_prior, trained_prior
 
-__all__ = ["EXTRACTION_BOUNDS", "SHAPE_CLASSES", "SPLITS", "UNIT_BOUNDS", "CacheRecipe", "Chair", "CollectionOccupancy",
+__all__ = ["EXTRACTION_BOUNDS", "SHAPE_CLASSES", "SPLITS", "UNIT_BOUNDS", "CacheRecipe", "Chair", "Collection", "CollectionOccupancy",
            "CollectionSDF", "Lamp", "LatentPrior", "Mug", "SDFSampleSet", "Shape", "ShapeCollection", "ShapeRecord",
            "SlatChair", "TestShape", "build_collection", "check_shape", "clipped_to_cube", "collection_records", "complete_cloud",
            "complete_view", "deepsdf", "extract_unit", "load_prior", "mean_metrics", "occupancy_network",

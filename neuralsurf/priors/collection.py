@@ -1,6 +1,8 @@
-"""A procedural shape collection as plain settings (train.py's `data` for the prior experiments):
+"""Shape collections: the `Collection` protocol every collection a prior trains on follows, and
+`ShapeCollection`, procedural shapes as plain settings (train.py's `data` for the prior experiments):
 `ShapeCollection.build()` writes its caches (or finds them) under `root`, by default
 `<cache>/shapes/<hash of the settings>`; `test_shapes()` reads the held-out shapes back.
+(`neuralsurf.priors.folders.FolderCollection` is the other collection: shapes from a folder of meshes.)
 """
 
 from __future__ import annotations
@@ -9,6 +11,7 @@ import hashlib
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
@@ -34,6 +37,42 @@ class TestShape:
         """The shape from the arrays of its cache (`priors.cache.load_cache`)."""
         mesh = Mesh(torch.from_numpy(arrays["mesh_vertices"]).double(), torch.from_numpy(arrays["mesh_faces"]))
         return cls(name, mesh, torch.from_numpy(arrays["surface_points"]).double())
+
+
+@runtime_checkable
+class Collection(Protocol):
+    """What a prior's training, scoring and scenes use of a shape collection (train.py's `data` when the
+    model is a prior). A collection is plain settings: nothing is read or written until `build`."""
+
+    name: str
+
+    @property
+    def description(self) -> str:
+        """One line for logs and reports: the classes and the shapes per split."""
+
+    @property
+    def folder(self) -> Path:
+        """Where `build` writes the shapes' caches (`priors.cache`) and `collection.json`."""
+
+    @property
+    def recipe(self) -> CacheRecipe:
+        """The samples cached per shape."""
+
+    def records(self, split: str | None = None) -> list[ShapeRecord]:
+        """The shapes of `split` ("train", "val", "test"; all when None), in latent-code order."""
+
+    def count(self, split: str) -> int:
+        """The number of shapes of `split`."""
+
+    def build(self, progress: bool = True) -> Path:
+        """Write every missing cache (resumable); returns `folder`."""
+
+    def check_prior(self, observations: dict[str, dict]) -> bool:
+        """Before building: ConfigError for observations (name -> config as a plain dict) the collection
+        cannot serve; returns whether a prior trained on it can be scored on its test shapes."""
+
+    def test_shapes(self, limit: int | None = None) -> list[TestShape]:
+        """The first `limit` held-out shapes (all when None), read from the built caches."""
 
 
 @dataclass(frozen=True)
@@ -89,6 +128,10 @@ class ShapeCollection:
 
     def count(self, split: str) -> int:
         return len(self.records(split))
+
+    def check_prior(self, observations: dict[str, dict]) -> bool:
+        """Procedural shapes have meshes for every observation, and their test shapes are scored."""
+        return True
 
     def build(self, progress: bool = True) -> Path:
         """Write every missing cache (resumable; shapes already cached are skipped); returns the folder.

@@ -8,13 +8,13 @@ from functools import lru_cache
 
 from neuralsurf.errors import ConfigError
 from neuralsurf.geometry import noisy_cloud
-from neuralsurf.priors.collection import ShapeCollection, TestShape
+from neuralsurf.priors.collection import Collection, TestShape
 from neuralsurf.scenes.recipes import Scene, SceneSet, depth_scene
 from neuralsurf.scenes.scanner import ONE_VIEW_IMAGE, one_view_camera, scan_depth
 from neuralsurf.structures import PointCloud
 
 
-def _test_shapes(collection: ShapeCollection, limit: int | None) -> list[TestShape]:
+def _test_shapes(collection: Collection, limit: int | None) -> list[TestShape]:
     """The built collection's first `limit` test shapes. A collection without test shapes, or without
     meshes (Occupancy Networks' layout), is a ConfigError before anything is built."""
     if not collection.count("test"):

@@ -13,14 +13,14 @@ from torch import nn
 from neuralsurf.checkpoints import CHECKPOINT_NAME, load_checkpoint
 from neuralsurf.locks import file_lock
 from neuralsurf.models import OccupancyNetwork
-from neuralsurf.priors.collection import ShapeCollection
+from neuralsurf.priors.collection import Collection
 from neuralsurf.structures import Normalization
 from neuralsurf.training import FitResult, default_optimizer, fit
 
 log = logging.getLogger("neuralsurf")
 
 
-def train_prior(collection: ShapeCollection, model: Callable[..., nn.Module], observations: Sequence[Callable], *,
+def train_prior(collection: Collection, model: Callable[..., nn.Module], observations: Sequence[Callable], *,
                 optimizer: Callable | None = None, trainer: dict | None = None, seed: int = 0, device: str = "cpu",
                 run_dir: str | Path | None = None, config: dict | None = None) -> FitResult:
     """Fit `model(n_shapes=<training shapes>)` over the built `collection` with the observations
@@ -38,7 +38,7 @@ def train_prior(collection: ShapeCollection, model: Callable[..., nn.Module], ob
                device=device, seed=seed, run_dir=run_dir, config=config, normalization=Normalization(), **trainer)
 
 
-def trained_prior(run_dir: str | Path, collection: ShapeCollection, model: Callable[..., nn.Module],
+def trained_prior(run_dir: str | Path, collection: Collection, model: Callable[..., nn.Module],
                   observations: Sequence[Callable], *, optimizer: Callable | None = None, trainer: dict | None = None,
                   seed: int = 0, device: str = "cpu", config: dict | None = None) -> Path:
     """The checkpoint of `train_prior` into `run_dir` (the collection built here if needed; no progress
