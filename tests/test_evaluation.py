@@ -147,6 +147,23 @@ def test_empty_or_nan_meshes_are_failed_rows(tmp_path):
     assert "empty" in rows[0]["reason"] and "NaN" in rows[1]["reason"]
 
 
+def test_rows_are_scored_by_the_type_of_the_methods_output(tmp_path):
+    """run_row looks the scorer up by the output's type (`SCORERS`): a ScoredMesh's own figures join its
+    mesh's metrics; an output without a scorer is a failed row naming the types that have one."""
+    from neuralsurf.evaluation import run_benchmark
+    from neuralsurf.evaluation.rooms import ScoredMesh
+    from neuralsurf.scenes import analytic_scene as analytic
+
+    scene = analytic(n_points=500)
+    methods = {"scored": lambda: (lambda scene, **_: ScoredMesh(scene.ground_truth, {"own_figure": 2.5})),
+               "text": lambda: (lambda scene, **_: "a mesh")}
+    rows = run_benchmark({"sphere": lambda: scene}, methods, tmp_path, n_samples=500, render=False,
+                         save_meshes=False)
+    assert rows[0]["status"] == "ok" and rows[0]["own_figure"] == 2.5 and rows[0]["fscore_1%"] == 1.0
+    assert rows[1]["status"] == "failed" and "returned str, not a neuralsurf Mesh" in rows[1]["reason"]
+    assert "NormalMapResult" in rows[1]["reason"]
+
+
 def test_two_runs_give_the_same_metrics(tmp_path):
     first = tiny_run(tmp_path / "a", ["methods=[neural_sdf,poisson]", "render=false"])
     second = tiny_run(tmp_path / "b", ["methods=[neural_sdf,poisson]", "render=false"])

@@ -14,6 +14,7 @@ import re
 import time
 import traceback
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -184,18 +185,50 @@ def build_scene(name: str, make_scene: SceneFactory, run_dir: Path,
     return {"scene": scene, "error": error, "gt_image": None}
 
 
+@dataclass(frozen=True)
+class RowJob:
+    """What the scorers of a row need besides the method's output and the scene: where files go, how
+    metrics are measured and what is rendered."""
+
+    run_dir: Path
+    scene_name: str
+    method_name: str
+    seed: int
+    n_samples: int
+    render: bool
+    render_size: int
+    save_meshes: bool
+    mesh_extension: str
+    built: dict[str, Any]
+    """`build_scene`'s dict: the scene's ground-truth render is kept there for its other rows."""
+    log: Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class SceneSetMeshes:
+    """What a method gives on a scene set (`run_scene_set`): the first scene's mesh, the means of the scenes'
+    metrics and the per-scene values."""
+
+    mesh: Mesh
+    metrics: dict[str, float]
+    per_shape: list[dict[str, Any]]
+
+
 def run_row(row: dict[str, Any], built: dict[str, Any], make_method: MethodFactory, run_dir: Path, *, seed: int,
             n_samples: int, render: bool, render_size: int, save_meshes: bool,
             log: Callable[[str], None], mesh_extension: str = ".ply") -> bool:
     """Run one method on one built scene (`build_scene`'s dict; its ground-truth render is kept there)
-    and fill `row` in place: metrics, files, or the reason it was skipped or failed. Returns whether
-    the row is final (reusable by a later run with the same settings): ok, or skipped because the method
-    does not apply; failed rows and rows of unavailable scenes are computed again."""
+    and fill `row` in place: run, then score by the output's type (`SCORERS`: metrics, files), or the
+    reason it was skipped or failed. Returns whether the row is final (reusable by a later run with the
+    same settings): ok, or skipped because the method does not apply; failed rows and rows of
+    unavailable scenes are computed again."""
     scene_name, method_name, scene = row["scene"], row["method"], built["scene"]
     if built["error"] is not None:
         row["status"], row["reason"] = built["error"]
         log(f"  {method_name:>12} on {scene_name}: {row['status']} ({row['reason']})")
         return False
+    job = RowJob(run_dir, scene_name, method_name, seed, n_samples, render, render_size, save_meshes,
+                 mesh_extension, built, log)
     seed_everything(seed)
     reset_peak_memory()
     started = time.perf_counter()
@@ -203,40 +236,10 @@ def run_row(row: dict[str, Any], built: dict[str, Any], make_method: MethodFacto
         method = make_method()
         fits = run_dir / "fits" / row_stem(scene_name, method_name)
         if isinstance(scene, SceneSet):  # a split of shapes: one row, the means of their metrics
-            output, set_metrics, row["per_shape"] = run_scene_set(scene, method, seed, fits, n_samples)
+            output = run_scene_set(scene, method, seed, fits, n_samples)
         else:
             output = method(scene, seed=seed, run_dir=fits)
-        if isinstance(output, NormalMapResult):  # photometric stereo: scored by angular error
-            row["seconds"] = time.perf_counter() - started
-            row["peak_rss_mb"], row["cuda_peak_mb"] = peak_memory_mb()
-            row.update(score_normal_maps(output))
-            if render:
-                row["render"] = normal_map_picture(output, scene_name, method_name, run_dir)
-            log(f"  {method_name:>12} on {scene_name}: normal error mean {row['normal_error_mean_deg']:.3f} "
-                f"deg, median {row['normal_error_median_deg']:.3f} deg  {row['seconds']:.1f} s")
-            return True
-        if getattr(scene, "cloud_from_truth", False):
-            raise NotApplicable("the scene's only 3D input is made from its ground-truth normals (a photometric "
-                                "capture without depth or a true surface): a mesh of it cannot be scored; its "
-                                "photometric stereo rows are")
-        method_metrics = {}
-        if isinstance(output, ScoredMesh):  # a mesh with figures only its method measures (a trajectory's)
-            output, method_metrics = output.mesh, output.metrics
-        mesh = check_mesh(output)
-        row["seconds"] = time.perf_counter() - started
-        row["peak_rss_mb"], row["cuda_peak_mb"] = peak_memory_mb()
-        metrics = {}
-        if isinstance(scene, SceneSet):
-            metrics = set_metrics
-        elif scene.ground_truth is not None:
-            metrics = evaluate_mesh(mesh, scene.ground_truth, n_samples=n_samples, seed=seed)
-            if not math.isfinite(metrics["chamfer_l1"]):
-                raise ValueError(f"the metrics are not finite (chamfer_l1 = {metrics['chamfer_l1']})")
-        metrics.update(method_metrics)
-        if getattr(scene, "held_out", None) is not None:
-            errors = held_out_errors(mesh, scene.held_out)
-            metrics.update(depth_metrics(mesh, scene.held_out, errors=errors))
-            save_held_out_error_map(run_dir, scene_name, method_name, errors)  # the report's common-pixel errors
+        scorer(output)(output, scene, row, job, started)
     except NotApplicable as error:
         row["status"], row["reason"] = "skipped", str(error)
         log(f"  {method_name:>12} on {scene_name}: skipped ({error})")
@@ -247,43 +250,128 @@ def run_row(row: dict[str, Any], built: dict[str, Any], make_method: MethodFacto
         _write_traceback(run_dir, row_stem(scene_name, method_name))
         log(f"  {method_name:>12} on {scene_name}: FAILED ({row['reason']})")
         return False
+    return True
+
+
+def _measured(row: dict[str, Any], started: float) -> None:
+    """The method's wall time and peak memory, into `row`."""
+    row["seconds"] = time.perf_counter() - started
+    row["peak_rss_mb"], row["cuda_peak_mb"] = peak_memory_mb()
+
+
+def score_normal_map_row(output: NormalMapResult, scene: Scene, row: dict[str, Any], job: RowJob,
+                         started: float) -> None:
+    """Photometric stereo: scored by angular error (`score_normal_maps`), pictured beside the truth."""
+    _measured(row, started)
+    row.update(score_normal_maps(output))
+    if job.render:
+        row["render"] = normal_map_picture(output, job.scene_name, job.method_name, job.run_dir)
+    job.log(f"  {job.method_name:>12} on {job.scene_name}: normal error mean {row['normal_error_mean_deg']:.3f} "
+            f"deg, median {row['normal_error_median_deg']:.3f} deg  {row['seconds']:.1f} s")
+
+
+def score_mesh_row(output: Mesh, scene: Scene, row: dict[str, Any], job: RowJob, started: float) -> None:
+    """A mesh: scored against the scene's ground truth (`evaluate_mesh`) and held-out views."""
+    _score_mesh(output, {}, scene, row, job, started)
+
+
+def score_scored_mesh_row(output: ScoredMesh, scene: Scene, row: dict[str, Any], job: RowJob,
+                          started: float) -> None:
+    """A mesh with figures only its method measures (a trajectory's): scored as a mesh, plus those."""
+    _score_mesh(output.mesh, output.metrics, scene, row, job, started)
+
+
+def score_scene_set_row(output: SceneSetMeshes, scene: SceneSet, row: dict[str, Any], job: RowJob,
+                        started: float) -> None:
+    """A scene set: the means of its scenes' metrics and the per-scene values; files of its first scene."""
+    row["per_shape"] = output.per_shape
+    _score_mesh(output.mesh, output.metrics, scene, row, job, started)
+
+
+Scorer = Callable[[Any, Any, dict[str, Any], RowJob, float], None]
+SCORERS: dict[type, Scorer] = {
+    Mesh: score_mesh_row,
+    ScoredMesh: score_scored_mesh_row,
+    NormalMapResult: score_normal_map_row,
+    SceneSetMeshes: score_scene_set_row,
+}
+"""A method's output type -> the scorer that fills its row (metrics, files, the log line). A method that
+returns a new kind of result adds its type and scorer here."""
+
+
+def scorer(output: Any) -> Scorer:
+    """The scorer of `output`'s type (or of its nearest base class in `SCORERS`); TypeError for any other."""
+    for kind in type(output).__mro__:
+        if kind in SCORERS:
+            return SCORERS[kind]
+    raise TypeError(f"the method returned {type(output).__name__}, not a neuralsurf Mesh (or another result "
+                    f"with a scorer: {', '.join(kind.__name__ for kind in SCORERS)})")
+
+
+def _score_mesh(mesh: Mesh, own_metrics: dict[str, float], scene: Scene | SceneSet, row: dict[str, Any],
+                job: RowJob, started: float) -> None:
+    """Score a mesh (`evaluate_mesh` against the scene's ground truth, when it has one; a scene set has
+    none, its scenes' metrics come in `own_metrics`), add `own_metrics` and the held-out views' depth
+    metrics, then write its files: the mesh, the distances to the ground truth, the renders."""
+    if getattr(scene, "cloud_from_truth", False):
+        raise NotApplicable("the scene's only 3D input is made from its ground-truth normals (a photometric "
+                            "capture without depth or a true surface): a mesh of it cannot be scored; its "
+                            "photometric stereo rows are")
+    mesh = check_mesh(mesh)
+    _measured(row, started)
+    metrics = {}
+    if getattr(scene, "ground_truth", None) is not None:
+        metrics = evaluate_mesh(mesh, scene.ground_truth, n_samples=job.n_samples, seed=job.seed)
+        if not math.isfinite(metrics["chamfer_l1"]):
+            raise ValueError(f"the metrics are not finite (chamfer_l1 = {metrics['chamfer_l1']})")
+    metrics.update(own_metrics)
+    if getattr(scene, "held_out", None) is not None:
+        errors = held_out_errors(mesh, scene.held_out)
+        metrics.update(depth_metrics(mesh, scene.held_out, errors=errors))
+        save_held_out_error_map(job.run_dir, job.scene_name, job.method_name, errors)  # the report's common pixels
     row.update(metrics)
     row.update(n_vertices=len(mesh.vertices), n_faces=len(mesh.faces), watertight=bool(mesh.is_watertight))
-    if save_meshes:
-        path = Path("meshes") / f"{row_stem(scene_name, method_name)}{mesh_extension}"
+    _mesh_files(mesh, scene, row, job)
+
+
+def _mesh_files(mesh: Mesh, scene: Scene | SceneSet, row: dict[str, Any], job: RowJob) -> None:
+    """The mesh, its distances to the ground truth and its renders, written under `job.run_dir` and named in
+    `row`; a render problem is noted in the row, never loses the numbers."""
+    run_dir, scene_name, method_name, render_size = job.run_dir, job.scene_name, job.method_name, job.render_size
+    if job.save_meshes:
+        path = Path("meshes") / f"{row_stem(scene_name, method_name)}{job.mesh_extension}"
         with replaced(run_dir / path) as temporary:
             write_mesh(temporary, mesh)
         row["mesh"] = str(path)
     shown = shown_scene(scene)  # of a scene set: its first scene
-    if (render or save_meshes) and shown.ground_truth is not None:  # coloured with the report, one scale per scene
+    if (job.render or job.save_meshes) and shown.ground_truth is not None:  # coloured with the report
         try:
             row["distances"] = save_distances(run_dir, scene_name, method_name, mesh, shown.ground_truth, render_size)
         except Exception as error:  # noqa: BLE001 - an error view problem must not lose the numbers
             row["distances_error"] = f"{type(error).__name__}: {error}"
-    if render and shown.ground_truth is not None:
+    if job.render and shown.ground_truth is not None:
         try:
-            if built["gt_image"] is None:
-                built["gt_image"] = _gt_render(shown, run_dir, render_size)
-            row["render"] = _render_row(shown, mesh, method_name, built["gt_image"], run_dir, render_size)
+            if job.built["gt_image"] is None:
+                job.built["gt_image"] = _gt_render(shown, run_dir, render_size)
+            row["render"] = _render_row(shown, mesh, method_name, job.built["gt_image"], run_dir, render_size)
         except Exception as error:  # noqa: BLE001 - a render problem must not lose the numbers
             row["render_error"] = f"{type(error).__name__}: {error}"
-    if render and getattr(scene, "held_out", None) is not None:
+    if job.render and getattr(scene, "held_out", None) is not None:
         try:
             row["held_out_render"] = save_held_out_errors(run_dir, scene_name, method_name, mesh, scene.held_out)
         except Exception as error:  # noqa: BLE001 - a render problem must not lose the numbers
             row["render_error"] = f"{type(error).__name__}: {error}"
-    log(f"  {method_name:>12} on {scene_name}: chamfer_l1 {row.get('chamfer_l1', math.nan):.5f}  "
-        f"F@1% {row.get('fscore_1%', math.nan):.3f}  depth error {row.get('depth_error_mean', math.nan):.4f}  "
-        f"completeness {row.get('depth_completeness', math.nan):.3f}  {row['seconds']:.1f} s  "
-        f"{row['peak_rss_mb']:.0f} MiB  {row['n_faces']} faces")
-    return True
+    job.log(f"  {method_name:>12} on {scene_name}: chamfer_l1 {row.get('chamfer_l1', math.nan):.5f}  "
+            f"F@1% {row.get('fscore_1%', math.nan):.3f}  depth error {row.get('depth_error_mean', math.nan):.4f}  "
+            f"completeness {row.get('depth_completeness', math.nan):.3f}  {row['seconds']:.1f} s  "
+            f"{row['peak_rss_mb']:.0f} MiB  {row['n_faces']} faces")
 
 
 def run_scene_set(scenes: SceneSet, method: Callable[..., Mesh], seed: int, run_dir: Path,
-                  n_samples: int) -> tuple[Mesh, dict[str, float], list[dict[str, Any]]]:
+                  n_samples: int) -> SceneSetMeshes:
     """`method` on every scene of a set, each mesh scored against its ground truth (`evaluate_mesh`).
-    Returns (the first scene's mesh, the means of the metrics with "shapes" and "seconds_per_shape"
-    (median), the per-scene metrics with their names and seconds). The first failure fails the row."""
+    Returns the first scene's mesh, the means of the metrics with "shapes" and "seconds_per_shape"
+    (median), and the per-scene metrics with their names and seconds. The first failure fails the row."""
     first, per_scene = None, []
     for member in scenes.scenes:
         started = time.perf_counter()
@@ -296,7 +384,8 @@ def run_scene_set(scenes: SceneSet, method: Callable[..., Mesh], seed: int, run_
         first = mesh if first is None else first
     means = mean_metrics(per_scene)
     means["seconds_per_shape"] = float(np.median([row["seconds"] for row in per_scene]))
-    return first, {k: v for k, v in means.items() if k not in ("seconds", "watertight", "failed")}, per_scene
+    return SceneSetMeshes(first, {k: v for k, v in means.items() if k not in ("seconds", "watertight", "failed")},
+                          per_scene)
 
 
 def shown_scene(scene: Scene | SceneSet) -> Scene:
