@@ -37,10 +37,10 @@ import torch
 from neuralsurf.io import read_mesh
 from neuralsurf.priors.cache import CacheRecipe, cache_path, load_cache
 from neuralsurf.priors.folders import FolderCollection, mesh_samples, sign_errors
-from neuralsurf.priors.mesh_folders import cad_damage, write_procedural_folder
+from neuralsurf.priors.mesh_folders import cad_damage, damage_mesh, write_procedural_folder
 from neuralsurf.priors.procedural import Shape, collection_records
 from neuralsurf.structures import Mesh, Normalization
-from neuralsurf.winding import MeshWinding, damage_mesh, winding_number
+from neuralsurf.winding import MeshWinding, winding_number
 
 
 def build(source: Path, root: Path, shards: int) -> tuple[float, float]:

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from neuralsurf.baselines.registration import register_global, register_icp
-from neuralsurf.baselines.registration.global_registration import _fpfh
+from neuralsurf.baselines.registration.global_registration import fpfh_features
 from neuralsurf.geometry import cloud_from_mesh
 from neuralsurf.scenes import bunny
 from neuralsurf.scenes.recipes import data_root
@@ -190,7 +190,7 @@ def open3d_global(source: np.ndarray, target: np.ndarray, voxel: float, seed: in
     pipeline = o3d.pipelines.registration
     clouds = []
     for points in (source, target):
-        down, features = _fpfh(points, voxel)
+        down, features = fpfh_features(points, voxel)
         feature = pipeline.Feature()
         feature.data = features.T.copy()
         clouds += [o3d.geometry.PointCloud(o3d.utility.Vector3dVector(down)), feature]

@@ -4,7 +4,7 @@
 
 The procedural chairs, mugs and lamps are written as mesh files (marching cubes at --mesh-resolution)
 into two folders, one class per subfolder: `clean/` as they are, and `damaged/` where every training
-mesh has the defects of CAD meshes (`winding.damage_mesh`: holes, coincident duplicated sheets
+mesh has the defects of CAD meshes (`priors.mesh_folders.damage_mesh`: holes, coincident duplicated sheets
 facing either way, inner sheets, a share of reversed faces); the test meshes are clean in both. Each
 folder becomes a `FolderCollection` (signs by winding numbers, never by ray parity).
 
@@ -46,9 +46,9 @@ from neuralsurf.io.npz import write_npz
 from neuralsurf.priors import CollectionSDF, Shape, collection_records, deepsdf, score_completions
 from neuralsurf.priors.cache import CacheRecipe, cache_path, load_cache, write_manifest
 from neuralsurf.priors.folders import FolderCollection, sign_errors
+from neuralsurf.priors.mesh_folders import damage_mesh
 from neuralsurf.structures import Normalization
 from neuralsurf.training import default_optimizer, fit
-from neuralsurf.winding import damage_mesh
 
 
 def write_folders(out: Path, classes: list[str], n_train: int, n_test: int, resolution: int, seed: int,

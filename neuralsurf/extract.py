@@ -106,7 +106,7 @@ def _resolve_bounds(field: Field, bounds) -> np.ndarray:
     return as_bounds(bounds)
 
 
-def _field_device(field: Field, device: torch.device | str | None) -> torch.device:
+def field_device(field: Field, device: torch.device | str | None) -> torch.device:
     """Where to evaluate: a module's parameters (or buffers) decide, else `device`, else CPU."""
     if isinstance(field, nn.Module):
         for tensor in itertools.chain(field.parameters(), field.buffers()):
@@ -351,7 +351,7 @@ def extract_mesh(
         raise ConfigError(f"level must be a finite number, got {level}")
     box = _resolve_bounds(field, bounds)
     grid = make_grid(box, resolution)
-    device = _field_device(field, device)
+    device = field_device(field, device)
     depth = max(0, math.floor(math.log2(resolution / coarse_resolution))) if coarse_to_fine else 0
     if depth:
         values, _ = _coarse_to_fine_values(
@@ -426,7 +426,7 @@ def sample_grid(
         raise ConfigError(f"chunk_size must be a positive integer (points per field call), got {chunk_size!r}")
     grid = make_grid(_resolve_bounds(field, bounds), resolution)
     values = evaluate_grid_points(
-        field, grid, _all_points(grid.shape), chunk_size, _field_device(field, device), progress, "sample_grid"
+        field, grid, _all_points(grid.shape), chunk_size, field_device(field, device), progress, "sample_grid"
     ).reshape(grid.shape)
     corners = np.stack([grid.origin, grid.origin + np.array(grid.cells) * grid.spacing])
     samples = GridSamples(torch.from_numpy(values), torch.from_numpy(corners), float(grid.spacing))
@@ -473,7 +473,7 @@ def field_slice(
     points[..., normal] = box[0, normal] + float(position) * extent[normal]
     points[..., u] = us[None, :]
     points[..., v] = vs[:, None]
-    x = torch.from_numpy(points.reshape(-1, 3).astype(np.float32)).to(_field_device(field, device))
+    x = torch.from_numpy(points.reshape(-1, 3).astype(np.float32)).to(field_device(field, device))
     with torch.no_grad():
         values = torch.cat([field(chunk).reshape(-1).to("cpu", torch.float32) for chunk in x.split(262_144)])
     return values.reshape(height, width)

@@ -80,7 +80,7 @@ class SDFSamples:
 
     def to(self, device: torch.device | str) -> SDFSamples:
         move = lambda t: None if t is None else t.to(device)  # noqa: E731
-        return SDFSamples(*(move(getattr(self, name)) for name in self.__dataclass_fields__))
+        return type(self)(*(move(getattr(self, name)) for name in self.__dataclass_fields__))
 
 
 def make_sdf_samples(
@@ -132,15 +132,8 @@ def make_sdf_samples(
 
 
 @dataclass(frozen=True)
-class SDFBatch:
-    """One training batch, drawn from `SDFSamples` (fields as there, fewer rows)."""
-
-    surface_points: Tensor
-    surface_normals: Tensor | None
-    near_points: Tensor
-    free_points: Tensor
-    near_sdf: Tensor | None
-    free_sdf: Tensor | None
+class SDFBatch(SDFSamples):
+    """One training batch, drawn from `SDFSamples` (its fields, fewer rows)."""
 
 
 def draw_batch(samples: SDFSamples, batch_size: int, free_fraction: float, generator: torch.Generator) -> SDFBatch:

@@ -17,8 +17,6 @@ overlapping parts and coincident sheets as 2 (still inside at the threshold 1/2)
 - `signed_distance(points, mesh)` (unsigned distance to the triangles, sign from the winding number)
   and `inside(points, mesh)`; `boundary_faces(mesh)`: the faces between inside and outside (inner
   and stray sheets left out), the surface a shape's distances and samples should come from.
-- `damage_mesh(mesh, ...)`: the defects of CAD meshes applied to a clean mesh (holes, coincident
-  duplicated sheets, inner sheets, flipped faces), with where they are, for testing the signs.
 """
 
 from __future__ import annotations
@@ -31,7 +29,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.geometry import point_to_mesh_distance, vertex_normals
+from neuralsurf.geometry import point_to_mesh_distance
 from neuralsurf.structures import Mesh
 
 INSIDE_THRESHOLD = 0.5
@@ -528,71 +526,3 @@ def orient_outward(mesh: Mesh, samples: int = 4096, rays: int = 16, seed: int = 
 # ----------------------------------------------------------------------------- damaged meshes
 
 
-@dataclass(frozen=True)
-class DamagedMesh:
-    """A mesh with CAD-like defects, and where they are."""
-
-    mesh: Mesh
-    centres: Tensor
-    """Float[Tensor, "k 3"]: centre of each damaged region."""
-    radii: Tensor
-    """Float[Tensor, "k"]: each region's radius; away from every ball the surface is the clean one."""
-
-    def away(self, points: Tensor, factor: float = 2.0) -> Tensor:
-        """Bool[Tensor, "n"]: points farther than `factor` radii from every damaged region."""
-        if len(self.radii) == 0:
-            return torch.ones(len(points), dtype=torch.bool, device=points.device)
-        distance = torch.cdist(points.double(), self.centres.double().to(points.device))
-        return (distance > factor * self.radii.double().to(points.device)).all(1)
-
-
-def _region(vertices: Tensor, faces: Tensor, centre: Tensor, radius: float) -> Tensor:
-    """Bool[Tensor, "f"]: faces with a corner within `radius` of `centre`."""
-    return ((vertices[faces] - centre).norm(dim=-1) < radius).any(1)
-
-
-def damage_mesh(mesh: Mesh, *, holes: int = 3, duplicated: int = 2, inner: int = 2, flipped: float = 0.1,
-                radius: float = 0.05, inset: float = 0.01, seed: int = 0) -> DamagedMesh:
-    """A clean, closed mesh damaged as CAD meshes are, for testing signs against the clean mesh.
-
-    - `holes` balls of `radius` (a fraction of the longest side) whose faces are deleted (open boundaries);
-    - `duplicated` regions copied as a separate, coincident sheet, half of them facing the other way;
-    - `inner` regions copied `inset` (a fraction of the longest side) inside along the vertex normals,
-      as a separate sheet facing either way (internal faces); keep `inset` below half the thinnest wall;
-    - a fraction `flipped` of all faces (sheets included) reversed one by one.
-
-    Only holes and inner sheets change the surface; the returned regions cover holes, duplicated and
-    inner sheets (reversed faces are everywhere and `orient_outward` repairs them).
-    """
-    if mesh.is_empty:
-        raise InputError("damage_mesh needs a mesh with faces, got an empty mesh")
-    if not (0 <= flipped <= 1 and radius > 0 and inset >= 0):
-        raise ConfigError(f"damage_mesh needs 0 <= flipped <= 1, radius > 0 and inset >= 0, got flipped={flipped}, "
-                          f"radius={radius}, inset={inset}")
-    generator = torch.Generator().manual_seed(seed)
-    vertices = mesh.vertices.detach().cpu().double()
-    faces = mesh.faces.cpu().clone()
-    extent = float((vertices.max(0).values - vertices.min(0).values).max())
-    r = radius * extent
-    normals = torch.from_numpy(vertex_normals(vertices.numpy(), faces.numpy()))
-    centres = vertices[torch.randint(len(vertices), (holes + duplicated + inner,), generator=generator)]
-    keep = torch.ones(len(faces), dtype=torch.bool)
-    for centre in centres[:holes]:
-        keep &= ~_region(vertices, faces, centre, r)
-    out_vertices, out_faces, offset = [vertices], [faces[keep]], len(vertices)
-    for i, centre in enumerate(centres[holes:]):
-        used, local = torch.unique(faces[_region(vertices, faces, centre, r)], return_inverse=True)
-        sheet = local.reshape(-1, 3) + offset
-        if i < duplicated:  # coincident copy, every other one facing inward
-            out_vertices.append(vertices[used])
-            reverse = i % 2 == 1
-        else:  # inner sheet: moved inside along the normals, facing either way
-            out_vertices.append(vertices[used] - inset * extent * normals[used])
-            reverse = bool(torch.rand(1, generator=generator) < 0.5)
-        out_faces.append(sheet.flip(1) if reverse else sheet)
-        offset += len(used)
-    faces = torch.cat(out_faces)
-    turn = torch.rand(len(faces), generator=generator) < flipped
-    faces[turn] = faces[turn].flip(1)
-    damaged = Mesh(torch.cat(out_vertices).to(mesh.vertices), faces.to(mesh.faces.device))
-    return DamagedMesh(damaged, centres.to(mesh.vertices), torch.full((len(centres),), r).to(mesh.vertices))

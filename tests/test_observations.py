@@ -4,10 +4,10 @@ import math
 
 import pytest
 import torch
+from small_models import tiny_model
 
 from neuralsurf.cameras import depth_rays
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.models import SDFMLP, HashGrid
 from neuralsurf.observations import DepthRays, PointSamples
 from neuralsurf.observations.rays import box_entry, carve_labels, denoise_hits, ray_terms, winding_labels
 from neuralsurf.scenes import Sphere, look_at
@@ -184,16 +184,14 @@ def test_missing_pixels_are_skipped_and_all_missing_is_a_clear_error():
             DepthRays(frames, **bad)
 
 
-def tiny_model() -> SDFMLP:
-    torch.manual_seed(0)
-    return SDFMLP(width=32, depth=2, skip_layers=(), weight_norm=False,
-                  encoding=HashGrid(levels=6, log2_table_size=14, max_resolution=96))
+FINE = {"depth": 2, "levels": 6, "log2_table_size": 14, "max_resolution": 96}
+"""tiny_model with a finer grid: two views of a sphere fitted to 1 % of its radius."""
 
 
 def test_a_fit_of_two_depth_views_recovers_the_sphere_radius_within_one_percent():
     frames = sphere_frames([(2.0, 0.5, 1.0), (-1.5, 1.0, -1.0)], width=96, height=72)
     observation = DepthRays(frames, n_rays=512, noise_model="constant", sigma=0.001)
-    result = fit(tiny_model(), observation, steps=250, device="cpu", progress=False, image_every=0)
+    result = fit(tiny_model(**FINE), observation, steps=250, device="cpu", progress=False, image_every=0)
     # radius along rays through the centre towards both cameras (the seen caps)
     seen = depth_rays(frames, lambda z: torch.full_like(z, 1e-3))
     towards = torch.nn.functional.normalize(seen.origins.double()[[0, -1]] - CENTER, dim=-1)
@@ -208,7 +206,7 @@ def test_a_fit_sums_the_terms_of_two_observations():
     frames = sphere_frames([(2.0, 0.5, 1.0), (-1.5, 1.0, -1.0)])
     cloud = Sphere(center=tuple(CENTER.tolist()), radius=RADIUS).sample_surface(2000, seed=0)
     observations = [DepthRays(frames, n_rays=128), PointSamples(cloud, batch_size=256, n_near=4000, n_free=1000)]
-    result = fit(tiny_model(), observations, steps=30, device="cpu", progress=False, image_every=0, log_every=10)
+    result = fit(tiny_model(**FINE), observations, steps=30, device="cpu", progress=False, image_every=0, log_every=10)
     history = result.history
     assert {"rays/surface", "rays/band", "rays/free", "points/surface", "points/sdf"} <= set(history)
     recomputed = sum(observations[0].weights[k.split("/")[1]] * history[k][-1] for k in history if k.startswith("rays/"))
@@ -216,7 +214,7 @@ def test_a_fit_sums_the_terms_of_two_observations():
     assert history["total"][-1] == pytest.approx(recomputed, rel=1e-5)
     assert history["total"][-1] < history["total"][0]
     with pytest.raises(ConfigError, match="distinct names"):
-        fit(tiny_model(), [observations[1], observations[1]], steps=1, device="cpu", progress=False)
+        fit(tiny_model(**FINE), [observations[1], observations[1]], steps=1, device="cpu", progress=False)
     assert math.isfinite(history["total"][-1])
 
 

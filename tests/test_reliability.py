@@ -6,10 +6,10 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
+from small_models import tiny_model
 
 from neuralsurf.errors import ConfigError, InputError, NeuralsurfError
 from neuralsurf.io import write_point_cloud
-from neuralsurf.models import SDFMLP
 from neuralsurf.observations import PointSamples
 from neuralsurf.scenes import Sphere
 from neuralsurf.structures import PointCloud
@@ -23,26 +23,22 @@ def small(cloud, **options):
     return PointSamples(cloud, **{"batch_size": 64, "n_near": 500, "n_free": 100, "winding_points": 100, **options})
 
 
-def tiny_model():
-    return SDFMLP(width=16, depth=2, skip_layers=(), weight_norm=False)
-
-
 def test_zero_length_normals_are_an_error_or_replaced_with_a_warning():
     cloud = Sphere(radius=1.0).sample_surface(500, seed=0)
     with pytest.raises(InputError, match="all 500 normals"):
-        fit(tiny_model(), small(cloud.with_normals(torch.zeros(500, 3))), **QUICK)
+        fit(tiny_model(width=16, depth=2, levels=0), small(cloud.with_normals(torch.zeros(500, 3))), **QUICK)
     normals = cloud.normals.clone()
     normals[:10] = 0
     with pytest.raises(InputError, match="10 of 500 normals have zero length"):
-        fit(tiny_model(), small(cloud.with_normals(normals), normals="given"), **QUICK)
+        fit(tiny_model(width=16, depth=2, levels=0), small(cloud.with_normals(normals), normals="given"), **QUICK)
     with pytest.warns(UserWarning, match="replaced by estimated"):
-        fit(tiny_model(), small(cloud.with_normals(normals)), **QUICK)
+        fit(tiny_model(width=16, depth=2, levels=0), small(cloud.with_normals(normals)), **QUICK)
 
 
 def test_collinear_points_are_a_clear_error():
     line = PointCloud(torch.linspace(0, 1, 50)[:, None] * torch.tensor([[1.0, 2.0, 3.0]]))
     with pytest.raises(InputError, match="collinear"):
-        fit(tiny_model(), small(line), **QUICK)
+        fit(tiny_model(width=16, depth=2, levels=0), small(line), **QUICK)
 
 
 def test_a_diverged_fit_says_so():
@@ -50,7 +46,7 @@ def test_a_diverged_fit_says_so():
     torch.manual_seed(0)
     with pytest.warns(UserWarning, match="loss rose .* diverged"), \
             pytest.raises(NeuralsurfError, match="the fit diverged: .* constant .* lower the learning rate"):
-        fit(tiny_model(), small(cloud), steps=20, log_every=5, device="cpu", progress=False,
+        fit(tiny_model(width=16, depth=2, levels=0), small(cloud), steps=20, log_every=5, device="cpu", progress=False,
             image_every=0, optimizer=lambda groups: torch.optim.Adam(groups, lr=1e9), encoding_lr=1e9)
 
 

@@ -133,8 +133,8 @@ def test_occupancy_files_that_do_not_fit_are_named(tmp_path):
 def write_spheres(root, damaged=False):
     """Two classes of three spheres each (radius 0.5 in the unit frame once normalised), as files."""
     from neuralsurf.io import write_mesh
+    from neuralsurf.priors.mesh_folders import damage_mesh
     from neuralsurf.structures import Mesh
-    from neuralsurf.winding import damage_mesh
 
     ball = trimesh.creation.icosphere(2)
     for category, scale in (("small", 0.2), ("large", 30.0)):
@@ -286,7 +286,7 @@ def test_damaged_procedural_meshes_keep_the_clean_meshes_labels(kind):
     from neuralsurf.priors import Shape, collection_records
     from neuralsurf.priors.cache import CacheRecipe
     from neuralsurf.priors.folders import mesh_samples, sign_errors
-    from neuralsurf.winding import damage_mesh
+    from neuralsurf.priors.mesh_folders import damage_mesh
 
     record = collection_records((kind,), 1, 0, 0, seed=1)[0]
     clean = Shape.from_record(record).mesh(32)  # unit frame, watertight; legs 2-3 voxels wide

@@ -1,5 +1,6 @@
 import pytest
 import torch
+from small_models import tiny_model
 
 from neuralsurf.checkpoints import load_checkpoint
 from neuralsurf.errors import DeviceError, InputError, NeuralsurfError
@@ -15,12 +16,6 @@ TINY = {"image_every": 0, "log_every": 5, "progress": False, "device": "cpu"}
 
 def points(cloud: PointCloud, **options) -> PointSamples:
     return PointSamples(cloud, **{"batch_size": 256, "n_near": 4000, "n_free": 1000, **options})
-
-
-def tiny_model(seed: int = 0) -> SDFMLP:
-    torch.manual_seed(seed)
-    return SDFMLP(width=32, depth=3, skip_layers=(), weight_norm=False,
-                  encoding=HashGrid(levels=3, log2_table_size=12, max_resolution=32))
 
 
 SPHERE = Sphere(center=(1.0, 2.0, 3.0), radius=2.0)

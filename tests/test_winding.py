@@ -9,13 +9,13 @@ import torch
 import trimesh
 
 from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.priors.mesh_folders import damage_mesh
 from neuralsurf.structures import Mesh
 from neuralsurf.winding import (
     MeshWinding,
     border_edges,
     boundary_faces,
     consistent_patches,
-    damage_mesh,
     inside,
     orient_outward,
     signed_distance,

@@ -24,7 +24,7 @@ from torch import Tensor
 
 from neuralsurf.cameras import frame_readings, kinect_sigma, strided_hits
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.extract import _field_device, evaluate_grid_points, make_grid, marching_cubes
+from neuralsurf.extract import evaluate_grid_points, field_device, make_grid, marching_cubes
 from neuralsurf.structures import DepthFrames, Mesh
 
 
@@ -153,6 +153,6 @@ def extract_observed(field, observed: ObservedSurface, resolution: int = 512, ch
     evaluated = grown[np.ix_(*axes)] & inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
     values = np.full(grid.shape, level + 1.0, dtype=np.float32)
     index = np.argwhere(evaluated)
-    values[evaluated] = evaluate_grid_points(field, grid, index, chunk_size, _field_device(field, None), progress, "extract")
+    values[evaluated] = evaluate_grid_points(field, grid, index, chunk_size, field_device(field, None), progress, "extract")
     return observed.crop(marching_cubes(values, grid, level, valid=evaluated))
 

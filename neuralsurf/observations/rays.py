@@ -181,22 +181,11 @@ def denoise_hits(rays: Rays, k: int) -> Rays:
 
 
 @dataclass(frozen=True)
-class RayBatch:
-    """Rays drawn for one step, with the distances of their samples (unit frame). The first r rays carry
-    free and band samples; the rest (hits only) add to the surface and normal terms."""
+class RayBatch(Rays):
+    """Rays drawn for one step (the fields of `Rays`, unit frame), with the distances of their samples.
+    The first r rays carry free and band samples; the rest (hits only) add to the surface and normal
+    terms (`cosine` projects ray distances on the normal)."""
 
-    origins: Tensor
-    """Float[Tensor, "r 3"]: camera centres."""
-    directions: Tensor
-    """Float[Tensor, "r 3"]: unit directions."""
-    hit: Tensor
-    """Float[Tensor, "r"]: measured distance to the surface along the ray."""
-    sigma: Tensor
-    """Float[Tensor, "r"]: sensor noise sigma along the ray."""
-    cosine: Tensor
-    """Float[Tensor, "r"]: |cos| between ray and surface normal (projects ray distances on the normal)."""
-    normals: Tensor
-    """Float[Tensor, "r 3"]: depth-map normal at the hit, of length its confidence (0 where unknown)."""
     free_t: Tensor
     """Float[Tensor, "r f"]: distances of free-space samples, between box entry and band."""
     free_valid: Tensor

@@ -14,10 +14,10 @@ from neuralsurf.baselines.registration.icp import Registration, TargetCloud, fit
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.structures import PointCloud
 
-__all__ = ["match_features", "ransac_rigid", "register_global"]
+__all__ = ["fpfh_features", "match_features", "ransac_rigid", "register_global"]
 
 
-def _fpfh(points: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
+def fpfh_features(points: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
     """Points (m, 3) downsampled to `voxel_size` (Open3D) and their FPFH features (m, 33)."""
     import open3d as o3d
 
@@ -133,8 +133,8 @@ def register_global(
     source_points, _ = cloud_arrays(source, "source")
     target_points, target_normals = cloud_arrays(target, "target")
     (source_down, source_features), (target_down, target_features) = (
-        _fpfh(source_points, voxel_size),
-        _fpfh(target_points, voxel_size),
+        fpfh_features(source_points, voxel_size),
+        fpfh_features(target_points, voxel_size),
     )
     if min(len(source_down), len(target_down)) < ransac_n:
         raise InputError(
