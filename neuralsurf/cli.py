@@ -184,7 +184,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
             write_tum_trajectory(run_dir / "trajectory.txt", scene.trajectory)
             write_trajectory_log(run_dir / "trajectory.log", scene.trajectory)
 
-        metrics = evaluate_mesh(mesh, scene.ground_truth, seed=cfg.seed) if scene.ground_truth is not None else {}
+        metrics = (evaluate_mesh(mesh, scene.ground_truth, n_samples=cfg.score.n_samples, seed=cfg.seed)
+                   if scene.ground_truth is not None else {})
         if scene.held_out is not None:
             metrics.update(depth_metrics(mesh, scene.held_out))
         metrics = {**metrics, "watertight": mesh.is_watertight, "fit_seconds": fit_seconds,

@@ -29,7 +29,7 @@ TEST_COMMAND = "./install.sh dev && .venv/bin/python -m pytest -q"
 """The README's test command: CI runs it (.ci/run), so this test checks it is there instead of running it."""
 
 TINY_TRAIN = ["trainer.steps=2", "trainer.log_every=1", "trainer.image_every=0", "trainer.progress=false",
-              "extract.resolution=32"]
+              "extract.resolution=32", "score.n_samples=5000"]
 NEEDS_DATA = {"redkitchen": "7scenes_redkitchen", "7scenes_redkitchen": "7scenes_redkitchen",
               "stanford_scans": "stanford_bunny", "stanford_bunny": "stanford_bunny"}
 """Words of a command -> the data set it needs (skipped with the fetch command when neither
