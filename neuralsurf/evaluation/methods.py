@@ -22,7 +22,14 @@ from neuralsurf.checkpoints import load_field
 from neuralsurf.devices import resolve_device
 from neuralsurf.errors import NeuralsurfError
 from neuralsurf.observations import NotObserved
-from neuralsurf.priors import complete_cloud, complete_view, extract_unit, load_prior, trained_prior
+from neuralsurf.priors import (
+    Refinement,
+    complete_cloud,
+    complete_view,
+    extract_unit,
+    load_prior,
+    trained_prior,
+)
 from neuralsurf.scenes import Scene, extract_scene_mesh
 from neuralsurf.structures import Mesh
 from neuralsurf.training import default_optimizer, fit
@@ -114,11 +121,13 @@ def tsdf(scene: Scene, *, voxel_fraction: float = 1 / 256, truncation_voxels: fl
 def learned_prior(scene: Scene, *, checkpoint: str | None = None, collection=None, model: Callable | None = None,
                   observation: dict[str, Callable] | None = None, optimizer: Callable | None = None,
                   trainer: dict[str, Any] | None = None, latent_steps: int = 200, resolution: int = 128,
-                  device: str = "auto", seed: int = 0, run_dir: str | Path | None = None,
-                  config: dict | None = None) -> Mesh:
+                  refine: dict[str, Any] | None = None, refine_cloud: bool = False, device: str = "auto",
+                  seed: int = 0, run_dir: str | Path | None = None, config: dict | None = None) -> Mesh:
     """Complete a shape with a learned prior (DeepSDF auto-decoder or Occupancy Network): from its one
     depth view (`scene.frames`, depth scenes) or its cloud. The scene must be in the prior's unit
-    frame and canonical pose (the test shapes of `suite=priors`).
+    frame and canonical pose (the test shapes of `suite=priors`). With `refine` (`priors.Refinement`
+    settings; {} for its defaults), a view's completion is held to what the view saw, and a cloud's to
+    its points where `refine_cloud`.
 
     The prior is `checkpoint` (a train.py experiment=shapes_* run's last.pt), or else trained once per
     evaluation (`model(n_shapes)` over `collection` with the `observation` builders, `optimizer`,
@@ -135,8 +144,9 @@ def learned_prior(scene: Scene, *, checkpoint: str | None = None, collection=Non
                                    device=device, config=settings)
     prior = load_prior(checkpoint, device=device)
     options = {"latent_steps": latent_steps, "seed": seed, "device": device}
+    refinement = None if refine is None else Refinement(**refine)
     if scene.frames is not None and scene.depth_input:
-        field = complete_view(prior, scene.frames, scene.cloud.points, **options)
+        field = complete_view(prior, scene.frames, scene.cloud.points, refine=refinement, **options)
     else:
-        field = complete_cloud(prior, scene.cloud.points, **options)
+        field = complete_cloud(prior, scene.cloud.points, refine=refinement if refine_cloud else None, **options)
     return extract_unit(field, resolution)

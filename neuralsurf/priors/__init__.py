@@ -11,6 +11,7 @@ procedural shape collections.
 - `models`: `deepsdf`, `occupancy_network` sized for a collection; `load_prior` from a checkpoint.
 - `training`: `train_prior` (one fit), `trained_prior` (trained once into a folder and reused).
 - `completion`: `reconstruct_latent`, `complete_cloud`, `complete_view`, `extract_unit`.
+- `refinement`: `Refinement`, `refine_to_view`, `refine_to_cloud`: a completion held to what was observed.
 - `scoring`: `score_completions`, `mean_metrics`.
 - `scenes`: `shapes_cloud`, `shapes_one_view`, the test shapes as evaluation scenes.
 
@@ -42,13 +43,14 @@ from neuralsurf.priors.procedural import (
     check_shape,
     collection_records,
 )
+from neuralsurf.priors.refinement import Refinement, ResidualField, refine_to_cloud, refine_to_view
 from neuralsurf.priors.scenes import shapes_cloud, shapes_one_view
 from neuralsurf.priors.scoring import mean_metrics, score_completions
 from neuralsurf.priors.training import train_prior, trained_prior
 
 __all__ = ["EXTRACTION_BOUNDS", "SHAPE_CLASSES", "SPLITS", "UNIT_BOUNDS", "CacheRecipe", "Chair", "Collection", "CollectionOccupancy",
-           "CollectionSDF", "Lamp", "LatentPrior", "Mug", "SDFSampleSet", "Shape", "ShapeCollection", "ShapeRecord",
+           "CollectionSDF", "Lamp", "LatentPrior", "Mug", "Refinement", "ResidualField", "SDFSampleSet", "Shape", "ShapeCollection", "ShapeRecord",
            "SlatChair", "TestShape", "build_collection", "check_shape", "clipped_to_cube", "collection_records", "complete_cloud",
            "complete_view", "deepsdf", "extract_unit", "load_prior", "mean_metrics", "occupancy_network",
-           "reconstruct_latent", "score_completions", "shapes_cloud", "shapes_one_view", "train_prior",
+           "reconstruct_latent", "refine_to_cloud", "refine_to_view", "score_completions", "shapes_cloud", "shapes_one_view", "train_prior",
            "trained_prior"]

@@ -7,6 +7,9 @@
 - Occupancy Network: `OccupancyNetwork.field_from_cloud(points)`, one forward pass of the encoder.
 - `complete_cloud`, `complete_view`: a test shape's field from a (noisy, partial) cloud or one depth
   view, by either prior; `extract_unit`: its closed mesh over the padded unit cube.
+- A view's completion is then held to what the view saw (`refinement.refine_to_view`: a smooth
+  residual grid fitted to the observed surface and free space, the prior frozen), so that the seen
+  surface is the data's and the prior fills in the rest; `refine=None` keeps the prior's field as it is.
 
 Observations must be posed in the prior's frame (DeepSDF and OccNet assume the canonical pose of
 their training shapes).
@@ -29,6 +32,7 @@ from neuralsurf.priors import csg
 from neuralsurf.priors.cache import CacheRecipe
 from neuralsurf.priors.observations import LatentPrior
 from neuralsurf.priors.procedural import padded_unit_bounds
+from neuralsurf.priors.refinement import DEFAULT_REFINEMENT, Refinement, refine_to_cloud, refine_to_view
 from neuralsurf.structures import DepthFrames, Mesh, Normalization, PointCloud
 from neuralsurf.training import FitResult, default_optimizer, fit
 
@@ -77,23 +81,26 @@ def warn_outside_unit_frame(points: Tensor, where: str) -> None:
 
 
 def complete_cloud(prior: nn.Module, points: Tensor, *, latent_steps: int = 200, lr: float = 1e-2,
-                   seed: int = 0, device: str = "cpu") -> nn.Module:
+                   seed: int = 0, device: str = "cpu", refine: Refinement | None = None) -> nn.Module:
     """The unit-frame world field (negative inside) of the shape whose surface points (noisy, possibly
     partial) are `points` (Float[Tensor, "n 3"]): DeepSDF fits a code under the frozen decoder
     (`PointSamples`: surface and near-surface terms + code prior); OccNet encodes the cloud.
     The cloud is not projected onto its local quadrics first (PointSamples' `denoise`): the frozen
     decoder averages the noise, and the projection merges the two sides of thin walls (24 test
-    shapes from 3,000 points: mean IoU 0.70 with it, 0.89 without; mugs 0.44 and 0.96)."""
+    shapes from 3,000 points: mean IoU 0.70 with it, 0.89 without; mugs 0.44 and 0.96).
+    With `refine`, the field is then held to the points (`refine_to_cloud`)."""
     warn_outside_unit_frame(points, "complete_cloud")
     if isinstance(prior, OccupancyNetwork):
-        return prior.to(device).field_from_cloud(points)
-    if isinstance(prior, AutoDecoder):
+        field = prior.to(device).field_from_cloud(points)
+    elif isinstance(prior, AutoDecoder):
         observation = PointSamples(PointCloud(points.double()), weights={"surface": 1.0, "sdf": 1.0},
                                    normals="estimate", denoise=False, batch_size=2048, n_near=60_000,
                                    n_free=15_000)
-        return reconstruct_latent(prior.decoder, [observation], steps=latent_steps, lr=lr, seed=seed,
-                                  device=device).field
-    raise ConfigError(f"complete_cloud takes an AutoDecoder or OccupancyNetwork, got {type(prior).__name__}")
+        field = reconstruct_latent(prior.decoder, [observation], steps=latent_steps, lr=lr, seed=seed,
+                                   device=device).field
+    else:
+        raise ConfigError(f"complete_cloud takes an AutoDecoder or OccupancyNetwork, got {type(prior).__name__}")
+    return field if refine is None else refine_to_cloud(field, points, torch.as_tensor(EXTRACTION_BOUNDS), refine)
 
 
 # the one-view latent fit's ray terms and options (the README's shapes_one_view figures). No eikonal term:
@@ -105,19 +112,22 @@ COMPLETION_RAY_OPTIONS = {"hit_fraction": 0.0, "carve_margin": 0.0, "winding_poi
 
 def complete_view(prior: nn.Module, frames: DepthFrames, points: Tensor, *, latent_steps: int = 200,
                   lr: float = 1e-2, cloud_points: int = 3000, sigma: float = 0.002, seed: int = 0,
-                  device: str = "cpu") -> nn.Module:
+                  device: str = "cpu", refine: Refinement | None = DEFAULT_REFINEMENT) -> nn.Module:
     """The field of a shape seen in one depth view: DeepSDF fits a code to the view's rays (surface,
     band and free space, `DepthRays`, constant noise `sigma`); OccNet encodes `cloud_points` of the
-    back-projected `points` (Float[Tensor, "n 3"])."""
+    back-projected `points` (Float[Tensor, "n 3"]). With `refine` (the default), the prior's field is
+    then held to what the view saw (`refine_to_view`)."""
     warn_outside_unit_frame(points, "complete_view")
     if isinstance(prior, OccupancyNetwork):
         pick = torch.randperm(len(points), generator=torch.Generator().manual_seed(seed))[:cloud_points]
-        return prior.to(device).field_from_cloud(points[pick])
-    if isinstance(prior, AutoDecoder):
+        field = prior.to(device).field_from_cloud(points[pick])
+    elif isinstance(prior, AutoDecoder):
         rays = DepthRays(frames, weights=COMPLETION_RAY_WEIGHTS, noise_model="constant", sigma=sigma, n_rays=1024,
                          **COMPLETION_RAY_OPTIONS)
-        return reconstruct_latent(prior.decoder, [rays], steps=latent_steps, lr=lr, seed=seed, device=device).field
-    raise ConfigError(f"complete_view takes an AutoDecoder or OccupancyNetwork, got {type(prior).__name__}")
+        field = reconstruct_latent(prior.decoder, [rays], steps=latent_steps, lr=lr, seed=seed, device=device).field
+    else:
+        raise ConfigError(f"complete_view takes an AutoDecoder or OccupancyNetwork, got {type(prior).__name__}")
+    return field if refine is None else refine_to_view(field, frames, torch.as_tensor(EXTRACTION_BOUNDS), refine)
 
 
 def clipped_to_cube(field: nn.Module, half: float = 0.525):
