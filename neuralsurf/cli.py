@@ -422,7 +422,11 @@ def check_override_keys(argv: list[str], config_name: str) -> None:
     known = {"hydra", *options, *(path.name for path in configs.iterdir() if path.is_dir())}
     for path in configs.glob("*/*.yaml"):  # keys that options of a group add at the top level
         if "@package _global_" in path.read_text().split("\n", 1)[0]:
-            known.update(key for key in OmegaConf.load(path) if key != "defaults")
+            config = OmegaConf.load(path)
+            known.update(key for key in config if key != "defaults")
+            known.update(next(iter(entry)).split("@", 1)[1].split(".")[0]  # `- /data@folder: ...` adds folder
+                         for entry in config.get("defaults", []) if isinstance(entry, DictConfig)
+                         and "@" in next(iter(entry)))
     for argument in argv:
         if argument.startswith(("-", "+", "~")) or "=" not in argument:
             continue

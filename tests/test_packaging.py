@@ -121,6 +121,8 @@ def test_a_mistyped_config_group_is_answered_with_the_groups(monkeypatch):
     check_override_keys(["experiment=shapes_deepsdf", "score.latent_steps=5", "data.path=x", "+extra=1", "-m",
                          "hydra.run.dir=out", "hydra/launcher=joblib", "seed=1", "observation.rays.n_rays=8"], "train")
     check_override_keys(["suite=quick", "methods=[tsdf]", "method.tsdf.device=cpu", "results_dir=x"], "evaluate")
+    # a key that a suite adds through its defaults (suite=priors_folder: `/data@folder`)
+    check_override_keys(["suite=priors_folder", "folder.source=shapes", "folder.n_test=5"], "evaluate")
     with pytest.raises(SystemExit, match="'suit' is not a config group or option.*suite"):
         check_override_keys(["suit=quick"], "evaluate")
 
