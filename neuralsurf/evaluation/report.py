@@ -15,6 +15,7 @@ from typing import Any
 
 from neuralsurf.evaluation.distances import PERCENTILE, write_error_views
 from neuralsurf.evaluation.filenames import read_stored
+from neuralsurf.evaluation.per_class import class_table
 from neuralsurf.evaluation.render import bar_chart, css_gradient, scatter_plot
 from neuralsurf.locks import replaced, write_atomic
 from neuralsurf.metrics import json_ready
@@ -85,6 +86,18 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
             lines.append([row["method"], row["scene"], f"{row['status']}: {reason}"] + [""] * (len(columns) - 3))
     skipped = [f"skipped ({reason}): {pairs}" for reason, pairs in skipped_lines(rows)]
     return "\n".join([markdown([h for _, h in columns], lines), *(["", *skipped] if skipped else [])])
+
+
+def per_class_markdown(rows: list[dict[str, Any]]) -> str:
+    """The per-class comparison of scene sets' methods with the baselines of the same input
+    (`per_class.class_table`) as Markdown, under a line that says how to read it; "" without scene sets."""
+    header, lines = class_table(rows)
+    if not lines:
+        return ""
+    return ("Per class of each scene set: the mean exact Chamfer-L1 and F@1% of each method, and against each "
+            "baseline of the same input its mean Chamfer over the method's (above 1: the method is better) with "
+            "the shapes where the method's Chamfer is lower (k/n), and the baseline's F@1%.\n\n"
+            + markdown(header, lines))
 
 
 def metrics_table(metrics: dict[str, Any]) -> str:
@@ -199,6 +212,12 @@ def write_html(rows: list[dict[str, Any]], run_dir: Path, plots: list[str], titl
     skipped = "".join(f"<li class='skipped'><b>{html.escape(pairs)}</b>: {html.escape(reason)}</li>"
                       for reason, pairs in skipped_lines(rows))
     scenes = {r["scene"]: r.get("scene_description", "") for r in rows}
+    class_header, class_lines = class_table(rows)
+    per_class = ("<h2>Per class</h2><p>Each method against the baselines of the same input: the baseline's mean "
+                 "exact Chamfer-L1 over the method's (above 1: the method is better) and the shapes the method wins "
+                 "(k/n)</p><table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in class_header) + "</tr>"
+                 + "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in cells) + "</tr>"
+                           for cells in class_lines) + "</table>") if class_lines else ""
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'>",
         f"<title>{html.escape(title)}</title><style>",
@@ -214,6 +233,7 @@ def write_html(rows: list[dict[str, Any]], run_dir: Path, plots: list[str], titl
         "<ul>" + "".join(f"<li><b>{html.escape(s)}</b>: {html.escape(d)}</li>" for s, d in scenes.items()) + "</ul>",
         f"<h2>Results</h2><table><tr>{head}</tr>{''.join(body)}</table>",
         f"<p>Skipped, one line per reason:</p><ul class='skips'>{skipped}</ul>" if skipped else "",
+        per_class,
         "<h2>Plots</h2>", *[_img(run_dir, p, p) for p in plots],
         ("<h2>Renders</h2><p>ground truth | reconstruction | distance to ground truth (blue 0, red &ge; 1%); "
          "beside them, in viridis on one scale per scene: the reconstruction coloured by each vertex's distance to "
@@ -248,5 +268,6 @@ def write_report(rows: list[dict[str, Any]], run_dir: str | Path, extra: dict[st
     plots = write_plots(rows, run_dir)
     write_html(rows, run_dir, plots, extra=extra, error_views=write_error_views(rows, run_dir))
     table = markdown_table(rows)
-    write_atomic(run_dir / "results.md", table + "\n")
+    per_class = per_class_markdown(rows)
+    write_atomic(run_dir / "results.md", table + "\n" + (f"\n{per_class}\n" if per_class else ""))
     return table
