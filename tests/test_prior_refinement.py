@@ -1,6 +1,7 @@
 """Completion that keeps what was seen (priors.refinement) and the per-class answer of the report
 (evaluation.per_class): analytic priors and shapes as oracles."""
 
+import numpy as np
 import pytest
 import torch
 from torch import nn
@@ -176,3 +177,20 @@ def test_a_small_prior_trained_on_a_damaged_folder_completes_one_view_better_tha
         prior_chamfer = float(evaluate_mesh(prior_mesh, scene.ground_truth, n_samples=5000)["chamfer_l1_exact"])
         tsdf_chamfer = float(evaluate_mesh(tsdf_mesh, scene.ground_truth, n_samples=5000)["chamfer_l1_exact"])
         assert prior_chamfer < tsdf_chamfer, (scene.name, prior_chamfer, tsdf_chamfer)
+
+
+def test_points_are_drawn_where_the_renders_camera_sees_them():
+    from neuralsurf.evaluation.render import default_view, points_image, raycast
+    from neuralsurf.structures import Mesh
+
+    view = default_view(BOUNDS.numpy())
+    image = points_image(view["center"][None], view, 64, 64)
+    dark = (image[..., 0] < 255).nonzero()
+    assert {int(dark[0].min()), int(dark[1].min())} <= {31, 32}  # the centre of the view is the centre pixel
+    # a triangle's centroid is drawn where the raycast sees the triangle
+    corner = view["center"] + np.array([0.2, 0.0, 0.0])
+    triangle = Mesh(torch.tensor(np.stack([corner, corner + [0.06, 0, 0], corner + [0, 0.06, 0.06]])),
+                    torch.tensor([[0, 1, 2]]))
+    hit = np.argwhere(raycast(triangle, view, 64, 64)[0]).mean(0)
+    drawn = np.argwhere(points_image(triangle.vertices.numpy().mean(0)[None], view, 64, 64)[..., 0] < 255).mean(0)
+    assert np.abs(hit - drawn).max() < 2.5, (hit, drawn)

@@ -26,6 +26,7 @@ def compose_priors(tmp_path, overrides=()):
         tiny += [f"{group}.{name}.collection.{k}={v}" for k, v in {**COLLECTION, "root": root}.items()]
     for method in ("deepsdf", "occupancy_network"):
         tiny += [f"method.{method}.collection.n_train=2", f"method.{method}.trainer.steps=5",
+                 f"method.{method}.refine={{resolution:24,steps:20}}",
                  f"method.{method}.resolution=32", f"method.{method}.trainer.checkpoint_every=5"]
     tiny += ["method.deepsdf.latent_steps=3", "method.deepsdf.observation.shapes.shapes_per_batch=2",
              "method.occupancy_network.observation.occupancy.shapes_per_batch=2", "scene.shapes_one_view.width=64",
@@ -61,6 +62,11 @@ def test_priors_suite_scores_each_scene_set_as_one_row_with_per_shape_values(tmp
         assert row["seconds"] > 0 and row["peak_rss_mb"] > 0 and (run / row["render"]).is_file()
         if row["method"] != "tsdf":  # the priors' meshes are closed (clipped to the unit cube)
             assert row["pred_watertight"] == 1.0 and 0 <= row["iou"] <= 1
+    one_view = next(r for r in saved if (r["method"], r["scene"]) == ("deepsdf", "shapes_one_view"))
+    assert (run / one_view["class_render"]).is_file()  # input | completion | ground truth, one line per class
+    # the per-class answer: each prior against TSDF of the same view (k/n shapes won), in results.md
+    assert "| shapes_one_view | lamp | deepsdf | 1 |" in (run / "results.md").read_text()
+    assert "Per class" in (run / "report.html").read_text()
     # each prior was trained once (5 steps), then reused for the second scene
     priors = sorted((run / "fits").glob("prior_*/checkpoints/last.pt"))
     assert len(priors) == 2

@@ -85,6 +85,34 @@ def shade(mesh: Mesh, view: dict, width: int = 320, height: int = 320, color=(0.
     return (np.clip(image, 0, 1) * 255).astype(np.uint8)
 
 
+def points_image(points: np.ndarray, view: dict, width: int = 320, height: int = 320,
+                 fov_deg: float = 40.0) -> np.ndarray:
+    """Points (n, 3) seen from `view` as `raycast`'s pinhole camera sees them: 2x2-pixel dots, darker
+    nearer, on white; (h, w, 3) uint8 (a method's input beside its meshes)."""
+    eye, center = np.asarray(view["eye"], float), np.asarray(view["center"], float)
+    forward = (center - eye) / np.linalg.norm(center - eye)
+    right = np.cross(forward, np.asarray(view["up"], float))
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    relative = np.asarray(points, float) - eye
+    z = relative @ forward
+    ahead = z > 1e-9
+    focal = 0.5 * height / math.tan(math.radians(fov_deg) / 2)
+    u = np.round(0.5 * width + focal * (relative[ahead] @ right) / z[ahead]).astype(int)
+    v = np.round(0.5 * height - focal * (relative[ahead] @ up) / z[ahead]).astype(int)
+    depth = z[ahead]
+    grey = (40 + 150 * (depth - depth.min()) / max(float(np.ptp(depth)), 1e-12)).astype(np.uint8) if len(depth) \
+        else depth.astype(np.uint8)
+    image = np.full((height, width, 3), 255, np.uint8)
+    order = np.argsort(-depth)  # far first: the nearer dots are written last and stay on top
+    for dv in (0, 1):
+        for du in (0, 1):
+            row, column = v[order] + dv, u[order] + du
+            inside = (row >= 0) & (row < height) & (column >= 0) & (column < width)
+            image[row[inside], column[inside]] = grey[order][inside, None]
+    return image
+
+
 def _ramp(stops: np.ndarray, values: np.ndarray) -> np.ndarray:
     """Piecewise-linear colour ramp through `stops` (k, 3) at 0, 1/(k-1), ..., 1: values in [0, 1]
     (any shape, clipped; NaN as 0) -> RGB (..., 3) floats in [0, 1]."""

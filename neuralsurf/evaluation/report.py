@@ -247,6 +247,12 @@ def write_html(rows: list[dict[str, Any]], run_dir: Path, plots: list[str], titl
             parts.append(f"<h3>{html.escape(row['method'])} on {html.escape(row['scene'])}</h3>")
             grey = _img(run_dir, row["render"], f"{row['method']} on {row['scene']}") if row.get("render") else ""
             parts.append(f"<div class='views'>{grey}{error}</div>")
+        if row.get("class_render"):
+            name = f"{row['method']} on {row['scene']}"
+            parts.append(f"<h3>{html.escape(name)}: one shape of each class</h3><figure>"
+                         f"{_img(run_dir, row['class_render'], name + ': input, completion, ground truth')}"
+                         "<figcaption>the input (points, darker nearer) | the method's mesh | the ground truth, "
+                         "from the same side</figcaption></figure>")
         if row.get("held_out_render"):
             name = f"{row['method']} on {row['scene']}"
             parts.append(f"<h3>{html.escape(name)}: held-out views</h3><figure>"

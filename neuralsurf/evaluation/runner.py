@@ -14,19 +14,21 @@ import re
 import time
 import traceback
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from PIL import Image
 
 import neuralsurf
 from neuralsurf.errors import ConfigError
 from neuralsurf.evaluation.distances import save_distances, save_held_out_error_map, save_held_out_errors
 from neuralsurf.evaluation.methods import NotApplicable
+from neuralsurf.evaluation.per_class import shape_class
 from neuralsurf.evaluation.photometric import NormalMapResult, normal_map_picture, score_normal_maps
-from neuralsurf.evaluation.render import default_view, distance_image, labelled_row, shade
+from neuralsurf.evaluation.render import default_view, distance_image, labelled_row, points_image, shade
 from neuralsurf.evaluation.rooms import ScoredMesh
 from neuralsurf.evaluation.store import reusable_row, row_stem, settings_key, store_row
 from neuralsurf.io import write_mesh
@@ -212,6 +214,8 @@ class SceneSetMeshes:
     mesh: Mesh
     metrics: dict[str, float]
     per_shape: list[dict[str, Any]]
+    by_class: dict[str, tuple[Scene, Mesh]] = field(default_factory=dict)
+    """the first scene of each class (`per_class.shape_class`) with its mesh."""
 
 
 def run_row(row: dict[str, Any], built: dict[str, Any], make_method: MethodFactory, run_dir: Path, *, seed: int,
@@ -286,6 +290,12 @@ def score_scene_set_row(output: SceneSetMeshes, scene: SceneSet, row: dict[str, 
     """A scene set: the means of its scenes' metrics and the per-scene values; files of its first scene."""
     row["per_shape"] = output.per_shape
     _score_mesh(output.mesh, output.metrics, scene, row, job, started)
+    if job.render and output.by_class:
+        try:
+            row["class_render"] = _class_picture(job.scene_name, job.method_name, output.by_class, job.run_dir,
+                                                 job.render_size)
+        except Exception as error:  # noqa: BLE001 - a render problem must not lose the numbers
+            row["render_error"] = f"{type(error).__name__}: {error}"
 
 
 Scorer = Callable[[Any, Any, dict[str, Any], RowJob, float], None]
@@ -371,8 +381,9 @@ def run_scene_set(scenes: SceneSet, method: Callable[..., Mesh], seed: int, run_
                   n_samples: int) -> SceneSetMeshes:
     """`method` on every scene of a set, each mesh scored against its ground truth (`evaluate_mesh`).
     Returns the first scene's mesh, the means of the metrics with "shapes" and "seconds_per_shape"
-    (median), and the per-scene metrics with their names and seconds. The first failure fails the row."""
-    first, per_scene = None, []
+    (median), the per-scene metrics with their names and seconds, and the first scene of each class with
+    its mesh. The first failure fails the row."""
+    first, per_scene, by_class = None, [], {}
     for member in scenes.scenes:
         started = time.perf_counter()
         mesh = check_mesh(method(member, seed=seed, run_dir=run_dir))
@@ -382,10 +393,11 @@ def run_scene_set(scenes: SceneSet, method: Callable[..., Mesh], seed: int, run_
         per_scene.append({"shape": member.name, **metrics, "seconds": seconds,
                           "watertight": float(mesh.is_watertight)})
         first = mesh if first is None else first
+        by_class.setdefault(shape_class(member.name), (member, mesh))
     means = mean_metrics(per_scene)
     means["seconds_per_shape"] = float(np.median([row["seconds"] for row in per_scene]))
     return SceneSetMeshes(first, {k: v for k, v in means.items() if k not in ("seconds", "watertight", "failed")},
-                          per_scene)
+                          per_scene, by_class)
 
 
 def shown_scene(scene: Scene | SceneSet) -> Scene:
@@ -422,4 +434,25 @@ def _render_row(scene: Scene, mesh: Mesh, method: str, gt_image, run_dir: Path, 
     path = Path("renders") / f"{row_stem(scene.name, method)}.png"
     with replaced(run_dir / path) as temporary:
         labelled_row(images, labels).save(temporary)
+    return str(path)
+
+
+def _class_picture(scene_name: str, method: str, by_class: dict[str, tuple[Scene, Mesh]], run_dir: Path,
+                   size: int) -> str:
+    """One line per class of a scene set, its first shape: the input (the cloud or the view's points) |
+    the method's mesh | the ground truth, all from the same side -> renders/<scene>__<method>_classes.png."""
+    lines = []
+    for member, mesh in by_class.values():
+        view = _view(member)
+        images = [points_image(member.cloud.points.double().cpu().numpy(), view, size, size), shade(mesh, view, size, size),
+                  shade(member.ground_truth, view, size, size, color=(0.80, 0.80, 0.80))]
+        lines.append(labelled_row(images, [f"{member.name}: input", method, "ground truth"]))
+    canvas = Image.new("RGB", (max(line.width for line in lines), sum(line.height for line in lines)), "white")
+    top = 0
+    for line in lines:
+        canvas.paste(line, (0, top))
+        top += line.height
+    path = Path("renders") / f"{row_stem(scene_name, method)}_classes.png"
+    with replaced(run_dir / path) as temporary:
+        canvas.save(temporary)
     return str(path)

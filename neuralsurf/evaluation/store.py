@@ -89,7 +89,8 @@ def _read(path: Path) -> dict[str, Any] | None:
 
 
 STATUSES = ("ok", "skipped", "failed")
-TEXT_FIELDS = ("reason", "scene_description", "config", "render", "held_out_render", "mesh", "distances")
+TEXT_FIELDS = ("reason", "scene_description", "config", "render", "held_out_render", "class_render", "mesh",
+               "distances")
 """Row entries that are text when present."""
 NUMBER_FIELDS = tuple(key for key, _ in TABLE_COLUMNS if key not in ("method", "scene", "status"))
 """Row entries that are numbers (or booleans, or null) when present."""
@@ -125,7 +126,7 @@ def reusable_row(results_dir: str | Path, scene: str, method: str, key: str) -> 
     if record is None or record.get("key") != key or not record.get("final"):
         return None
     row = record["row"]
-    signatures = {"mesh": b"", "render": PNG, "distances": NPZ}
+    signatures = {"mesh": b"", "render": PNG, "class_render": PNG, "distances": NPZ}
     if any(row.get(name) and stored_file(results_dir, row[name], name, signature=signature) is None
            for name, signature in signatures.items()):
         return None
