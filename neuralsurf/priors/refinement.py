@@ -36,10 +36,10 @@ from neuralsurf.structures import DepthFrames
 class Refinement:
     """Settings of the residual fit (unit-frame distances: a shape's longest side is 1)."""
 
-    resolution: int = 64
+    resolution: int = 48
     """grid nodes per side of the residual over the extraction box."""
-    steps: int = 200
-    lr: float = 3e-3
+    steps: int = 100
+    lr: float = 6e-3
     smoothness: float = 1e-3
     """weight of mean |grad r|^2 (r in distance units, the gradient per unit length)."""
     decay: float = 1.0
