@@ -9,6 +9,8 @@ Rows (means over the test split; per-shape values in <out>/bench_priors.json):
   pass of the encoder.
 - one_view: one synthetic depth view of each test shape. DeepSDF: latent fit to the depth rays
   (DepthRays: surface, band, free space + code prior). OccNet: encoder on the back-projected view.
+  Either completion is then held to what the view saw (`priors.refine_to_view`; `--no-refine`: the
+  prior's field as it is).
   Poisson on the same back-projected view (normals oriented to the camera) for comparison.
 Metrics from `neuralsurf.metrics.evaluate_mesh` against the cached ground-truth mesh: IoU, exact
 Chamfer-L1, normal consistency, F-score at 1 %, watertightness.
@@ -83,6 +85,7 @@ def main() -> None:
     parser.add_argument("--noise", type=float, default=0.005, help="noise of the 3,000-point clouds (unit frame)")
     parser.add_argument("--resolution", type=int, default=64)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--no-refine", action="store_true", help="one-view completions without the refinement")
     args = parser.parse_args()
     torch.manual_seed(args.seed)
     threads = torch.get_num_threads()
@@ -127,7 +130,8 @@ def main() -> None:
             add(f"cloud/{name}", shape.name, score(field, shape.mesh, args.resolution), time.perf_counter() - t)
         for name, prior in (("deepsdf", deepsdf), ("occupancy_network", onet)):
             t = time.perf_counter()
-            field = complete_view(prior, view.frames, view.cloud.points, latent_steps=args.latent_steps, seed=args.seed)
+            field = complete_view(prior, view.frames, view.cloud.points, latent_steps=args.latent_steps, seed=args.seed,
+                                  **({"refine": None} if args.no_refine else {}))
             add(f"one_view/{name}", shape.name, score(field, shape.mesh, args.resolution), time.perf_counter() - t)
         t = time.perf_counter()
         try:
