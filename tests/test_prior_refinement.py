@@ -15,8 +15,11 @@ from neuralsurf.geometry import point_to_mesh_distance
 from neuralsurf.priors import csg
 from neuralsurf.priors.completion import EXTRACTION_BOUNDS, extract_unit
 from neuralsurf.priors.refinement import (
+    FitSamples,
     Refinement,
     box_span,
+    field_scale,
+    fit_residual,
     refine_to_view,
     trilinear_weights,
     view_samples,
@@ -106,6 +109,20 @@ def test_a_refined_completion_holds_the_seen_surface_and_keeps_the_prior_elsewhe
     far = -0.28 * camera / camera.norm()
     assert abs(float(refined(far[None].float()))) < 0.01
     assert mesh.is_watertight
+
+
+def test_a_field_in_other_units_is_refined_in_distances():
+    """An occupancy network's field is a logit, not a distance: the residual is fitted to field / k, k the
+    median gradient norm at the seen points, so the same settings move its surface as far."""
+    points = torch.randn(500, 3, dtype=torch.float64)
+    points = 0.28 * points / points.norm(dim=-1, keepdim=True)
+    steep = Analytic(lambda x: 25 * small_sphere(x))
+    assert field_scale(steep, points) == pytest.approx(25, rel=1e-4)
+    samples = FitSamples(1.1 * points, points.new_zeros(0, 3), points.new_zeros(0, 3))  # a sphere 10 % larger
+    settings = Refinement(resolution=24, steps=60, decay=0.0)
+    for prior in (Analytic(small_sphere), steep):
+        refined = fit_residual(prior, samples, BOUNDS, settings)
+        assert refined(1.1 * points.float()).abs().mean() < 0.004
 
 
 def test_refinement_settings_and_inputs_are_checked():
