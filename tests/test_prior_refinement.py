@@ -20,6 +20,7 @@ from neuralsurf.priors.refinement import (
     box_span,
     field_scale,
     fit_residual,
+    grid_lookup,
     refine_to_view,
     trilinear_weights,
     view_samples,
@@ -70,6 +71,12 @@ def test_trilinear_weights_interpolate_a_linear_grid_exactly():
     expected = 2 * points[:, 0] - 3 * points[:, 1] + 0.5 * points[:, 2] + 1
     assert torch.allclose(values, expected, atol=1e-9)
     assert torch.allclose(weights.sum(-1), torch.ones(200, dtype=torch.float64))
+    assert torch.allclose(grid_lookup(grid, points, BOUNDS), expected, atol=1e-9)
+    beyond = torch.tensor([[0.9, 0.0, 0.0]], dtype=torch.float64)  # clamped to the box's face
+    for face in (BOUNDS[1], BOUNDS[1].float(), BOUNDS[0].float()):  # on the far face in float32 too
+        assert torch.allclose(grid_lookup(grid.float(), face[None], BOUNDS), (2 * face[0] - 3 * face[1] + 0.5 * face[2] + 1
+                                                                              ).float()[None], atol=1e-5)
+    assert torch.allclose(grid_lookup(grid, beyond, BOUNDS), grid_lookup(grid, beyond.clamp(-0.55, 0.55), BOUNDS))
 
 
 def test_box_span_enters_and_leaves_the_box_where_the_slabs_say():
@@ -100,7 +107,7 @@ def test_a_refined_completion_holds_the_seen_surface_and_keeps_the_prior_elsewhe
     refined = refine_to_view(prior, frames, BOUNDS)
     hits = backproject_depth(frames)[frames.depth > 0].double()
     before = small_sphere(hits).abs()  # the sphere's own distance to the hits
-    mesh = extract_unit(refined, 64)
+    mesh = extract_unit(refined, 128)
     after = point_to_mesh_distance(hits, mesh)
     assert before.mean() > 0.04  # the sphere misses the box's seen side by centimetres
     assert after.mean() < 0.002 and torch.quantile(after, 0.95) < 0.005  # the view's noise is 1 mm
