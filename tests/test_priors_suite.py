@@ -26,7 +26,7 @@ def compose_priors(tmp_path, overrides=()):
         tiny += [f"{group}.{name}.collection.{k}={v}" for k, v in {**COLLECTION, "root": root}.items()]
     for method in ("deepsdf", "occupancy_network"):
         tiny += [f"method.{method}.collection.n_train=2", f"method.{method}.trainer.steps=5",
-                 f"method.{method}.refine={{resolution:24,steps:20}}",
+                 f"++method.{method}.refine={{resolution:24,steps:20}}",
                  f"method.{method}.resolution=32", f"method.{method}.trainer.checkpoint_every=5"]
     tiny += ["method.deepsdf.latent_steps=3", "method.deepsdf.observation.shapes.shapes_per_batch=2",
              "method.occupancy_network.observation.occupancy.shapes_per_batch=2", "scene.shapes_one_view.width=64",
