@@ -113,6 +113,13 @@ def check_resolution(key: str, resolution: int, memory: int | None = None) -> No
                           f"than the {memory / 2**30:.1f} GiB available; use {key}={largest} or less")
 
 
+def _parent(config: dict[str, Any], path: tuple) -> dict[str, Any]:
+    """The dict that holds the leaf at `path` of `config`."""
+    for key in path[:-1]:
+        config = config[key]
+    return config
+
+
 def check_config(config: dict[str, Any], memory: int | None = None) -> None:
     """Raise ConfigError for the first common key of `config` (a run's resolved config as a plain dict)
     whose type or range is wrong (RULES), for shard/shards out of range, and for an extraction
@@ -123,7 +130,7 @@ def check_config(config: dict[str, Any], memory: int | None = None) -> None:
         if allowed is not None:
             key = ".".join(path)
             raise ConfigError(f"{key}={value!r:.60}: expected {allowed}; set {key}=<value> in that range")
-        if path[-2:] == ("extract", "resolution"):
+        if path[-2:] == ("extract", "resolution") and not _parent(config, path).get("sparse"):  # sparse: no grid
             check_resolution(".".join(path), value, memory)
     if "shard" in config or "shards" in config:
         check_shards(config.get("shard", 0), config.get("shards", 1))

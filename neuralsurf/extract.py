@@ -23,7 +23,7 @@ from torch import Tensor, nn
 
 from neuralsurf.errors import ConfigError, ExtractionError, InputError
 from neuralsurf.io.npz import write_npz
-from neuralsurf.marching import marching_cubes_torch
+from neuralsurf.marching import cube_triangles, marching_cubes_torch, merge_edge_vertices
 from neuralsurf.progress import progress_bar
 from neuralsurf.structures import Mesh
 
@@ -213,6 +213,95 @@ def _coarse_to_fine_values(field: Field, grid: Grid, level: float, margin: float
     return values[: grid.shape[0], : grid.shape[1], : grid.shape[2]].contiguous().cpu().numpy(), evaluations
 
 
+_CORNER_STEPS = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+"""Int64[Tensor, "8 3"]: a cell's corners (and a cell's children) as offsets, i-major (marching's order)."""
+
+
+def _linear(index: Tensor, shape) -> Tensor:
+    """Int64[Tensor, "... 3"] grid indices -> Int64[Tensor, "..."] i-major linear indices in a grid of `shape`."""
+    return (index[..., 0] * shape[1] + index[..., 1]) * shape[2] + index[..., 2]
+
+
+_LATTICE_STEPS = torch.tensor([[i, j, k] for i in range(3) for j in range(3) for k in range(3)])
+"""Int64[Tensor, "27 3"]: the points of a cell's 2 x 2 x 2 children, as offsets from its first child's first corner."""
+
+
+def _children_values(field: Field, grid: Grid, cells: Tensor, stride: int, chunk_size: int,
+                     device: torch.device) -> tuple[Tensor, Tensor, int]:
+    """The children of Int64[Tensor, "m 3"] `cells` of the level 2 * `stride` at the level `stride` (grid points
+    `stride` apart) that lie inside the grid: (their indices Int64[Tensor, "c 3"], the field at their corners
+    Float[Tensor, "c 2 2 2"], the number of field evaluations: each point of the cells' 3 x 3 x 3 lattices once)."""
+    shape = _level_shape(grid, stride)
+    lattice = 2 * cells[:, None] + _LATTICE_STEPS  # [m, 27, 3]
+    linear = torch.where((lattice < torch.tensor(shape)).all(-1), _linear(lattice, shape), -1)
+    points, inverse = torch.unique(linear, return_inverse=True)
+    outside = bool(points[0] < 0)  # lattice points beyond the grid: never a corner of a child inside it
+    points = points[int(outside):]
+    index = torch.stack([points // (shape[1] * shape[2]), points // shape[2] % shape[1], points % shape[2]], -1)
+    values = torch.from_numpy(evaluate_grid_points(field, grid, index.numpy() * stride, chunk_size, device))
+    if outside:
+        values = torch.cat([values.new_full((1,), math.nan), values])
+    block = values[inverse].reshape(-1, 3, 3, 3)
+    corners = block.unfold(1, 2, 1).unfold(2, 2, 1).unfold(3, 2, 1).reshape(-1, 2, 2, 2)  # child-major, i-major
+    children = (2 * cells[:, None] + _CORNER_STEPS).reshape(-1, 3)
+    kept = (children < torch.tensor(shape) - 1).all(-1)
+    return children[kept], corners[kept], len(points)
+
+
+def _sparse_surface(field: Field, grid: Grid, level: float, margin: float, depth: int, chunk_size: int,
+                    device: torch.device, block: int = 1 << 17) -> tuple[Tensor, Tensor, bool, int]:
+    """Coarse-to-fine marching cubes with memory and time in proportion to the surface: the refinement of
+    `_coarse_to_fine_values` (the same cells, the same field evaluations), kept as lists of cells rather than
+    dense grids, `block` cells at a time, and the finest cells that the level crosses marched as 2 x 2 x 2 cubes
+    (`marching.cube_triangles`, vertices joined by grid edge). Returns (vertices Float64[Tensor, "v 3"] in grid
+    units, faces Int64[Tensor, "f 3"] oriented towards values above `level`, whether a value at or below the
+    level lies on the grid's boundary, field evaluations)."""
+    stride = 2**depth
+    shape = _level_shape(grid, stride)
+    coarse = evaluate_grid_points(field, grid, _all_points(shape) * stride, chunk_size, device)
+    coarse = torch.from_numpy(coarse).reshape(shape)
+    cells = cells_near_level(coarse, level, margin * stride * grid.spacing * math.sqrt(3)).nonzero()
+    evaluations, touches = coarse.numel(), bool((coarse[[0, -1]] <= level).any() or (coarse[:, [0, -1]] <= level).any()
+                                                or (coarse[:, :, [0, -1]] <= level).any())
+    keys, positions = [], []
+    while stride > 1 and len(cells):
+        stride //= 2
+        limit = torch.tensor(_level_shape(grid, stride)) - 1  # cells per axis at this level
+        threshold = margin * stride * grid.spacing * math.sqrt(3)
+        refined = []
+        for part in cells.split(block):
+            children, values, count = _children_values(field, grid, part, stride, chunk_size, device)
+            evaluations += count
+            values = values.reshape(-1, 8)
+            low, high = values.min(1).values - level, values.max(1).values - level
+            if stride > 1:
+                refined.append(children[(low <= threshold) & (high >= -threshold)])
+                continue
+            on_side = (children == 0) | (children == limit - 1)  # the grid's outer cells
+            touches |= bool((on_side.any(-1)[:, None] & (values <= level)).any())
+            crossed = (low < 0) & (high >= 0)
+            values = _off_level_corners(values[crossed].double(), level)
+            k, p = cube_triangles(values.reshape(-1, 2, 2, 2), None, children[crossed], grid.shape, level)
+            keys.append(k)
+            positions.append(p)
+        if stride > 1:
+            cells = torch.cat(refined)
+    if not keys or not sum(len(k) for k in keys):
+        return torch.zeros(0, 3, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.long), touches, evaluations
+    vertices, faces = merge_edge_vertices(torch.cat(keys), torch.cat(positions))
+    return vertices, faces.long(), touches, evaluations
+
+
+def _off_level_corners(values: Tensor, level: float, min_fraction: float = 1e-4) -> Tensor:
+    """Float[Tensor, "m 8"] corner values with none nearer to `level` than `min_fraction` of the cells' value range
+    (moved away from it, its side kept; exactly at the level counts as above): `off_level` for cells marched
+    apart, so that two vertices of a corner's edges never land on one position (a pinched mesh)."""
+    spread = (values.max(1, keepdim=True).values - values.min(1, keepdim=True).values).clamp_min(1e-30)
+    gap = min_fraction * spread
+    close = (values - level).abs() < gap
+    return torch.where(close, level + torch.where(values < level, -gap, gap), values)
+
+
 def off_level(values: Tensor, level: float, min_fraction: float = 1e-4) -> Tensor:
     """Float[Tensor, "X Y Z"] values with no grid point nearer to `level` than `min_fraction` of its
     difference to any neighbour across the level (that point moved away from the level, its sign
@@ -318,6 +407,7 @@ def extract_mesh(
     margin: float = 2.0,
     coarse_resolution: int = 64,
     progress: bool = True,
+    sparse: bool = False,
 ) -> Mesh:
     """Marching cubes of the `level` set of `field` inside `bounds`, in the world frame.
 
@@ -334,6 +424,10 @@ def extract_mesh(
         grid is a power-of-two refinement of it).
     progress: a progress bar over the field's chunks when the evaluation lasts more than a few
         seconds (neuralsurf.progress); False for none.
+    sparse: coarse-to-fine with memory and time in proportion to the surface, not the grid's volume
+        (`_sparse_surface`: the same field evaluations, lists of cells instead of dense grids, the crossed
+        cells marched apart and joined by grid edge); the mesh has the vertices of the dense one, its
+        ambiguous cells may be triangulated differently. For fine grids (1024^3 holds 4 GB of values).
 
     Returns a Mesh (float32 vertices, outward faces), watertight unless the surface leaves the box,
     in which case a warning says so. Raises ExtractionError when the field has no sign change in the
@@ -353,7 +447,15 @@ def extract_mesh(
     grid = make_grid(box, resolution)
     device = field_device(field, device)
     depth = max(0, math.floor(math.log2(resolution / coarse_resolution))) if coarse_to_fine else 0
-    if depth:
+    if sparse and depth:
+        vertices, faces, touches, _ = _sparse_surface(field, grid, float(level), float(margin), depth, chunk_size,
+                                                      device)
+        if not len(faces):
+            raise ExtractionError(f"the field has no {level:g}-level set in the box {box.tolist()}: no cell of the "
+                                  f"grid has corners on both sides; pass bounds that contain the surface")
+        world = torch.from_numpy(grid.origin) + vertices * grid.spacing
+        mesh = Mesh(world.float(), faces)
+    elif depth:
         values, _ = _coarse_to_fine_values(
             field, grid, float(level), float(margin), depth, chunk_size, device, progress
         )
@@ -361,9 +463,11 @@ def extract_mesh(
         values = evaluate_grid_points(
             field, grid, _all_points(grid.shape), chunk_size, device, progress, "extract"
         ).reshape(grid.shape)
-    mesh = marching_cubes(values, grid, float(level), device=device)
-    faces_out = [values[0], values[-1], values[:, 0], values[:, -1], values[:, :, 0], values[:, :, -1]]
-    if any((side <= level).any() for side in faces_out):
+    if not (sparse and depth):
+        mesh = marching_cubes(values, grid, float(level), device=device)
+        faces_out = [values[0], values[-1], values[:, 0], values[:, -1], values[:, :, 0], values[:, :, -1]]
+        touches = any((side <= level).any() for side in faces_out)
+    if touches:
         warnings.warn(
             f"the surface touches the boundary of the extraction box {box.tolist()}, so the mesh is cut "
             f"open there (it will not be watertight); pass larger bounds to get a closed mesh",

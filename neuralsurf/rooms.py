@@ -6,7 +6,7 @@ TSDF fusion averages each view's projective distance, so a thin surface seen by 
 free-space votes of the views that see past it. The fit asks the field, over every view at once, for zero at
 the hits and the distance along the surface normal in a band around them (`ray_equations`), held to its start
 where the rays say nothing: the field is linear in its grid values, so this is one sparse least-squares problem,
-solved by conjugate gradients (`solve_on_rays`). The field has values only at the grid points fusion observed,
+solved by conjugate gradients (`models.grid.solve_values`). The field has values only at the grid points fusion observed,
 so no surface appears in space no frame saw; its mesh is marching cubes of the grid itself (cells with all
 corners observed, as TSDF meshes).
 
@@ -25,7 +25,7 @@ from neuralsurf.baselines import TSDFVolume
 from neuralsurf.cameras import depth_rays, kinect_sigma, project_points, stride_frames, strided_hits
 from neuralsurf.errors import ConfigError, ExtractionError, InputError
 from neuralsurf.marching import cube_triangles, merge_edge_vertices
-from neuralsurf.models.grid import VoxelSDF
+from neuralsurf.models.grid import VoxelSDF, solve_values
 from neuralsurf.structures import DepthFrames, Mesh, Normalization, float_colors
 
 
@@ -141,60 +141,6 @@ def ray_equations(frames: DepthFrames, normalization: Normalization, voxel: floa
 
 
 @torch.no_grad()
-def solve_on_rays(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tensor, prior_weight: float = 10.0,
-                  iterations: int = 5, chunk: int = 1 << 20) -> VoxelSDF:
-    """`model` with its values v fitted to the equations model(points) = targets (Float[Tensor, "m 3"],
-    Float[Tensor, "m"], weighted by Float[Tensor, "m"]) and held to their start v0: the minimum of
-    sum weights (A v - targets)^2 + lam |v - v0|^2, lam = `prior_weight` x the mean data weight of a value (a value
-    no equation touches keeps its start), by `iterations` steps of Jacobi-preconditioned conjugate gradients from
-    v0. Points with no observed corner are left out (the field reads `outside` there, whatever v). `chunk`: points
-    looked up at once (bounds memory, same result)."""
-    if not prior_weight > 0 or iterations < 0:
-        raise ConfigError(f"solve_on_rays needs prior_weight > 0 and iterations >= 0, got {prior_weight} and {iterations}")
-    device = model.values.device
-    rows, w, kept = [], [], []
-    for start in range(0, len(points), chunk):  # the corners' temporaries are a few times rows' size
-        r, c = model.corners(points[start : start + chunk].to(device))
-        used = c.sum(-1) > 0
-        rows.append(r[used].int())
-        w.append(c[used])
-        kept.append(used)
-    rows, w, used = torch.cat(rows), torch.cat(w), torch.cat(kept)
-    if not used.any():
-        return model
-    targets, weights = targets.to(device)[used], weights.to(device)[used]
-    flat = rows.reshape(-1)
-    start = model.values[:, 0].clone()
-
-    def gather(per_equation: Tensor) -> Tensor:  # A^T diag(weights) per_equation
-        return torch.zeros_like(start).index_add_(0, flat, (w * (weights * per_equation)[:, None]).reshape(-1))
-
-    diagonal = torch.zeros_like(start).index_add_(0, flat, (w * w * weights[:, None]).reshape(-1))
-    lam = prior_weight * diagonal[diagonal > 0].mean()
-    preconditioner = 1 / (diagonal + lam)
-
-    def normal(v: Tensor) -> Tensor:  # (A^T W A + lam) v
-        return gather((w * v[rows]).sum(-1)) + lam * v
-
-    values = start.clone()
-    residual = gather(targets) + lam * start - normal(values)
-    z = preconditioner * residual
-    direction, rz = z.clone(), (residual * z).sum()
-    for _ in range(iterations):
-        if rz <= 0:
-            break
-        product = normal(direction)
-        step = rz / (direction * product).sum()
-        values += step * direction
-        residual -= step * product
-        z = preconditioner * residual
-        rz, previous = (residual * z).sum(), rz
-        direction = z + (rz / previous) * direction
-    model.values[:, 0] = values
-    return model
-
-
-@torch.no_grad()
 def frame_colors(points: Tensor, frames: DepthFrames, tolerance: float, chunk: int = 1 << 20) -> Tensor:
     """Float[Tensor, "n 3"]: the mean colour of world `points` (Float[Tensor, "n 3"]) over the frames that see
     them: the point projects inside the image onto a reading within `tolerance` metres (or 3 noise sigmas) of
@@ -221,14 +167,14 @@ def frame_colors(points: Tensor, frames: DepthFrames, tolerance: float, chunk: i
 
 def fit_room(frames: DepthFrames, settings: RoomSettings = RoomSettings(), device: str = "cpu") -> RoomFit:
     """Fuse `frames` into a sparse voxel SDF (`fused_voxels`, over `reading_box`), fit it to the frames' rays
-    (`ray_equations`, `solve_on_rays`), mesh it on its observed cells (`voxel_mesh`) and colour the mesh from the
+    (`ray_equations`, `models.grid.solve_values`), mesh it on its observed cells (`voxel_mesh`) and colour the mesh from the
     frames (`frame_colors`, when `settings.colors` and the frames carry colour). World frame in and out."""
     bounds = reading_box(frames, settings.margin)
     normalization = Normalization.from_points(bounds)
     model = fused_voxels(frames, bounds, settings.voxel, settings.truncation, normalization, device).to(device)
     if settings.iterations:
         equations = ray_equations(frames, normalization, model.voxel, settings.pixel_stride, settings.n_band)
-        model = solve_on_rays(model, *equations, settings.prior_weight, settings.iterations)
+        model = solve_values(model, *equations, settings.prior_weight, settings.iterations)
     mesh = voxel_mesh(model, normalization)
     if settings.colors and frames.colors is not None:
         colors = frame_colors(mesh.vertices, frames, settings.voxel)

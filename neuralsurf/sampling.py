@@ -124,11 +124,20 @@ def make_sdf_samples(
     if normals is not None:
         spacing = cloud_spacing(points) if len(points) > 1 else 0.0
         near_sdf = approximate_sdf(near, points, normals, spacing)
-        free_sdf = approximate_sdf(free, points, normals, spacing)
-        if winding_points > 0:  # beyond 2 spacings |free_sdf| is the distance to the cloud
-            sign, reach = winding_signs(free, points, normals, winding_points, seed)
-            free_sdf = torch.where(free_sdf.abs() > reach, sign * free_sdf.abs(), free_sdf)
+        free_sdf = signed_distance(free, points, normals, spacing, winding_points, seed)
     return SDFSamples(points, normals, near, free, near_sdf, free_sdf)
+
+
+def signed_distance(query: Tensor, points: Tensor, normals: Tensor, spacing: float, winding_points: int = 5000,
+                    seed: int = 0) -> Tensor:
+    """Float[Tensor, "m"]: `approximate_sdf` of Float[Tensor, "m 3"] queries anywhere in the box, its sign taken
+    from the winding number of `winding_points` cloud points (`winding_signs`; 0: the nearest normal's) where the
+    query lies beyond that sign's reach."""
+    sdf = approximate_sdf(query, points, normals, spacing)
+    if winding_points > 0:  # beyond 2 spacings |sdf| is the distance to the cloud
+        sign, reach = winding_signs(query, points, normals, winding_points, seed)
+        sdf = torch.where(sdf.abs() > reach, sign * sdf.abs(), sdf)
+    return sdf
 
 
 @dataclass(frozen=True)

@@ -24,6 +24,7 @@ from neuralsurf.errors import CheckpointError, ConfigError, ExtractionError, Inp
 from neuralsurf.extract import extract_mesh, field_slice, slice_image
 from neuralsurf.graphs import GraphedStep, graphable
 from neuralsurf.models.field import NormalizedField
+from neuralsurf.models.refined import RefinedSDF
 from neuralsurf.observations import Observation, PointSamples, union_bounds
 from neuralsurf.structures import Normalization, PointCloud
 
@@ -349,6 +350,8 @@ def fit(
     config: dict | None = None,
     progress: bool = True,
     cuda_graph: bool = True,
+    patience: int = 0,
+    validate_every: int = 25,
 ) -> FitResult:
     """Fit `model` (unit frame, x[..., 3] -> sdf) to `observations` (world frame) and return a FitResult.
 
@@ -362,6 +365,10 @@ def fit(
     and at the end, and with `resume` an existing one loaded to continue exactly (`Checkpoints`;
     `config` is stored in them). Under torchrun the gradients are averaged over the processes and
     only rank 0 writes. With `cuda_graph`, one GPU replays the step as a CUDA graph (`TrainStep`).
+    A `RefinedSDF` without a start gets the first closed-form field an observation offers (`Sampler.start_field`)
+    before the first step. With `patience` > 0 and an observation that holds data out (`Sampler.held_out_error`),
+    the error there is read every `validate_every` steps (and before the first): the fit stops once it has not
+    fallen by 1 % for `patience` reads in a row, and the model goes back to its best read.
     """
     if not (isinstance(steps, int) and not isinstance(steps, bool) and steps >= 1):
         raise ConfigError(f"fit needs an integer steps >= 1, got {steps!r}")
@@ -369,6 +376,11 @@ def fit(
     device = resolve_device(device)
     normalization = normalization or Normalization.from_points(union_bounds(observations))
     samplers = [o.prepare(normalization, 0.5 + margin, device, seed + i) for i, o in enumerate(observations)]
+    if isinstance(model, RefinedSDF) and model.start is None:
+        start = next((f for f in (s.start_field(model.start_resolution, 0.5 + margin) for s in samplers)
+                      if f is not None), None)
+        if start is not None:
+            model.set_start(start)
     model = model.to(device).train()
     groups = parameter_groups(model, None if trainable is None else list(trainable), encoding_lr)
     params = [p for g in groups for p in g["params"]]
@@ -384,9 +396,14 @@ def fit(
     monitor = FitMonitor(steps, start_step, seconds, history, params, optimizer, world_field,
                          run_dir if rank == 0 else None, progress and rank == 0, log_every, image_every, mesh_every)
 
+    stopper = EarlyStop(model, samplers, patience, validate_every, start_step)
+    done = start_step
     with only_trainable(model, params):
         train_step = TrainStep(model, observations, samplers, optimizer, device, world, cuda_graph)
         for step in monitor.bar:
+            if stopper.stops(step):
+                checkpoints.save(step, monitor.seconds(), history)
+                break
             batches = [sampler.sample(generator) for sampler in samplers]
             try:
                 terms, total = train_step(batches, step)
@@ -405,9 +422,42 @@ def fit(
     monitor.bar.close()
     model.eval()
     _check_converged(history)
-    _check_field(model, max(steps, start_step))
+    done = max(done, start_step)
+    _check_field(model, done)
     monitor.finish()
-    return FitResult(model, normalization, world_field.eval(), history, max(steps, start_step), monitor.seconds())
+    return FitResult(model, normalization, world_field.eval(), history, done, monitor.seconds())
+
+
+class EarlyStop:
+    """`fit`'s stop on held-out data: every `every` steps (and at the first) the mean of the samplers'
+    `held_out_error`; `stops(step)` is True once it has not fallen by 1 % for `patience` reads in a row, and then
+    puts the model back to the state of its best read. Off (never stops) with `patience` 0 or no held-out data."""
+
+    def __init__(self, model: nn.Module, samplers: list, patience: int, every: int, start_step: int) -> None:
+        if not (isinstance(patience, int) and patience >= 0 and isinstance(every, int) and every >= 1):
+            raise ConfigError(f"fit needs integers patience >= 0 and validate_every >= 1, got {patience!r} and {every!r}")
+        self.model, self.samplers, self.patience, self.every, self.start_step = model, samplers, patience, every, start_step
+        self.best, self.best_state, self.misses = math.inf, None, 0
+        self.enabled = patience > 0 and self._error() is not None
+
+    def _error(self) -> float | None:
+        errors = [e for e in (s.held_out_error(self.model) for s in self.samplers) if e is not None]
+        return sum(errors) / len(errors) if errors else None
+
+    def stops(self, step: int) -> bool:
+        if not self.enabled or (step - self.start_step) % self.every:
+            return False
+        error = self._error()
+        if error < 0.99 * self.best:
+            self.best, self.misses = error, 0
+            self.best_state = {k: v.detach().clone() for k, v in self.model.state_dict().items()
+                               if not k.startswith("start.")}  # the frozen start never changes
+            return False
+        self.misses += 1
+        if self.misses < self.patience:
+            return False
+        self.model.load_state_dict(self.best_state, strict=False)
+        return True
 
 
 def progress_line(record: dict[str, float], steps: int, steps_per_s: float) -> str:

@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from neuralsurf.errors import ConfigError
-from neuralsurf.rooms import fused_voxels, ray_equations, solve_on_rays, voxel_mesh
-from neuralsurf.models.grid import VoxelSDF
+from neuralsurf.models.grid import VoxelSDF, solve_values
 from neuralsurf.models.spec import build_model, model_spec
+from neuralsurf.rooms import fused_voxels, ray_equations, voxel_mesh
 from neuralsurf.structures import DepthFrames, Normalization
 
 WIDTH, HEIGHT, F, PLANE_Z = 64, 48, 60.0, 2.0
@@ -86,10 +86,10 @@ def test_the_solve_is_the_least_squares_solution_of_its_equations():
     W = torch.diag(weights.double())
     expected = torch.linalg.solve(A.T @ W @ A + lam * torch.eye(len(start), dtype=torch.float64),
                                   A.T @ W @ targets.double() + lam * start)
-    solved = solve_on_rays(model, points, targets, weights, prior_weight=2.0, iterations=200).values[:, 0]
+    solved = solve_values(model, points, targets, weights, prior_weight=2.0, iterations=200).values[:, 0]
     assert torch.allclose(solved.double(), expected, atol=1e-5)
     with pytest.raises(ConfigError, match="prior_weight > 0"):
-        solve_on_rays(model, points, targets, weights, prior_weight=0.0)
+        solve_values(model, points, targets, weights, prior_weight=0.0)
 
 
 def test_ray_equations_ask_zero_at_the_hits_and_the_normal_distance_around_them():
@@ -110,11 +110,11 @@ def test_the_solve_moves_a_misplaced_plane_onto_the_readings_and_keeps_a_fused_o
     normalization = Normalization.from_points(bounds)
     model = fused_voxels(frames, bounds, 0.04, 0.16, normalization)
     assert (voxel_mesh(model, normalization).vertices[:, 2] - PLANE_Z).abs().max() < 1e-4
-    kept = voxel_mesh(solve_on_rays(model, *ray_equations(frames, normalization, model.voxel, 2)), normalization)
+    kept = voxel_mesh(solve_values(model, *ray_equations(frames, normalization, model.voxel, 2)), normalization)
     assert (kept.vertices[:, 2] - PLANE_Z).abs().max() < 1e-3
 
     behind = grid_of(lambda p: PLANE_Z + 0.015 - p[..., 2], (-0.6, -0.5, 1.8), (0.6, 0.5, 2.2), 0.02)  # 1.5 cm
-    moved = solve_on_rays(behind, *ray_equations(frames, SHIFT, behind.voxel, 1), prior_weight=0.01, iterations=50)
+    moved = solve_values(behind, *ray_equations(frames, SHIFT, behind.voxel, 1), prior_weight=0.01, iterations=50)
     z = voxel_mesh(moved, SHIFT).vertices[:, 2]
     central = z[(z - PLANE_Z).abs() < 0.05]
     assert (central - PLANE_Z).abs().median() < 2e-3 and len(central) > 0.9 * len(z)

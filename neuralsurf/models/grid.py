@@ -6,7 +6,8 @@ value (`rows`: each point's row of `values`, -1 where none). A query averages th
 cell with their trilinear weights (so unobserved points, which may lie in free space or behind a surface,
 invent no zero crossing) and reads `outside` where no corner is observed. Initialised from a fused TSDF
 (`from_observed`), the field starts at TSDF's answer; it is linear in its values (`corners`), so they can be
-fitted by one least-squares solve (`rooms.solve_on_rays`) as well as by `fit`.
+fitted by one least-squares solve (`solve_values`: to depth rays in `rooms`, to oriented points in
+`observations.start`) as well as by `fit`.
 """
 
 from __future__ import annotations
@@ -113,3 +114,59 @@ class VoxelSDF(nn.Module):
         values = torch.full(rows.shape, self.outside, device=self.values.device)
         values[observed] = self.values[rows[observed].long(), 0]
         return values, observed
+
+
+@torch.no_grad()
+def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tensor, prior_weight: float = 10.0,
+                 iterations: int = 5, chunk: int = 1 << 20) -> VoxelSDF:
+    """`model` with its values v fitted to the equations model(points) = targets (Float[Tensor, "m 3"],
+    Float[Tensor, "m"], weighted by Float[Tensor, "m"]) and held to their start v0: the minimum of
+    sum weights (A v - targets)^2 + lam |v - v0|^2, lam = `prior_weight` x the mean data weight of a value (a value
+    no equation touches keeps its start), by `iterations` steps of Jacobi-preconditioned conjugate gradients from
+    v0. Points with no observed corner are left out (the field reads `outside` there, whatever v). Only the values
+    the equations read are unknowns (the others keep their start, as they would in the full system), so the cost
+    follows the equations, not the grid. `chunk`: points looked up at once (bounds memory, same result)."""
+    if not prior_weight > 0 or iterations < 0:
+        raise ConfigError(f"solve_values needs prior_weight > 0 and iterations >= 0, got {prior_weight} and {iterations}")
+    device = model.values.device
+    rows, w, kept = [], [], []
+    for start in range(0, len(points), chunk):  # the corners' temporaries are a few times rows' size
+        r, c = model.corners(points[start : start + chunk].to(device))
+        used = c.sum(-1) > 0
+        rows.append(r[used].int())
+        w.append(c[used])
+        kept.append(used)
+    rows, w, used = torch.cat(rows), torch.cat(w), torch.cat(kept)
+    if not used.any():
+        return model
+    targets, weights = targets.to(device)[used], weights.to(device)[used]
+    touched, flat = torch.unique(rows.reshape(-1), return_inverse=True)  # the unknowns: values the equations read
+    rows = flat.reshape(rows.shape)
+    start = model.values[touched, 0]
+
+    def gather(per_equation: Tensor) -> Tensor:  # A^T diag(weights) per_equation
+        return torch.zeros_like(start).index_add_(0, flat, (w * (weights * per_equation)[:, None]).reshape(-1))
+
+    diagonal = torch.zeros_like(start).index_add_(0, flat, (w * w * weights[:, None]).reshape(-1))
+    lam = prior_weight * diagonal[diagonal > 0].mean()
+    preconditioner = 1 / (diagonal + lam)
+
+    def normal(v: Tensor) -> Tensor:  # (A^T W A + lam) v
+        return gather((w * v[rows]).sum(-1)) + lam * v
+
+    values = start.clone()
+    residual = gather(targets) + lam * start - normal(values)
+    z = preconditioner * residual
+    direction, rz = z.clone(), (residual * z).sum()
+    for _ in range(iterations):
+        if rz <= 0:
+            break
+        product = normal(direction)
+        step = rz / (direction * product).sum()
+        values += step * direction
+        residual -= step * product
+        z = preconditioner * residual
+        rz, previous = (residual * z).sum(), rz
+        direction = z + (rz / previous) * direction
+    model.values[touched, 0] = values
+    return model

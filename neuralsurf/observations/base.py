@@ -18,6 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.models.grid import VoxelSDF
 from neuralsurf.structures import Normalization
 
 
@@ -53,6 +54,15 @@ class Sampler(ABC):
     @abstractmethod
     def losses(self, model: nn.Module, batch: Any) -> dict[str, Tensor]:
         """Unweighted scalar loss terms of the unit-frame `model` on `batch`, by name."""
+
+    def start_field(self, resolution: int, box: float) -> VoxelSDF | None:
+        """A closed-form field of the data over [-box, box]^3 at `resolution` cells per side, for a model to refine
+        (`models.RefinedSDF`); None where the observation offers none."""
+        return None
+
+    def held_out_error(self, model: nn.Module) -> float | None:
+        """The unit-frame `model`'s error on data kept out of the batches (what `fit` stops on), or None."""
+        return None
 
 
 class Observation(ABC):

@@ -1,0 +1,235 @@
+"""Point clouds against screened Poisson: train.py's default point fit (a voxel SDF solved from the points, refined
+by a hash-grid MLP until held-out points stop improving, extracted near the surface only) and Open3D's screened
+Poisson on the same points and normals, timed in one run.
+
+    python benchmarks/bench_points.py bunny    # the demo (experiment=bunny_sdf) against Poisson depth 10 and 9
+    python benchmarks/bench_points.py scans    # train.py data=file on the Stanford range scans merged ($NEURALSURF_DATA)
+    python benchmarks/bench_points.py curves [--sizes 10000 100000 1000000 5000000] [--resolutions 128 256 512 1024]
+                                             [--plot docs/images/points_scaling.png]
+
+`bunny` and `scans` print wall and CPU seconds of fit + extraction and of Poisson, and their accuracy: exact
+Chamfer-L1 and normal consistency against the bunny mesh; for the scans the mean distance from the scan points to
+the mesh and from the mesh (100k surface samples) to the scan points, as fractions of the scan's bounding-box
+diagonal, and the metrics against Stanford's zippered reconstruction. `curves` runs every case in a child process
+(its peak resident memory is the case's own): the fit of 10k to 5M points sampled from the bunny with their
+normals (and the merged scans when present), and the extraction of the 100k fit at each resolution, against
+Poisson depth 9 on the same points. Threads: as the environment sets them (OMP_NUM_THREADS); Poisson runs on one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+import neuralsurf as ns
+from neuralsurf.evaluation.methods import extract_scene_mesh
+from neuralsurf.geometry import knn, point_to_mesh_distance, sample_mesh_surface
+from neuralsurf.scenes import Scene
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+def configured(overrides: list[str]):
+    """train.py's config with these overrides (experiment bunny_sdf, its default, unless overridden)."""
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return compose(config_name="train", overrides=overrides)
+
+
+def clock(function, *args, **kwargs):
+    """(value, wall seconds, CPU seconds of this process) of one call."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    value = function(*args, **kwargs)
+    return value, time.perf_counter() - wall, time.process_time() - cpu
+
+
+def ours(cfg, scene: Scene, extract: dict | None = None):
+    """train.py's fit and extraction of `scene` under `cfg`: (mesh, fit result, wall s, CPU s)."""
+    trainer = {**OmegaConf.to_container(cfg.trainer, resolve=True), "progress": False, "image_every": 0}
+    observations = [instantiate(entry, _convert_="all")(scene) for entry in cfg.observation.values()
+                    if "_target_" in entry]
+    torch.manual_seed(cfg.seed)
+    model = instantiate(cfg.model, _convert_="all")
+    result, fit_wall, fit_cpu = clock(ns.fit, model, observations, optimizer=instantiate(cfg.optimizer), device="cpu",
+                                      seed=cfg.seed, **trainer)
+    options = {**OmegaConf.to_container(cfg.extract, resolve=True), "progress": False, **(extract or {})}
+    mesh, extract_wall, extract_cpu = clock(extract_scene_mesh, result.field, scene, options)
+    return mesh, result, fit_wall + extract_wall, fit_cpu + extract_cpu
+
+
+def poisson(cloud, depth: int):
+    """(mesh, wall s, CPU s) of Open3D's screened Poisson at `depth` on one thread."""
+    return clock(ns.baselines.reconstruct_poisson, cloud, depth=depth, n_threads=1)
+
+
+def line(name: str, wall: float, cpu: float, metrics: dict) -> None:
+    figures = ", ".join(f"{key} {value:.4g}" for key, value in metrics.items())
+    print(f"{name:<34} {wall:7.1f} s wall {cpu:7.1f} s CPU   {figures}", flush=True)
+
+
+def bunny(args) -> None:
+    gt = ns.scenes.bunny()
+    cloud = ns.scenes.sample_surface(gt, n=100_000, noise=0.0, seed=0)
+    scene = Scene("bunny", cloud, gt)
+    cfg = configured(["experiment=bunny_sdf"])
+    runs = {}
+    for depth in (10, 9):
+        mesh, wall, cpu = poisson(cloud, depth)
+        runs[f"poisson depth {depth}"] = (mesh, wall, cpu, {})
+    mesh, result, wall, cpu = ours(cfg, scene)
+    runs["ours (train.py bunny_sdf)"] = (mesh, wall, cpu, {"steps": result.steps})
+    for name, (mesh, wall, cpu, extra) in runs.items():
+        metrics = ns.metrics.evaluate_mesh(mesh, gt)
+        line(name, wall, cpu, {"chamfer_l1_exact": metrics["chamfer_l1_exact"],
+                               "normal_consistency": metrics["normal_consistency"],
+                               "watertight": mesh.is_watertight, **extra})
+    ours_run = runs["ours (train.py bunny_sdf)"]
+    for depth in (10, 9):
+        reference = runs[f"poisson depth {depth}"]
+        print(f"time ours / Poisson depth {depth}: {ours_run[1] / reference[1]:.2f}x wall, "
+              f"{ours_run[2] / reference[2]:.2f}x CPU")
+
+
+def scan_distances(mesh, cloud, n: int = 100_000) -> dict[str, float]:
+    """Mean scan -> mesh and mesh -> scan distances, fractions of the scan's bounding-box diagonal."""
+    points = cloud.points.double()
+    diagonal = float((points.max(0).values - points.min(0).values).norm())
+    to_mesh = point_to_mesh_distance(points.float(), mesh).double().mean()
+    samples, _ = sample_mesh_surface(mesh, n, torch.Generator().manual_seed(0))
+    to_scan = knn(samples.double(), points, 1)[0][:, 0].mean()
+    return {"scan_to_mesh": float(to_mesh) / diagonal, "mesh_to_scan": float(to_scan) / diagonal}
+
+
+def scans(args) -> None:
+    from neuralsurf.scenes.recipes import stanford_scans
+
+    scene = stanford_scans(root=os.environ.get("NEURALSURF_DATA"))
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "stanford_scans.ply"
+        ns.io.write_point_cloud(path, scene.cloud)
+        cfg = configured(["data=file", f"data.path={path}"])
+        file_scene = instantiate(cfg.data)
+        runs = {}
+        mesh, wall, cpu = poisson(file_scene.cloud, 9)
+        runs["poisson depth 9"] = (mesh, wall, cpu, {})
+        mesh, result, wall, cpu = ours(cfg, file_scene)
+        runs["ours (train.py data=file)"] = (mesh, wall, cpu, {"steps": result.steps})
+    print(f"{len(scene.cloud)} points, normals {scene.cloud.has_normals}")
+    for name, (mesh, wall, cpu, extra) in runs.items():
+        against = ns.metrics.evaluate_mesh(mesh, scene.ground_truth)
+        line(name, wall, cpu, {**scan_distances(mesh, scene.cloud), "chamfer_l1_exact_zippered":
+                               against["chamfer_l1_exact"], "nc_zippered": against["normal_consistency"], **extra})
+    a, b = runs["ours (train.py data=file)"], runs["poisson depth 9"]
+    print(f"time ours / Poisson depth 9: {a[1] / b[1]:.2f}x wall, {a[2] / b[2]:.2f}x CPU")
+
+
+def peak_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def sampled_cloud(n: int):
+    """n points of the bunny's surface with their normals (the scans merged for n = 0)."""
+    if n == 0:
+        from neuralsurf.scenes.recipes import stanford_scans
+
+        return stanford_scans(root=os.environ.get("NEURALSURF_DATA")).cloud
+    points, normals = sample_mesh_surface(ns.scenes.bunny(), n, torch.Generator().manual_seed(0))
+    return ns.PointCloud(points.float(), normals.float())
+
+
+def one_case(kind: str, n: int, resolution: int) -> dict:
+    """A child's case: the fit (and default extraction) of n points, Poisson depth 9 on them, or the extraction of
+    the n-point fit at `resolution` (timed alone)."""
+    cloud = sampled_cloud(n)
+    before = peak_rss_mib()
+    if kind == "poisson":
+        _, wall, cpu = poisson(cloud, 9)
+        return {"wall": wall, "cpu": cpu, "peak_mib": peak_rss_mib(), "input_mib": before}
+    cfg = configured(["data=file", "data.path=unused"])
+    scene = Scene("cloud", cloud, None)
+    if kind == "fit":
+        mesh, result, wall, cpu = ours(cfg, scene)
+        return {"wall": wall, "cpu": cpu, "peak_mib": peak_rss_mib(), "input_mib": before, "steps": result.steps,
+                "faces": len(mesh.faces)}
+    _, result, _, _ = ours(cfg, scene)
+    Path("/proc/self/clear_refs").write_text("5")  # the extraction's own peak from here (Linux)
+    mesh, wall, cpu = clock(ns.extract_mesh, result.field, resolution=resolution, sparse=True, progress=False,
+                            chunk_size=cfg.extract.chunk_size)
+    status = Path("/proc/self/status").read_text().splitlines()
+    peak = next(int(s.split()[1]) / 1024 for s in status if s.startswith("VmHWM"))
+    return {"wall": wall, "cpu": cpu, "peak_mib": peak, "faces": len(mesh.faces)}
+
+
+def curves(args) -> None:
+    cases = [("fit", n, 0) for n in args.sizes] + [("poisson", n, 0) for n in args.sizes]
+    if os.environ.get("NEURALSURF_DATA"):
+        cases += [("fit", 0, 0), ("poisson", 0, 0)]
+    cases += [("extract", 100_000, r) for r in args.resolutions]
+    measured = []
+    print("case, points (0: the scans merged), resolution, wall s, CPU s, peak RSS MiB, details", flush=True)
+    for kind, n, resolution in cases:
+        child = subprocess.run([sys.executable, __file__, "one", kind, str(n), str(resolution)], capture_output=True,
+                               text=True)
+        if child.returncode:
+            print(f"{kind} {n} {resolution}: failed\n{child.stderr[-2000:]}", flush=True)
+            continue
+        result = json.loads(child.stdout.strip().splitlines()[-1])
+        measured.append((kind, n, resolution, result))
+        print(f"{kind:8} {n:8d} {resolution:5d} {result['wall']:8.1f} {result['cpu']:8.1f} {result['peak_mib']:8.0f}  "
+              f"{json.dumps({k: v for k, v in result.items() if k not in ('wall', 'cpu', 'peak_mib')})}", flush=True)
+    if args.plot is not None:
+        plot(measured, args.plot)
+
+
+def plot(measured: list, path: Path) -> None:
+    """Wall time and peak memory against points (fit, Poisson) and against resolution (extraction), log-log."""
+    from PIL import Image
+
+    from neuralsurf.evaluation.render import scatter_plot
+
+    series = {"fit": "ours: fit + extract 256", "poisson": "Poisson depth 9"}
+    points = [(n, result["wall"], series[kind], f"{n // 1000}k") for kind, n, _, result in measured
+              if kind in series and n]
+    memory = [(n, result["peak_mib"], series[kind], f"{n // 1000}k") for kind, n, _, result in measured
+              if kind in series and n]
+    extraction = [(res, result[key], name, f"{res}") for kind, _, res, result in measured if kind == "extract"
+                  for key, name in (("wall", "wall s"), ("peak_mib", "peak RSS MiB"))]
+    panels = [scatter_plot("time against points", "points", "wall s", points),
+              scatter_plot("peak memory against points", "points", "peak RSS MiB", memory),
+              scatter_plot("extraction of the 100k fit (sparse)", "cells per side", "wall s | MiB", extraction)]
+    canvas = Image.new("RGB", (sum(p.width for p in panels), max(p.height for p in panels)), (255, 255, 255))
+    x = 0
+    for panel in panels:
+        canvas.paste(panel, (x, 0))
+        x += panel.width
+    path.parent.mkdir(parents=True, exist_ok=True)
+    canvas.save(path)
+    print(f"plot: {path}")
+
+
+def main() -> None:
+    if len(sys.argv) == 5 and sys.argv[1] == "one":
+        print(json.dumps(one_case(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]))))
+        return
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("what", choices=["bunny", "scans", "curves"])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000, 5_000_000])
+    parser.add_argument("--resolutions", type=int, nargs="+", default=[128, 256, 512, 1024])
+    parser.add_argument("--plot", type=Path, default=None)
+    args = parser.parse_args()
+    {"bunny": bunny, "scans": scans, "curves": curves}[args.what](args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,91 @@
+"""A closed-form start for a fit to oriented points: a voxel SDF solved in one least-squares step.
+
+The grid covers the fit's box [-box, box]^3 (unit frame) with `resolution` cells per side. Its values begin as
+signed distances to the cloud: on a grid `coarse` times coarser everywhere (`sampling.signed_distance`, with the
+sign of the cloud's winding number far from it), interpolated, and within `band` cells of a point the distance to
+the nearest point's tangent plane (`plane_distance`, within two voxels of it). Then every point p with normal n asks f(p) = 0 and f(p +- h n) = +-h
+(h: one voxel), held to those values (`models.grid.solve_values`, the least squares the room fit solves from
+depth rays). A network then only refines this field (`models.RefinedSDF`).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.models.grid import VoxelSDF, solve_values
+from neuralsurf.geometry import knn
+from neuralsurf.sampling import cloud_spacing, signed_distance
+
+
+def grid_points(counts: int, origin: float, step: float) -> Tensor:
+    """Float[Tensor, "counts^3 3"]: the points origin + (i, j, k) * step of a cubic grid, i-major."""
+    axis = origin + torch.arange(counts, dtype=torch.float64) * step
+    return torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3).float()
+
+
+def band_points(points: Tensor, origin: float, voxel: float, resolution: int, band: int) -> Tensor:
+    """Long[Tensor, "k 3"]: the indices of the grid points (resolution + 1 per side, spaced `voxel` from
+    `origin`) that are corners of cells within `band` cells of a cell holding one of Float[Tensor, "n 3"]
+    `points`."""
+    cells = ((points.double() - origin) / voxel).floor().long().clamp(0, resolution - 1)
+    near = torch.zeros((resolution + 1,) * 3, dtype=torch.bool)  # cells, then their corners (one more a side)
+    near[cells[:, 0], cells[:, 1], cells[:, 2]] = True
+    size = resolution + 1
+    for axis in range(3):  # dilated by `band` cells either way, then to the far corners: separable shifts
+        grown = near.clone()
+        for shift in range(1, band + 2):
+            grown.narrow(axis, shift, size - shift).logical_or_(near.narrow(axis, 0, size - shift))
+        for shift in range(1, band + 1):
+            grown.narrow(axis, 0, size - shift).logical_or_(near.narrow(axis, shift, size - shift))
+        near = grown
+    return near.nonzero()
+
+
+def plane_distance(query: Tensor, points: Tensor, normals: Tensor, far: Tensor, reach: float) -> Tensor:
+    """Float[Tensor, "m"]: the signed distance of Float[Tensor, "m 3"] queries to the tangent plane of their
+    nearest point (Float[Tensor, "n 3"] points, unit normals) where that point lies within `reach`: it errs by the
+    curvature times the squared distance along the plane, where the distance to the point errs by the gaps between
+    the points. Farther (gaps, off sharp edges, where another face's plane may pass on the wrong side): the
+    distance to the point with the sign of Float[Tensor, "m"] `far`, the coarse field's."""
+    distance, index = knn(query, points, 1)
+    distance, index = distance[:, 0], index[:, 0]
+    plane = ((query - points[index]) * normals[index]).sum(-1)
+    return torch.where(distance < reach, plane, torch.where(far < 0, -distance, distance))
+
+
+def point_equations(points: Tensor, normals: Tensor, offset: float) -> tuple[Tensor, Tensor, Tensor]:
+    """What oriented points say about an SDF: f(p) = 0 and f(p +- offset n) = +-offset, for Float[Tensor, "n 3"]
+    points and unit normals. Returns (points Float[Tensor, "3n 3"], targets Float[Tensor, "3n"], weights
+    Float[Tensor, "3n"] (ones)), the input of `solve_values`."""
+    where = torch.cat([points, points + offset * normals, points - offset * normals])
+    targets = torch.zeros(len(where), dtype=points.dtype)
+    targets[len(points) : 2 * len(points)], targets[2 * len(points) :] = offset, -offset
+    return where, targets, torch.ones_like(targets)
+
+
+@torch.no_grad()
+def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 256, band: int = 2, coarse: int = 8,
+                prior_weight: float = 1.0, iterations: int = 10, winding_points: int = 5000,
+                seed: int = 0) -> VoxelSDF:
+    """The start of a fit to Float[Tensor, "n 3"] unit-frame `points` with unit outward `normals` (see the
+    module docstring): a VoxelSDF with every point of its (resolution + 1)^3 grid over [-box, box]^3 observed.
+    `resolution` must be a multiple of `coarse`; `prior_weight` and `iterations` are `solve_values`'."""
+    if not (resolution >= 2 * coarse >= 2 and resolution % coarse == 0 and band >= 1):
+        raise ConfigError(f"voxel_start needs band >= 1 and a resolution that is a multiple of coarse, at least twice "
+                          f"it; got resolution={resolution}, coarse={coarse}, band={band}")
+    if normals is None or normals.shape != points.shape or len(points) < 2:
+        raise InputError(f"voxel_start needs at least 2 points with one normal each, got points "
+                         f"{tuple(points.shape)} and normals {None if normals is None else tuple(normals.shape)}")
+    points, normals = points.detach().cpu().float(), normals.detach().cpu().float()
+    voxel = 2 * box / resolution
+    spacing = cloud_spacing(points)
+    size = resolution // coarse + 1
+    far = signed_distance(grid_points(size, -box, coarse * voxel), points, normals, spacing, winding_points, seed)
+    values = torch.nn.functional.interpolate(far.reshape(1, 1, size, size, size), size=(resolution + 1,) * 3,
+                                             mode="trilinear", align_corners=True)[0, 0]
+    near = tuple(band_points(points, -box, voxel, resolution, band).T)
+    values[near] = plane_distance(-box + torch.stack(near, -1).float() * voxel, points, normals, values[near], 2 * voxel)
+    model = VoxelSDF.from_grid(values, torch.ones_like(values, dtype=torch.bool), [-box] * 3, voxel, outside=box)
+    return solve_values(model, *point_equations(points, normals, voxel), prior_weight, iterations)

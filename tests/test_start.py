@@ -1,0 +1,129 @@
+"""The closed-form start of a point fit (observations.start), the model that refines it (models.RefinedSDF) and
+the fit's default path through both, against analytic SDFs: a sphere and a box sampled with exact normals."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+import neuralsurf as ns
+from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.models import RefinedSDF, VoxelSDF
+from neuralsurf.models.spec import build_model, model_spec
+from neuralsurf.observations import PointSamples
+from neuralsurf.observations.start import band_points, point_equations, voxel_start
+from neuralsurf.scenes.analytic import Box, Sphere
+
+from conftest import REPO
+
+BOX = 0.55
+
+
+def grid_values(model: VoxelSDF) -> tuple[torch.Tensor, torch.Tensor]:
+    """(the grid's points Float[Tensor, "n 3"], the model's values there Float[Tensor, "n"])."""
+    values, observed = model.dense()
+    index = observed.nonzero()
+    return model.origin + index.float() * model.voxel, values[observed]
+
+
+@pytest.mark.parametrize("shape", [Sphere(radius=0.3), Box(half_extents=(0.3, 0.2, 0.25))], ids=["sphere", "box"])
+def test_the_start_is_the_analytic_sdf_near_the_points_and_has_its_sign_everywhere(shape):
+    cloud = shape.sample_surface(10_000, seed=0)
+    model = voxel_start(cloud.points.float(), cloud.normals.float(), BOX, resolution=64, coarse=4)
+    points, values = grid_values(model)
+    exact = shape.sdf(points.double()).float()
+    voxel = 2 * BOX / 64
+    assert model.voxel == pytest.approx(voxel) and len(values) == 65**3  # every grid point holds a value
+    error = (values - exact)[exact.abs() < voxel].abs()
+    # within a voxel of the surface: the distance to a hundredth of a voxel mostly; off the box's edges and
+    # corners the tangent planes fall short of the distance (there the zero level, below, is what counts)
+    assert error.median() < 0.01 * voxel
+    if isinstance(shape, Sphere):
+        assert error.max() < 0.1 * voxel
+    far = exact.abs() > 2 * voxel
+    assert torch.equal(values[far] > 0, exact[far] > 0)  # inside and outside, far from the points too
+    mesh = ns.extract_mesh(model, 64, [[-0.5] * 3, [0.5] * 3], progress=False)
+    assert mesh.is_watertight
+    off = shape.sdf(mesh.vertices.double()).abs()
+    assert off.median() < 0.01 * voxel and off.max() < 1.5 * voxel
+    smooth = torch.ones(len(off), dtype=torch.bool)
+    if isinstance(shape, Box):  # marching cubes cuts the box's edges and corners (a voxel); off them as smooth
+        smooth = ((mesh.vertices.double().abs() - torch.tensor(shape.half_extents)).abs() < 2 * voxel).sum(-1) < 2
+    assert off[smooth].max() < 0.3 * voxel
+
+
+def test_band_points_are_the_corners_of_the_cells_near_the_points():
+    points = torch.tensor([[0.05, 0.05, 0.05]])  # in cell (5, 5, 5) of a 0.01 grid from 0
+    near = band_points(points, 0.0, 0.01, 10, band=1)
+    assert len(near) == 4**3  # cells 4..6 on each axis: their corners 4..7
+    assert near.min() == 4 and near.max() == 7
+
+
+def test_point_equations_ask_zero_on_the_points_and_the_offset_along_the_normals():
+    points, normals = torch.zeros(2, 3), torch.tensor([[1.0, 0, 0], [0, 0, -1.0]])
+    where, targets, weights = point_equations(points, normals, 0.1)
+    assert torch.allclose(where[2:4], 0.1 * normals) and torch.allclose(where[4:], -0.1 * normals)
+    assert targets.tolist() == pytest.approx([0, 0, 0.1, 0.1, -0.1, -0.1]) and torch.equal(weights, torch.ones(6))
+
+
+def test_the_start_needs_normals_and_a_resolution_its_coarse_grid_divides():
+    cloud = Sphere(radius=0.3).sample_surface(100, seed=0)
+    with pytest.raises(InputError, match="one normal each"):
+        voxel_start(cloud.points.float(), None, BOX)
+    with pytest.raises(ConfigError, match="multiple of coarse"):
+        voxel_start(cloud.points.float(), cloud.normals.float(), BOX, resolution=60, coarse=8)
+
+
+def small_refined(**options) -> RefinedSDF:
+    encoding = ns.models.HashGrid(levels=2, log2_table_size=10, base_resolution=4, max_resolution=8)
+    return RefinedSDF(width=16, depth=1, encoding=encoding, start_resolution=32, **options)
+
+
+def test_refined_model_starts_at_its_start_and_its_checkpoint_spec_rebuilds_it():
+    cloud = Sphere(radius=0.3).sample_surface(5000, seed=0)
+    start = voxel_start(cloud.points.float(), cloud.normals.float(), BOX, resolution=32)
+    model = small_refined()
+    x = torch.rand(500, 3) - 0.5
+    assert not torch.allclose(model(x), start(x))  # the MLP alone: a sphere of geometric initialisation
+    model.set_start(start)
+    assert torch.equal(model(x), start(x))  # the output layer zeroed: the start until trained
+    assert not start.values.requires_grad
+    with torch.no_grad():
+        model.layers[-1].bias.fill_(0.01)
+    rebuilt = build_model(model_spec(model))
+    rebuilt.load_state_dict(model.state_dict())
+    assert torch.allclose(rebuilt(x), start(x) + 0.01)
+
+
+def test_default_point_fit_refines_the_start_and_stops_on_held_out_points():
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
+        cfg = compose(config_name="train", overrides=["data=sphere"])
+    assert cfg.model._target_ == "neuralsurf.models.RefinedSDF"  # train.py's default model
+    assert cfg.observation.points.held_out > 0 and cfg.trainer.patience > 0  # and its early stop
+    sphere = Sphere(radius=0.3)
+    cloud = sphere.sample_surface(5000, seed=0)
+    observation = PointSamples(cloud, n_near=20_000, n_free=5000, batch_size=512, held_out=0.05)
+    result = ns.fit(small_refined(), observation, steps=400, patience=1, validate_every=5, device="cpu",
+                    progress=False, image_every=0)
+    assert isinstance(result.model.start, VoxelSDF) and result.model.start.shape == [33, 33, 33]
+    assert result.steps < 400  # stopped by the held-out points
+    x = sphere.sample_surface(2000, seed=3).points.float()
+    assert result.field(x).abs().mean() < 0.5 * 1.1 / 32  # half a start voxel (world = unit frame here)
+    with pytest.raises(ConfigError, match="patience"):
+        ns.fit(small_refined(), observation, steps=5, patience=-1, device="cpu", progress=False)
+
+
+def test_held_out_share_is_checked_and_leaves_the_pools():
+    cloud = Sphere(radius=0.3).sample_surface(1000, seed=0)
+    with pytest.raises(ConfigError, match="held_out"):
+        PointSamples(cloud, held_out=0.7)
+    normalization = ns.Normalization.from_points(cloud.points)
+    sampler = PointSamples(cloud, n_near=100, n_free=100, held_out=0.1).prepare(normalization, BOX, "cpu", 0)
+    assert len(sampler.held_out) == 100 and len(sampler.samples.surface_points) == 900
+    kept = {tuple(p) for p in sampler.samples.surface_points.tolist()}
+    assert not kept & {tuple(p) for p in sampler.held_out.tolist()}
+    sphere = Sphere(radius=0.3)
+    exact = lambda x: sphere.sdf(normalization.to_world(x.double())) / normalization.scale  # noqa: E731 (unit frame)
+    assert sampler.held_out_error(exact) < 1e-6
+    assert sampler.held_out_error(lambda x: exact(x) + 0.01) == pytest.approx(0.01, rel=1e-4)
