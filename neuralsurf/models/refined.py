@@ -1,8 +1,9 @@
-"""An MLP that refines a closed-form start: f(x) = start(x) + mlp(x).
+"""An MLP that refines a closed-form start: f(x) = start(x) + voxel * mlp(x).
 
 The start is a `VoxelSDF` solved from the data before the fit (`observations.start.voxel_start` for oriented
 points) and frozen; `fit` hands it over (`set_start`), which zeroes the MLP's output layer, so the fit begins at
-the start and the network only learns what the start misses. Without a start (depth rays and the other
+the start and the network only learns what the start misses, in units of the start's voxel (so that the
+optimiser's first steps move the surface by a fraction of a voxel, not of the box). Without a start (depth rays and the other
 observations that offer none) the model is its `SDFMLP` alone, geometric initialisation included.
 """
 
@@ -22,7 +23,7 @@ from neuralsurf.models.spec import rebuildable
 
 @rebuildable
 class RefinedSDF(SDFMLP):
-    """Unit-frame x[..., 3] -> start(x) + SDFMLP(x) [...]: `SDFMLP`'s arguments, and
+    """Unit-frame x[..., 3] -> start(x) + start.voxel * SDFMLP(x) [...]: `SDFMLP`'s arguments, and
 
     Args:
         start_resolution: cells per side of the start's grid over the fit's box (what `fit` asks the data for).
@@ -81,4 +82,4 @@ class RefinedSDF(SDFMLP):
         last = self.layers[-1]
         if not self.training and not (last.weight.any() or last.bias.any()):  # adds nothing: the start alone
             return self.start(x)
-        return self.start(x) + super().forward(x, latent)
+        return self.start(x) + self.start.voxel * super().forward(x, latent)
