@@ -34,9 +34,9 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 import neuralsurf as ns
-from neuralsurf.evaluation.methods import extract_scene_mesh
-from neuralsurf.geometry import knn, point_to_mesh_distance, sample_mesh_surface
+from neuralsurf.geometry import cloud_from_mesh, knn, point_to_mesh_distance, sample_mesh_surface
 from neuralsurf.scenes import Scene
+from neuralsurf.scenes.recipes import extract_scene_mesh
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
@@ -80,7 +80,7 @@ def line(name: str, wall: float, cpu: float, metrics: dict) -> None:
 
 def bunny(args) -> None:
     gt = ns.scenes.bunny()
-    cloud = ns.scenes.sample_surface(gt, n=100_000, noise=0.0, seed=0)
+    cloud = cloud_from_mesh(gt, n=100_000, noise=0.0, seed=0)
     scene = Scene("bunny", cloud, gt)
     cfg = configured(["experiment=bunny_sdf"])
     runs = {}

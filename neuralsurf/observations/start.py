@@ -14,9 +14,9 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.geometry import knn
+from neuralsurf.geometry import cloud_spacing, knn
 from neuralsurf.models.grid import VoxelSDF, solve_values
-from neuralsurf.sampling import cloud_spacing, signed_distance
+from neuralsurf.sampling import signed_distance
 
 
 def grid_points(counts: int, origin: float, step: float) -> Tensor:
