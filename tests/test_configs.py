@@ -172,7 +172,7 @@ def test_a_depth_data_config_leaves_the_experiments_point_settings_unused_and_sa
     with caplog.at_level(logging.INFO, logger="neuralsurf"):
         observations = build_observations(cfg, instantiate(cfg.data))
     assert len(observations) == 1 and isinstance(observations[0], DepthRays)
-    assert "observation.points (batch_size, near_gradient) left unused" in caplog.text
+    assert "observation.points (batch_size, near_gradient, n_near, n_free) left unused" in caplog.text
 
 
 def test_an_override_of_an_observation_that_is_not_selected_is_a_config_error():

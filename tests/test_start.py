@@ -1,5 +1,5 @@
 """The closed-form start of a point fit (observations.start), the model that refines it (models.RefinedSDF) and
-the fit's default path through both, against analytic SDFs: a sphere and a box sampled with exact normals."""
+the fit's path through both (experiment=points_fast), against analytic SDFs: a sphere and a box sampled with exact normals."""
 
 from __future__ import annotations
 
@@ -97,17 +97,22 @@ def test_refined_model_starts_at_its_start_and_its_checkpoint_spec_rebuilds_it()
     assert torch.allclose(rebuilt(x), start(x) + 0.01 * start.voxel)
 
 
-def test_train_py_fits_points_with_a_refined_start_stopped_on_held_out_points_and_extracts_sparsely():
-    for data in ("sphere", "bunny"):
+def test_points_fast_refines_a_start_stops_on_held_out_points_and_extracts_sparsely_the_default_does_not():
+    for data in ("sphere", "bunny", "file"):
         with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-            cfg = compose(config_name="train", overrides=[f"data={data}"])
-        assert cfg.model._target_ == "neuralsurf.models.RefinedSDF" and cfg.model.start_resolution == 256
-        assert cfg.observation.points.held_out > 0 and cfg.trainer.patience > 0
-        assert cfg.extract.sparse
+            fast = compose(config_name="train", overrides=["experiment=points_fast", f"data={data}"])
+            default = compose(config_name="train", overrides=[f"data={data}"])
+            method = compose(config_name="evaluate", overrides=["methods=[neural_sdf_fast]"]).method.neural_sdf_fast
+        for cfg in (fast, method):
+            assert cfg.model._target_ == "neuralsurf.models.RefinedSDF" and cfg.model.start_resolution == 256
+            points = cfg.observation.points if "observation" in cfg else cfg.observations.points
+            assert points.held_out > 0 and cfg.trainer.patience > 0 and cfg.extract.sparse
+        assert default.model._target_ == "neuralsurf.models.SDFMLP"
+        assert default.observation.points.held_out == 0 and default.trainer.patience == 0 and not default.extract.sparse
 
 
 @pytest.mark.slow
-def test_default_point_fit_refines_the_start_and_stops_on_held_out_points():
+def test_a_point_fit_refines_the_start_and_stops_on_held_out_points():
     sphere = Sphere(radius=0.3)
     cloud = sphere.sample_surface(5000, seed=0)
     observation = PointSamples(cloud, n_near=20_000, n_free=5000, batch_size=512, held_out=0.05)
