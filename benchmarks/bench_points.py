@@ -1,8 +1,8 @@
-"""Point clouds against screened Poisson: train.py's default point fit (a voxel SDF solved from the points, refined
-by a hash-grid MLP until held-out points stop improving, extracted near the surface only) and Open3D's screened
-Poisson on the same points and normals, timed in one run.
+"""Point clouds against screened Poisson: train.py's fast point fit (experiment=points_fast: a voxel SDF solved from
+the points, refined by a hash-grid MLP until held-out points stop improving, extracted near the surface only), its
+default fit (experiment=bunny_sdf) and Open3D's screened Poisson on the same points and normals, timed in one run.
 
-    python benchmarks/bench_points.py bunny    # the demo (experiment=bunny_sdf) against Poisson depth 10 and 9
+    python benchmarks/bench_points.py bunny    # the demo's 100k points against Poisson depth 10 and 9
     python benchmarks/bench_points.py scans    # train.py data=file on the Stanford range scans merged ($NEURALSURF_DATA)
     python benchmarks/bench_points.py curves [--sizes 10000 100000 1000000 5000000] [--resolutions 128 256 512 1024]
                                              [--plot docs/images/points_scaling.png]
@@ -11,7 +11,7 @@ Poisson on the same points and normals, timed in one run.
 Chamfer-L1 and normal consistency against the bunny mesh; for the scans the mean distance from the scan points to
 the mesh and from the mesh (100k surface samples) to the scan points, as fractions of the scan's bounding-box
 diagonal, and the metrics against Stanford's zippered reconstruction. `curves` runs every case in a child process
-(its peak resident memory is the case's own): the fit of 10k to 5M points sampled from the bunny with their
+(its peak resident memory is the case's own): the fast fit of 10k to 5M points sampled from the bunny with their
 normals (and the merged scans when present), and the extraction of the 100k fit at each resolution, against
 Poisson depth 9 on the same points. Threads: as the environment sets them (OMP_NUM_THREADS); Poisson runs on one.
 """
@@ -39,6 +39,9 @@ from neuralsurf.scenes import Scene
 from neuralsurf.scenes.recipes import extract_scene_mesh
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+FAST = "experiment=points_fast"
 
 
 def configured(overrides: list[str]):
@@ -82,23 +85,22 @@ def bunny(args) -> None:
     gt = ns.scenes.bunny()
     cloud = cloud_from_mesh(gt, n=100_000, noise=0.0, seed=0)
     scene = Scene("bunny", cloud, gt)
-    cfg = configured(["experiment=bunny_sdf"])
     runs = {}
     for depth in (10, 9):
         mesh, wall, cpu = poisson(cloud, depth)
         runs[f"poisson depth {depth}"] = (mesh, wall, cpu, {})
-    mesh, result, wall, cpu = ours(cfg, scene)
-    runs["ours (train.py bunny_sdf)"] = (mesh, wall, cpu, {"steps": result.steps})
+    for name, experiment in (("ours (train.py points_fast)", FAST), ("train.py default (bunny_sdf)", "experiment=bunny_sdf")):
+        mesh, result, wall, cpu = ours(configured([experiment]), scene)
+        runs[name] = (mesh, wall, cpu, {"steps": result.steps})
     for name, (mesh, wall, cpu, extra) in runs.items():
         metrics = ns.metrics.evaluate_mesh(mesh, gt)
         line(name, wall, cpu, {"chamfer_l1_exact": metrics["chamfer_l1_exact"],
                                "normal_consistency": metrics["normal_consistency"],
                                "watertight": mesh.is_watertight, **extra})
-    ours_run = runs["ours (train.py bunny_sdf)"]
-    for depth in (10, 9):
-        reference = runs[f"poisson depth {depth}"]
-        print(f"time ours / Poisson depth {depth}: {ours_run[1] / reference[1]:.2f}x wall, "
-              f"{ours_run[2] / reference[2]:.2f}x CPU")
+    for name in ("ours (train.py points_fast)", "train.py default (bunny_sdf)"):
+        for depth in (10, 9):
+            a, b = runs[name], runs[f"poisson depth {depth}"]
+            print(f"time {name} / Poisson depth {depth}: {a[1] / b[1]:.2f}x wall, {a[2] / b[2]:.2f}x CPU")
 
 
 def scan_distances(mesh, cloud, n: int = 100_000) -> dict[str, float]:
@@ -118,20 +120,23 @@ def scans(args) -> None:
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "stanford_scans.ply"
         ns.io.write_point_cloud(path, scene.cloud)
-        cfg = configured(["data=file", f"data.path={path}"])
-        file_scene = instantiate(cfg.data)
+        file_scene = instantiate(configured(["data=file", f"data.path={path}"]).data)
         runs = {}
         mesh, wall, cpu = poisson(file_scene.cloud, 9)
         runs["poisson depth 9"] = (mesh, wall, cpu, {})
-        mesh, result, wall, cpu = ours(cfg, file_scene)
-        runs["ours (train.py data=file)"] = (mesh, wall, cpu, {"steps": result.steps})
+        for name, experiment in (("ours (points_fast data=file)", FAST), ("train.py default (data=file)", None)):
+            cfg = configured([experiment, "data=file", f"data.path={path}"] if experiment else
+                             ["data=file", f"data.path={path}"])
+            mesh, result, wall, cpu = ours(cfg, file_scene)
+            runs[name] = (mesh, wall, cpu, {"steps": result.steps})
     print(f"{len(scene.cloud)} points, normals {scene.cloud.has_normals}")
     for name, (mesh, wall, cpu, extra) in runs.items():
         against = ns.metrics.evaluate_mesh(mesh, scene.ground_truth)
         line(name, wall, cpu, {**scan_distances(mesh, scene.cloud), "chamfer_l1_exact_zippered":
                                against["chamfer_l1_exact"], "nc_zippered": against["normal_consistency"], **extra})
-    a, b = runs["ours (train.py data=file)"], runs["poisson depth 9"]
-    print(f"time ours / Poisson depth 9: {a[1] / b[1]:.2f}x wall, {a[2] / b[2]:.2f}x CPU")
+    for name in ("ours (points_fast data=file)", "train.py default (data=file)"):
+        a, b = runs[name], runs["poisson depth 9"]
+        print(f"time {name} / Poisson depth 9: {a[1] / b[1]:.2f}x wall, {a[2] / b[2]:.2f}x CPU")
 
 
 def peak_rss_mib() -> float:
@@ -156,7 +161,7 @@ def one_case(kind: str, n: int, resolution: int) -> dict:
     if kind == "poisson":
         _, wall, cpu = poisson(cloud, 9)
         return {"wall": wall, "cpu": cpu, "peak_mib": peak_rss_mib(), "input_mib": before}
-    cfg = configured(["data=file", "data.path=unused"])
+    cfg = configured([FAST, "data=file", "data.path=unused"])
     scene = Scene("cloud", cloud, None)
     if kind == "fit":
         mesh, result, wall, cpu = ours(cfg, scene)
@@ -198,7 +203,7 @@ def plot(measured: list, path: Path) -> None:
 
     from neuralsurf.evaluation.render import scatter_plot
 
-    series = {"fit": "ours: fit + extract 256", "poisson": "Poisson depth 9"}
+    series = {"fit": "points_fast: fit + extract 256", "poisson": "Poisson depth 9"}
     points = [(n, result["wall"], series[kind], f"{n // 1000}k") for kind, n, _, result in measured
               if kind in series and n]
     memory = [(n, result["peak_mib"], series[kind], f"{n // 1000}k") for kind, n, _, result in measured

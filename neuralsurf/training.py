@@ -450,7 +450,8 @@ class EarlyStop:
         error = self._error()
         if error < 0.99 * self.best:
             self.best, self.misses = error, 0
-            self.best_state = {k: v.detach().clone() for k, v in self.model.state_dict().items()
+            self.best_state = {k: v.detach().clone() for k, v in (*self.model.named_parameters(),
+                                                                   *self.model.named_buffers())
                                if not k.startswith("start.")}  # the frozen start never changes
             return False
         self.misses += 1

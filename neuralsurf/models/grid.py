@@ -141,6 +141,7 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
         return model
     targets, weights = targets.to(device)[used], weights.to(device)[used]
     touched, flat = torch.unique(rows.reshape(-1), return_inverse=True)  # the unknowns: values the equations read
+    flat = flat.int()  # index_add_ takes int32 indices: half the memory of the largest array
     rows = flat.reshape(rows.shape)
     start = model.values[touched, 0]
 

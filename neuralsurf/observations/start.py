@@ -73,10 +73,12 @@ def point_equations(points: Tensor, normals: Tensor, offset: float) -> tuple[Ten
 @torch.no_grad()
 def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 256, band: int = 2, coarse: int = 8,
                 prior_weight: float = 1.0, iterations: int = 10, winding_points: int = 5000,
-                seed: int = 0) -> VoxelSDF:
+                seed: int = 0, max_points: int = 1_000_000) -> VoxelSDF:
     """The start of a fit to Float[Tensor, "n 3"] unit-frame `points` with unit outward `normals` (see the
     module docstring): a VoxelSDF with every point of its (resolution + 1)^3 grid over [-box, box]^3 observed.
-    `resolution` must be a multiple of `coarse`; `prior_weight` and `iterations` are `solve_values`'."""
+    `resolution` must be a multiple of `coarse`; `prior_weight` and `iterations` are `solve_values`'. A cloud of more
+    than `max_points` is read through a random subset of that many (`seed`): a million points sample a 256-cell grid
+    several times over, and the solve's memory grows with the points (about 1.3 GB a million)."""
     if not (resolution >= 2 * coarse >= 2 and resolution % coarse == 0 and band >= 1):
         raise ConfigError(f"voxel_start needs band >= 1 and a resolution that is a multiple of coarse, at least twice "
                           f"it; got resolution={resolution}, coarse={coarse}, band={band}")
@@ -84,6 +86,9 @@ def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 2
         raise InputError(f"voxel_start needs at least 2 points with one normal each, got points "
                          f"{tuple(points.shape)} and normals {None if normals is None else tuple(normals.shape)}")
     points, normals = points.detach().cpu().float(), normals.detach().cpu().float()
+    if len(points) > max_points:
+        chosen = torch.randperm(len(points), generator=torch.Generator().manual_seed(seed))[:max_points]
+        points, normals = points[chosen], normals[chosen]
     voxel = 2 * box / resolution
     spacing = cloud_spacing(points)
     size = resolution // coarse + 1
