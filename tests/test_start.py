@@ -15,7 +15,7 @@ from neuralsurf.models import RefinedSDF, VoxelSDF
 from neuralsurf.models.refined import compact_grid, expand_grid
 from neuralsurf.models.spec import build_model, model_spec
 from neuralsurf.observations import PointSamples
-from neuralsurf.observations.start import band_points, point_equations, voxel_start
+from neuralsurf.observations.start import band_points, cells_for_spacing, point_equations, voxel_start
 from neuralsurf.scenes.analytic import Box, Sphere
 
 BOX = 0.55
@@ -154,3 +154,14 @@ def test_held_out_share_is_checked_and_leaves_the_pools():
     exact = lambda x: sphere.sdf(normalization.to_world(x.double())) / normalization.scale  # unit frame
     assert sampler.held_out_error(exact) < 1e-6
     assert sampler.held_out_error(lambda x: exact(x) + 0.01) == pytest.approx(0.01, rel=1e-4)
+
+
+def test_a_sparse_cloud_gets_a_start_of_cells_as_wide_as_its_points_spacing():
+    assert cells_for_spacing(0.02, 0.55, 256, 8) == 48  # 55 cells of 0.02, down to a multiple of 8
+    assert cells_for_spacing(0.001, 0.55, 256, 8) == 256 and cells_for_spacing(1.0, 0.55, 256, 8) == 16
+    cloud = Sphere(radius=0.3).sample_surface(2000, seed=0)
+    normalization = ns.Normalization.from_points(cloud.points)
+    sampler = PointSamples(cloud, n_near=100, n_free=100).prepare(normalization, BOX, "cpu", 0)
+    spacing = ns.geometry.cloud_spacing(sampler.samples.surface_points)
+    start = sampler.start_field(256, BOX)
+    assert start.shape[0] - 1 == cells_for_spacing(spacing, BOX, 256, 8) < 256

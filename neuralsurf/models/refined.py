@@ -85,7 +85,7 @@ class RefinedSDF(SDFMLP):
     """Unit-frame x[..., 3] -> start(x) + start.voxel * SDFMLP(x) [...]: `SDFMLP`'s arguments, and
 
     Args:
-        start_resolution: cells per side of the start's grid over the fit's box (what `fit` asks the data for).
+        start_resolution: the most cells per side of the start's grid over the fit's box (what `fit` asks the data for).
         start: the frozen start; None until `set_start` (then the MLP alone).
     """
 

@@ -56,7 +56,7 @@ class Sampler(ABC):
         """Unweighted scalar loss terms of the unit-frame `model` on `batch`, by name."""
 
     def start_field(self, resolution: int, box: float) -> VoxelSDF | None:
-        """A closed-form field of the data over [-box, box]^3 at `resolution` cells per side, for a model to refine
+        """A closed-form field of the data over [-box, box]^3 at `resolution` cells per side at most, for a model to refine
         (`models.RefinedSDF`); None where the observation offers none."""
         return None
 

@@ -151,6 +151,11 @@ def point_terms(outputs: SDFOutputs, batch: SDFBatch, weights: Mapping[str, floa
     return terms
 
 
+START_SPACINGS = 1.0
+"""The start's cells are at least this many point spacings wide (`observations.start.cells_for_spacing`): clouds
+sparser than the bunny's 100k points get a coarser start."""
+
+
 @dataclass(frozen=True)
 class PointSampler(Sampler):
     samples: SDFSamples
@@ -167,7 +172,8 @@ class PointSampler(Sampler):
     def start_field(self, resolution: int, box: float) -> VoxelSDF | None:
         if self.samples.surface_normals is None:
             return None
-        return voxel_start(self.samples.surface_points, self.samples.surface_normals, box, resolution, seed=self.seed)
+        return voxel_start(self.samples.surface_points, self.samples.surface_normals, box, resolution, seed=self.seed,
+                           spacings_per_cell=START_SPACINGS)
 
     @torch.no_grad()
     def held_out_error(self, model: nn.Module) -> float | None:

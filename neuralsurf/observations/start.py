@@ -70,15 +70,22 @@ def point_equations(points: Tensor, normals: Tensor, offset: float) -> tuple[Ten
     return where, targets, torch.ones_like(targets)
 
 
+def cells_for_spacing(width: float, box: float, most: int, coarse: int) -> int:
+    """Cells per side of a grid over [-box, box]^3 whose cells are at least `width` wide: a multiple of `coarse`,
+    between 2 `coarse` and `most`. Cells finer than the points resolve would trace their noise."""
+    return max(2 * coarse, min(most, int(2 * box / width) // coarse * coarse))
+
+
 @torch.no_grad()
 def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 256, band: int = 2, coarse: int = 8,
                 prior_weight: float = 1.0, iterations: int = 10, winding_points: int = 5000,
-                seed: int = 0, max_points: int = 1_000_000) -> VoxelSDF:
+                seed: int = 0, max_points: int = 1_000_000, spacings_per_cell: float | None = None) -> VoxelSDF:
     """The start of a fit to Float[Tensor, "n 3"] unit-frame `points` with unit outward `normals` (see the
     module docstring): a VoxelSDF with every point of its (resolution + 1)^3 grid over [-box, box]^3 observed.
     `resolution` must be a multiple of `coarse`; `prior_weight` and `iterations` are `solve_values`'. A cloud of more
     than `max_points` is read through a random subset of that many (`seed`): a million points sample a 256-cell grid
-    several times over, and the solve's memory grows with the points (about 1.3 GB a million)."""
+    several times over, and the solve's memory grows with the points. With `spacings_per_cell`, `resolution` is the
+    most: cells are at least that many point spacings wide (`cells_for_spacing`)."""
     if not (resolution >= 2 * coarse >= 2 and resolution % coarse == 0 and band >= 1):
         raise ConfigError(f"voxel_start needs band >= 1 and a resolution that is a multiple of coarse, at least twice "
                           f"it; got resolution={resolution}, coarse={coarse}, band={band}")
@@ -89,8 +96,10 @@ def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 2
     if len(points) > max_points:
         chosen = torch.randperm(len(points), generator=torch.Generator().manual_seed(seed))[:max_points]
         points, normals = points[chosen], normals[chosen]
-    voxel = 2 * box / resolution
     spacing = cloud_spacing(points)
+    if spacings_per_cell is not None:
+        resolution = cells_for_spacing(spacing * spacings_per_cell, box, resolution, coarse)
+    voxel = 2 * box / resolution
     size = resolution // coarse + 1
     far = signed_distance(grid_points(size, -box, coarse * voxel), points, normals, spacing, winding_points, seed)
     values = torch.nn.functional.interpolate(far.reshape(1, 1, size, size, size), size=(resolution + 1,) * 3,
