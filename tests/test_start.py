@@ -12,8 +12,7 @@ from hydra import compose, initialize_config_dir
 import neuralsurf as ns
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.models import RefinedSDF, VoxelSDF
-from neuralsurf.models.refined import compact_grid, expand_grid
-from neuralsurf.models.spec import build_model, model_spec
+from neuralsurf.models.spec import build_checked, model_spec
 from neuralsurf.observations import PointSamples
 from neuralsurf.observations.start import band_points, cells_for_spacing, point_equations, voxel_start
 from neuralsurf.scenes.analytic import Box, Sphere
@@ -93,23 +92,20 @@ def test_refined_model_starts_at_its_start_and_its_checkpoint_spec_rebuilds_it()
     assert not start.values.requires_grad
     with torch.no_grad():
         model.layers[-1].bias.fill_(0.01)
-    state = model.state_dict()  # the start compactly: every 8th grid point and the values its upsampling misses
-    assert "start.values" not in state and "start.rows" not in state and state["start.coarse"].shape == (5, 5, 5)
-    assert len(state["start.exceptions"]) < start.values.numel()
-    rebuilt = build_model(model_spec(model))
-    rebuilt.load_state_dict(state)
+    state = model.state_dict()  # a whole grid: its values in grid order, no row index
+    assert "start.values" in state and "start.rows" not in state
+    rebuilt = build_checked(model_spec(model), state)  # as load_field does: a skeleton on the meta device first
     assert torch.equal(rebuilt.start.values, start.values) and torch.equal(rebuilt.start.rows, start.rows)
     assert torch.allclose(rebuilt(x), start(x) + 0.01 * start.voxel)
 
 
-def test_a_grid_compacts_without_loss_and_a_partial_start_keeps_its_values_and_rows():
-    values = torch.randn(17, 9, 25).cumsum(0)
-    values[3:5, 2:4, 10:12] = 7.0
-    compact = compact_grid(values)
-    assert torch.equal(expand_grid(*compact, [17, 9, 25]), values)
-    partial = VoxelSDF.from_grid(values[:, :, :9], values[:, :, :9] < 0, [-0.5] * 3, 0.1)
-    model = small_refined().set_start(partial)
-    assert {"start.values", "start.rows"} <= set(model.state_dict())
+def test_a_partial_grid_keeps_its_row_index_and_a_whole_one_its_grid_order():
+    values = torch.randn(9, 9, 9).cumsum(0)
+    partial = VoxelSDF.from_grid(values, values < 0, [-0.5] * 3, 0.1)
+    assert "rows" in partial.state_dict()
+    linear = torch.randperm(9**3)
+    whole = VoxelSDF.from_observed([9, 9, 9], linear, values.reshape(-1)[linear], [-0.5] * 3, 0.1, 1.0)
+    assert torch.equal(whole.dense()[0], values)
 
 
 def test_points_fast_refines_a_start_stops_on_held_out_points_and_extracts_sparsely_the_default_does_not():

@@ -28,7 +28,7 @@ class VoxelSDF(nn.Module):
         shape: grid points per axis.
         origin: unit-frame position of grid point (0, 0, 0).
         voxel: grid spacing, unit frame.
-        n_observed: grid points that hold a value.
+        n_observed: grid points that hold a value (all of them: the values in grid order, the row index not stored).
         outside: the value where no corner of a query's cell is observed (free space, unit frame).
     """
 
@@ -41,7 +41,10 @@ class VoxelSDF(nn.Module):
         self.shape, self.voxel, self.outside = shape, float(voxel), float(outside)
         self.register_buffer("origin", torch.tensor(origin, dtype=torch.float32))
         self.values = nn.Parameter(torch.full((n_observed, 1), float(outside)))
-        self.register_buffer("rows", torch.full(shape, -1, dtype=torch.int32))
+        whole = n_observed == shape[0] * shape[1] * shape[2]  # every grid point in order: rows follow, not stored
+        rows = torch.arange(n_observed, dtype=torch.int32).reshape(shape) if whole else torch.full(shape, -1,
+                                                                                                    dtype=torch.int32)
+        self.register_buffer("rows", rows, persistent=not whole)
         corner = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
         self.register_buffer("steps", (corner[:, 0] * shape[1] + corner[:, 1]) * shape[2] + corner[:, 2],
                              persistent=False)
@@ -71,6 +74,9 @@ class VoxelSDF(nn.Module):
                               f"{tuple(linear.shape)} and {tuple(values.shape)}")
         if not len(linear):
             raise ConfigError("VoxelSDF.from_observed: no grid point is observed; fuse frames that see the surface first")
+        if len(linear) == shape[0] * shape[1] * shape[2]:  # a whole grid keeps its values in grid order
+            order = linear.argsort()
+            linear, values = linear[order], values[order]
         model = cls(list(shape), [float(o) for o in origin], voxel, len(linear), outside)
         with torch.no_grad():
             model.values[:, 0] = values.float().cpu()

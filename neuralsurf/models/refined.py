@@ -5,10 +5,6 @@ points) and frozen; `fit` hands it over (`set_start`), which zeroes the MLP's ou
 the start and the network only learns what the start misses, in units of the start's voxel (so that the
 optimiser's first steps move the surface by a fraction of a voxel, not of the box). Without a start (depth rays and the other
 observations that offer none) the model is its `SDFMLP` alone, geometric initialisation included.
-
-A state dict holds a start that is a whole grid compactly and without loss (`compact_grid`): its values at every
-`STRIDE`-th grid point and those that differ from their trilinear upsampling (near the points), about 5 % of a
-256-cell start.
 """
 
 from __future__ import annotations
@@ -23,61 +19,6 @@ from neuralsurf.errors import ConfigError
 from neuralsurf.models.grid import VoxelSDF
 from neuralsurf.models.sdf_mlp import SDFMLP
 from neuralsurf.models.spec import rebuildable
-
-STRIDE = 8
-"""Grid points between the values a state dict keeps of the start everywhere (`compact_grid`)."""
-
-
-def _upsampled(coarse: Tensor, shape: list[int]) -> Tensor:
-    """Float[Tensor, "x y z"] -> Float[Tensor, "*shape"]: trilinear, the corners kept (CPU, float32: the same bits on
-    save and load)."""
-    return nn.functional.interpolate(coarse.float().cpu()[None, None], size=tuple(shape), mode="trilinear",
-                                     align_corners=True)[0, 0]
-
-
-def compact_grid(values: Tensor, stride: int = STRIDE) -> tuple[Tensor, Tensor, Tensor]:
-    """Float[Tensor, "X Y Z"] grid values (each side 1 more than a multiple of `stride`) -> (their every `stride`-th
-    point Float[Tensor, "x y z"], Int32[Tensor, "k"] linear indices where the upsampling of those differs, the values
-    there Float[Tensor, "k"]): `expand_grid` gives `values` back bit for bit."""
-    values = values.float().cpu()
-    coarse = values[::stride, ::stride, ::stride].clone()
-    index = (_upsampled(coarse, list(values.shape)) != values).reshape(-1).nonzero()[:, 0]
-    return coarse, index.int(), values.reshape(-1)[index]
-
-
-def expand_grid(coarse: Tensor, index: Tensor, exceptions: Tensor, shape: list[int]) -> Tensor:
-    """`compact_grid`'s output -> the Float[Tensor, "*shape"] grid values."""
-    values = _upsampled(coarse, shape)
-    values.view(-1)[index.long()] = exceptions.float().cpu()
-    return values
-
-
-def _whole_grid(shape: list[int], rows: Tensor) -> bool:
-    """Whether a VoxelSDF of `shape` with `rows` holds every grid point in order and can be compacted."""
-    return (all((side - 1) % STRIDE == 0 for side in shape)
-            and torch.equal(rows.reshape(-1).cpu(), torch.arange(rows.numel(), dtype=rows.dtype)))
-
-
-def _compact_start(module: RefinedSDF, state: dict, prefix: str, local_metadata: dict) -> None:
-    """state_dict post-hook: the start's values and rows as `compact_grid`'s three tensors."""
-    key = prefix + "start."
-    if module.start is None or key + "rows" not in state or not _whole_grid(module.start.shape, state[key + "rows"]):
-        return
-    values = state.pop(key + "values")[:, 0].reshape(module.start.shape)
-    del state[key + "rows"]
-    state[key + "coarse"], state[key + "exceptions"], state[key + "exception_values"] = compact_grid(values)
-
-
-def _expand_start(module: RefinedSDF, state: dict, prefix: str, *_) -> None:
-    """load_state_dict pre-hook: `_compact_start` undone."""
-    key = prefix + "start."
-    if module.start is None or key + "coarse" not in state:
-        return
-    shape = module.start.shape
-    values = expand_grid(state.pop(key + "coarse"), state.pop(key + "exceptions"), state.pop(key + "exception_values"),
-                         shape)
-    state[key + "values"] = values.reshape(-1, 1)
-    state[key + "rows"] = torch.arange(values.numel(), dtype=torch.int32).reshape(shape)
 
 
 @rebuildable
@@ -114,8 +55,6 @@ class RefinedSDF(SDFMLP):
             raise ConfigError("RefinedSDF refines one shape's start; it takes no latent code (latent_dim=0)")
         self.start_resolution = start_resolution
         self.start = None
-        self.register_state_dict_post_hook(_compact_start)
-        self.register_load_state_dict_pre_hook(_expand_start)
         if start is not None:  # rebuilt from a checkpoint: its weights follow
             self.set_start(start, zero_output=False)
 
