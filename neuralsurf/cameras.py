@@ -22,6 +22,7 @@ __all__ = [
     "Rays",
     "backproject_depth",
     "backproject_depth_to_camera",
+    "box_span",
     "depth_normals",
     "depth_rays",
     "depth_to_cloud",
@@ -47,6 +48,14 @@ def pixel_grid(height: int, width: int, dtype: torch.dtype = torch.float32, devi
     columns = torch.arange(width, dtype=dtype, device=device)
     v, u = torch.meshgrid(rows, columns, indexing="ij")
     return torch.stack([u, v], dim=-1)
+
+
+def box_span(origins: Tensor, directions: Tensor, bounds: Tensor) -> tuple[Tensor, Tensor]:
+    """Entry and exit distances Float[Tensor, "r"] of rays (origins, directions Float[Tensor, "r 3"]) through the
+    box Float[Tensor, "2 3"] (slab test; entry 0 for an origin inside); exit <= entry where a ray misses it."""
+    inverse = 1.0 / torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions)
+    t0, t1 = (bounds[0] - origins) * inverse, (bounds[1] - origins) * inverse
+    return torch.minimum(t0, t1).amax(-1).clamp_min(0.0), torch.maximum(t0, t1).amin(-1)
 
 
 def pixel_rays(K: Tensor, height: int, width: int) -> Tensor:

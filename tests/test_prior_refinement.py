@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch import nn
 
-from neuralsurf.cameras import backproject_depth
+from neuralsurf.cameras import backproject_depth, box_span
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.evaluation.per_class import class_comparison, shape_class
 from neuralsurf.evaluation.report import per_class_markdown
@@ -17,7 +17,6 @@ from neuralsurf.priors.completion import EXTRACTION_BOUNDS, extract_unit
 from neuralsurf.priors.refinement import (
     FitSamples,
     Refinement,
-    box_span,
     field_scale,
     fit_residual,
     grid_lookup,

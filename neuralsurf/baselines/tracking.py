@@ -185,6 +185,15 @@ def with_gradients(grey: Tensor) -> Tensor:
     return torch.stack([grey, du, dv])
 
 
+def moved_and_projected(points: Tensor, transform: Tensor, K: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Points Float[Tensor, "n 3"] moved by `transform` Float[Tensor, "4 4"] into a camera with intrinsics K, and
+    their pixel coordinates u, v and 1 / z (Float[Tensor, "n"] each; 1 where z <= 0, which callers reject)."""
+    moved = points @ transform[:3, :3].T + transform[:3, 3]
+    x, y, z = moved.unbind(1)
+    inverse_z = 1 / torch.where(z > 0, z, 1.0)
+    return moved, (K[0, 0] * x + K[0, 1] * y) * inverse_z + K[0, 2], K[1, 1] * y * inverse_z + K[1, 2], inverse_z
+
+
 def photometric_rows(points: Tensor, grey: Tensor, transform: Tensor, target: Tensor, K: Tensor
                      ) -> tuple[Tensor, Tensor]:
     """Rows [J | r] Float[Tensor, "n 7"] of the grey-level residuals r_i = I(pi(q_i)) - g_i of source points p_i
@@ -192,11 +201,8 @@ def photometric_rows(points: Tensor, grey: Tensor, transform: Tensor, target: Te
     q_i in the camera (intrinsics K) of a target image I with its derivatives (`with_gradients`, Float[Tensor,
     "3 h w"], sampled bilinearly), linearised in a small motion (omega, t) of q_i as `point_to_plane_rows`:
     J_i = (q_i x d_i, d_i) with d_i = grad I . d pi / d q. Also Bool[Tensor, "n"]: q_i projects inside the image."""
-    q = points @ transform[:3, :3].T + transform[:3, 3]
+    q, u, v, inverse_z = moved_and_projected(points, transform, K)
     x, y, z = q.unbind(1)
-    inverse_z = 1 / torch.where(z > 0, z, 1.0)
-    u = (K[0, 0] * x + K[0, 1] * y) * inverse_z + K[0, 2]
-    v = K[1, 1] * y * inverse_z + K[1, 2]
     h, w = target.shape[1:]
     inside = (z > 0) & (u >= 1) & (u <= w - 2) & (v >= 1) & (v <= h - 2)
     where = torch.stack([u / (w - 1), v / (h - 1)], -1) * 2 - 1
@@ -362,12 +368,9 @@ def projective_matches(points: Tensor, normals: Tensor, transform: Tensor, model
     pixel it projects to (nearest) in a model map given by its `SurfaceMap.packed`, `valid` and `K` (all in the
     points' dtype). Returns the moved points, the matched model points and normals (Float[Tensor, "n 3"] each),
     and the inliers Bool[Tensor, "n"]: found, within `max_distance` and with normals agreeing to `min_cosine`."""
-    moved = points @ transform[:3, :3].T + transform[:3, 3]
+    moved, u, v, _ = moved_and_projected(points, transform, model_K)
+    u, v, z = torch.round(u), torch.round(v), moved[:, 2]
     turned = normals @ transform[:3, :3].T
-    x, y, z = moved.unbind(1)
-    inverse_z = 1 / torch.where(z > 0, z, 1.0)
-    u = torch.round((model_K[0, 0] * x + model_K[0, 1] * y) * inverse_z + model_K[0, 2])
-    v = torch.round(model_K[1, 1] * y * inverse_z + model_K[1, 2])
     h, w = model_valid.shape
     inside = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
     index = torch.where(inside, v * w + u, 0).long()
@@ -444,12 +447,12 @@ def register_maps(source: list[SurfaceMap], model: list[SurfaceMap], init: Tenso
     for level in reversed(range(len(source))):
         src, valid = source[level], source[level].valid
         points, normals = src.points[valid], src.normals[valid]
+        source_grey = None if grey is None else grey.source[level][valid]
         for _ in range(iterations[level]):
             system, count, _ = sums(level, points, normals)
             if grey is not None:
                 system = system + grey.weight**2 * photometric_equations(
-                    points, grey.source[level][valid], transform.to(points), grey.target[level], src.K.to(points),
-                    grey.kernel_scale)
+                    points, source_grey, transform.to(points), grey.target[level], src.K.to(points), grey.kernel_scale)
             update = None if count < 6 else gauss_newton_step(system)
             degenerate = update is None
             if degenerate:
@@ -650,9 +653,6 @@ def track_frames(frames: DepthFrames, progress: bool = True, compiled: bool | No
     tracker = Tracker(frames.K[0], compiled=compiled, **settings)
     shares, errors = [], []
     start = time.perf_counter()
-    if tracker.photometric > 0 and frames.colors is None:
-        raise InputError("photometric tracking needs the frames' colour images (registered to the depth); load "
-                         "them, or set photometric=0 to track depth alone")
     for index in progress_bar(range(len(frames)), desc="tracking", unit="frame", enabled=progress):
         tracker.track(frames.depth[index], None if frames.colors is None else frames.colors[index])
         shares.append(tracker.last_fit.inlier_share)
@@ -677,6 +677,7 @@ __all__ = [
     "grey_levels",
     "grey_pyramid",
     "icp_equations",
+    "moved_and_projected",
     "photometric_equations",
     "photometric_rows",
     "point_to_plane_rows",

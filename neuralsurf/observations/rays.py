@@ -34,7 +34,7 @@ from functools import cached_property
 import torch
 from torch import Tensor, nn
 
-from neuralsurf.cameras import Rays, depth_rays, frame_readings, kinect_sigma
+from neuralsurf.cameras import Rays, box_span, depth_rays, frame_readings, kinect_sigma
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.geometry import cloud_spacing, cloud_winding_number, knn, point_areas, quadric_heights
 from neuralsurf.losses import eikonal_loss
@@ -90,9 +90,7 @@ def box_entry(origins: Tensor, directions: Tensor, box: float) -> Tensor:
     """Float[Tensor, "r"]: distance along each ray where it enters the cube [-box, box]^3 (0 when the
     origin lies inside; rays that miss the cube get their exit, which is smaller than their entry).
     origins, directions: Float[Tensor, "r 3"]."""
-    inverse = 1.0 / torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions)
-    t0, t1 = (-box - origins) * inverse, (box - origins) * inverse
-    return torch.minimum(t0, t1).amax(-1).clamp_min(0.0)
+    return box_span(origins, directions, torch.tensor([-box, box], dtype=origins.dtype, device=origins.device)[:, None])[0]
 
 
 def carve_labels(points: Tensor, frames: DepthFrames, band: float, sigma_of_depth=kinect_sigma,

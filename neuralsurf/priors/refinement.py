@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from neuralsurf.cameras import backproject_depth, pixel_rays
+from neuralsurf.cameras import backproject_depth, box_span, pixel_rays
 from neuralsurf.errors import ConfigError, InputError
 from neuralsurf.structures import DepthFrames
 
@@ -79,16 +79,6 @@ class FitSamples:
     """Float[Tensor, "m 3"]: points seen empty (g >= 0)."""
     behind: Tensor
     """Float[Tensor, "b 3"]: points just behind the observed surface (g <= 0)."""
-
-
-def box_span(origins: Tensor, directions: Tensor, bounds: Tensor) -> tuple[Tensor, Tensor]:
-    """Entry and exit distances [r] of rays (origins, unit directions Float[Tensor, "r 3"]) through the
-    box Float[Tensor, "2 3"] (slab test); exit <= entry where a ray misses it."""
-    safe = torch.where(directions.abs() > 1e-12, directions, torch.full_like(directions, 1e-12))
-    t0, t1 = (bounds[0] - origins) / safe, (bounds[1] - origins) / safe
-    entry = torch.minimum(t0, t1).amax(dim=-1).clamp_min(0.0)
-    exit_ = torch.maximum(t0, t1).amin(dim=-1)
-    return entry, exit_
 
 
 def view_samples(frames: DepthFrames, bounds: Tensor, settings: Refinement = DEFAULT_REFINEMENT) -> FitSamples:
