@@ -18,11 +18,11 @@ import pytest
 import torch
 
 from neuralsurf.baselines.registration import point_to_plane_step
+from neuralsurf.baselines.registration.estimation import axis_angle_to_matrix as rodrigues
 from neuralsurf.baselines.tracking import (
     GreyPair,
     Tracker,
     TrackingLostError,
-    axis_angle_to_matrix,
     downsample_depth,
     downsample_intrinsics,
     grey_pyramid,
@@ -41,6 +41,12 @@ from neuralsurf.metrics import absolute_trajectory_error, align_trajectory, rela
 from neuralsurf.scenes.analytic import Box, Sphere
 from neuralsurf.scenes.scanner import intrinsics_from_fov, look_at, scan_depth
 from neuralsurf.structures import DepthFrames, Mesh
+
+
+def axis_angle_to_matrix(omega: torch.Tensor) -> torch.Tensor:
+    """Rodrigues' rotation Float64[Tensor, "3 3"] of an axis-angle Float64[Tensor, "3"]."""
+    return torch.from_numpy(rodrigues(omega.numpy()))
+
 
 REPO = Path(__file__).resolve().parents[1]
 WIDTH, HEIGHT = 160, 120

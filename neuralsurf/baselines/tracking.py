@@ -33,14 +33,17 @@ Everything runs on the frames' device (CUDA tensors: CUDA) with vectorised torch
 
 from __future__ import annotations
 
+import functools
 import math
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property
 
 import torch
 from torch import Tensor
 
+from neuralsurf.baselines.registration.estimation import small_motion
 from neuralsurf.baselines.tsdf import FusionSettings, TSDFVolume
 from neuralsurf.cameras import backproject_depth_to_camera, depth_normals, pixel_rays
 from neuralsurf.devices import CompiledOnCPU
@@ -86,13 +89,13 @@ def downsample_depth(depth: Tensor, max_jump: float) -> Tensor:
     its valid pixels within `max_jump` metres of the block's nearest valid depth (a block across a
     discontinuity keeps its nearer surface); 0 where the block has no valid pixel."""
     h, w = depth.shape[-2] // 2 * 2, depth.shape[-1] // 2 * 2
-    blocks = depth[..., :h, :w].unflatten(-1, (w // 2, 2)).unflatten(-3, (h // 2, 2))  # (..., h/2, 2, w/2, 2)
-    blocks = blocks.transpose(-3, -2).flatten(-2)  # (..., h/2, w/2, 4)
-    valid = blocks > 0
-    nearest = torch.where(valid, blocks, torch.inf).amin(-1, keepdim=True)
-    use = valid & (blocks - nearest <= max_jump)
-    count = use.sum(-1)
-    return torch.where(count > 0, (blocks * use).sum(-1) / count.clamp_min(1), 0.0)
+    corners = [depth[..., row:h:2, column:w:2] for row in (0, 1) for column in (0, 1)]  # views, no copy
+    nearest = functools.reduce(torch.minimum, [torch.where(corner > 0, corner, torch.inf) for corner in corners])
+    total, count = torch.zeros_like(nearest), torch.zeros_like(nearest)
+    for corner in corners:
+        use = (corner > 0) & (corner - nearest <= max_jump)
+        total, count = total + corner * use, count + use
+    return torch.where(count > 0, total / count.clamp_min(1), 0.0)
 
 
 def downsample_intrinsics(K: Tensor) -> Tensor:
@@ -119,12 +122,15 @@ def bilateral_filter(depth: Tensor, radius: int = 2, sigma_space: float = 2.0, s
     return torch.where(depth > 0, smooth.reshape(h, w), 0.0)
 
 
-def depth_pyramid(depth: Tensor, K: Tensor, levels: int, max_jump: float) -> list[tuple[Tensor, Tensor]]:
+def depth_pyramid(depth: Tensor, K: Tensor, levels: int, max_jump: float, compiled: bool = False
+                  ) -> list[tuple[Tensor, Tensor]]:
     """[(depth Float[Tensor, "h_l w_l"], K Float[Tensor, "3 3"])] for levels 0 (the input) to levels - 1,
-    each half the size of the one before (`downsample_depth`, `downsample_intrinsics`)."""
+    each half the size of the one before (`downsample_depth`, `downsample_intrinsics`; `compiled`: the
+    downsampling through torch.compile on a CPU)."""
+    downsample = implementation(downsample_depth, compiled, depth.device)
     pyramid = [(depth, K)]
     for _ in range(levels - 1):
-        depth, K = downsample_depth(depth, max_jump), downsample_intrinsics(K)
+        depth, K = downsample(depth, max_jump), downsample_intrinsics(K)
         pyramid.append((depth, K))
     return pyramid
 
@@ -148,18 +154,24 @@ class SurfaceMap:
         return torch.cat([self.points, self.normals], -1).reshape(-1, 6)
 
 
-def surface_maps(depth: Tensor, K: Tensor, levels: int, max_jump: float, stride: int = 1) -> list[SurfaceMap]:
-    """`SurfaceMap` of every level of `depth_pyramid(depth Float[Tensor, "h w"], K, levels, max_jump)`;
-    normals from image neighbours (`cameras.depth_normals`, discontinuities above 5 % of the depth).
-    `stride`: level 0 keeps every stride-th row and column only (a source's points, not a model's pixels)."""
-    maps = []
-    for level, (level_depth, level_K) in enumerate(depth_pyramid(depth, K, levels, max_jump)):
-        points = backproject_depth_to_camera(level_depth[None], level_K[None])
-        step = stride if level == 0 else 1
-        normals, has = depth_normals(points, 0.05, step)
-        valid = has[0] & (level_depth[::step, ::step] > 0)
-        maps.append(SurfaceMap(points[0, ::step, ::step], normals[0], valid, level_K))
-    return maps
+def surface_map(depth: Tensor, K: Tensor, stride: int = 1) -> tuple[Tensor, Tensor, Tensor]:
+    """Camera-frame points and normals Float[Tensor, "h' w' 3"] and their validity Bool[Tensor, "h' w'"] of a depth
+    image Float[Tensor, "h w"] at every `stride`-th row and column; normals from image neighbours
+    (`cameras.depth_normals`, discontinuities above 5 % of the depth)."""
+    points = backproject_depth_to_camera(depth[None], K[None])
+    normals, has = depth_normals(points, 0.05, stride)
+    valid = has[0] & (depth[::stride, ::stride] > 0)
+    return points[0, ::stride, ::stride], normals[0], valid
+
+
+def surface_maps(depth: Tensor, K: Tensor, levels: int, max_jump: float, stride: int = 1,
+                 compiled: bool = False) -> list[SurfaceMap]:
+    """`SurfaceMap` of every level of `depth_pyramid(depth Float[Tensor, "h w"], K, levels, max_jump)`
+    (`surface_map`; `compiled`: through torch.compile on a CPU). `stride`: level 0 keeps every stride-th row
+    and column only (a source's points, not a model's pixels)."""
+    one_map = implementation(surface_map, compiled, depth.device)
+    return [SurfaceMap(*one_map(level_depth, level_K, stride if level == 0 else 1), level_K)
+            for level, (level_depth, level_K) in enumerate(depth_pyramid(depth, K, levels, max_jump, compiled))]
 
 
 def grey_levels(colors: Tensor) -> Tensor:
@@ -317,19 +329,6 @@ def robust_weights(residuals: Tensor, kernel: str, scale: float) -> Tensor:
     raise ConfigError(f"unknown robust kernel {kernel!r}; use 'huber', 'tukey' or 'none'")
 
 
-def axis_angle_to_matrix(omega: Tensor) -> Tensor:
-    """Rotation matrices Float[Tensor, "... 3 3"] of axis-angle vectors Float[Tensor, "... 3"] (Rodrigues)."""
-    angle = omega.norm(dim=-1, keepdim=True)[..., None]  # (..., 1, 1)
-    zero = torch.zeros_like(omega[..., 0])
-    x, y, z = omega.unbind(-1)
-    skew = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).unflatten(-1, (3, 3))
-    eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand_as(skew)
-    small = angle < 1e-8
-    a = torch.where(small, 1.0, torch.sin(angle) / torch.where(small, 1.0, angle))
-    b = torch.where(small, 0.5, (1 - torch.cos(angle)) / torch.where(small, 1.0, angle) ** 2)
-    return eye + a * skew + b * skew @ skew
-
-
 def point_to_plane_rows(source: Tensor, target: Tensor, normals: Tensor) -> Tensor:
     """Rows [J | r] Float[Tensor, "n 7"] of point-to-plane ICP linearised at the identity: r_i = n_i . (p_i - q_i)
     and J_i = (p_i x n_i, n_i), the derivative of r_i by a small motion (omega, t): exp(omega) p_i + t. `source`,
@@ -341,17 +340,12 @@ def point_to_plane_rows(source: Tensor, target: Tensor, normals: Tensor) -> Tens
 
 def gauss_newton_step(system: Tensor) -> Tensor | None:
     """The motion Float64[Tensor, "4 4"] [exp(omega) t; 0 1] minimising sum w_i (J_i x + r_i)^2 from its normal
-    equations `system` = sum w_i [J_i r_i]^T [J_i r_i] (Float[Tensor, "7 7"], solved in float64); None when the
-    6 x 6 block is degenerate (a plane or a line constrains fewer than six directions)."""
-    system = system.double()
-    hessian, gradient = system[:6, :6], system[:6, 6]
-    eigenvalues = torch.linalg.eigvalsh(hessian)
-    if not bool(eigenvalues[0] > 1e-9 * eigenvalues[-1].clamp_min(1e-300)):
-        return None
-    x = -torch.linalg.solve(hessian, gradient)
-    matrix = torch.eye(4, dtype=torch.float64, device=system.device)
-    matrix[:3, :3], matrix[:3, 3] = axis_angle_to_matrix(x[:3]), x[3:]
-    return matrix
+    equations `system` = sum w_i [J_i r_i]^T [J_i r_i] (Float[Tensor, "7 7"]; `small_motion`, in float64 numpy,
+    which solves a 6 x 6 system in less time than one torch op takes to dispatch); None when the 6 x 6 block is
+    degenerate (a plane or a line constrains fewer than six directions)."""
+    equations = system.double().cpu().numpy()
+    motion = small_motion(equations[:6, :6], equations[:6, 6], 1e-9)
+    return None if motion is None else torch.from_numpy(motion).to(system.device)
 
 
 def point_to_plane_update(source: Tensor, target: Tensor, normals: Tensor, weights: Tensor) -> Tensor | None:
@@ -550,7 +544,10 @@ class Tracker:
         self.K_registered: Tensor | None = None  # K of the registered (downsampled) frames
         self.initial_pose = torch.eye(4, dtype=torch.float64) if initial_pose is None else initial_pose.double()
         self.poses: list[Tensor] = []
-        self.volume: TSDFVolume | None = None
+        self._volume: TSDFVolume | None = None
+        self._unfused: tuple[Tensor, Tensor, Tensor] | None = None  # the last frame (depth, K, pose), fused later
+        self._fusing: Future | None = None  # its fusion, run beside the next frame's preparation
+        self._executor = ThreadPoolExecutor(1, thread_name_prefix="tsdf-fusion")
         self._previous: Tensor | None = None  # the last frame's depth as registered (downsampled)
         self._previous_grey: list[Tensor] | None = None  # its grey pyramid with derivatives (photometric)
         self.last_fit: FrameFit | None = None  # the last frame's registration
@@ -558,30 +555,41 @@ class Tracker:
     def _maps(self, depth: Tensor, K: Tensor | None = None, levels: int | None = None, stride: int = 1
               ) -> list[SurfaceMap]:
         K = self.K_registered.to(depth) if K is None else K
-        return surface_maps(depth, K, self.levels if levels is None else levels, self.max_distance / 2, stride)
+        return surface_maps(depth, K, self.levels if levels is None else levels, self.max_distance / 2, stride,
+                            self.compiled)
 
     def _smooth(self, depth: Tensor) -> Tensor:
         return bilateral_filter(depth, self.smoothing) if self.smoothing > 0 else depth
 
-    def _fuse(self, depth: Tensor, pose: Tensor) -> None:
-        K = self.K_registered.to(depth)
+    @property
+    def volume(self) -> TSDFVolume | None:
+        """The TSDF volume of the frames tracked so far (frame-to-model), None before the first frame."""
+        if self._unfused is not None:
+            self._fuse(*self._unfused)
+            self._unfused = None
+        if self._fusing is not None:
+            fusing, self._fusing = self._fusing, None
+            fusing.result()
+        return self._volume
+
+    def _fuse(self, depth: Tensor, K: Tensor, pose: Tensor) -> None:
         frame = DepthFrames(depth[None], K[None], pose.to(depth)[None])
-        if self.volume is None:
+        if self._volume is None:
             points = backproject_depth_to_camera(depth[None], K[None])[0][depth > 0]
             if not len(points):
                 raise InputError("the first frame has no valid depth pixel; start the sequence at a frame with depth")
             world = points.double() @ pose[:3, :3].T.to(points.device) + pose[:3, 3].to(points.device)
             bounds = torch.stack([world.amin(0) - self.margin, world.amax(0) + self.margin])
-            self.volume = TSDFVolume(bounds, self.voxel_size, self.truncation, sparse=True, device=depth.device,
-                                     fusion=FusionSettings(threads=1, compiled=False))
-        self.volume.integrate(frame, progress=False)
+            self._volume = TSDFVolume(bounds, self.voxel_size, self.truncation, sparse=True, device=depth.device,
+                                     fusion=FusionSettings(threads=1, compiled=self.compiled))
+        self._volume.integrate(frame, progress=False)
 
     def _model(self, pose: Tensor) -> list[SurfaceMap]:
         """The model's `SurfaceMap`s seen from `pose` (the previous pose), one per level."""
         if self.mode == "frame":
             return self._maps(self._smooth(self._previous))
         guide, K = depth_pyramid(self._previous, self.K_registered.to(self._previous), self.raycast_level + 1,
-                                 self.max_distance / 2)[-1]
+                                 self.max_distance / 2, self.compiled)[-1]
         depth = raycast_volume(self.volume, guide, K, pose, compiled=self.compiled)
         maps = self._maps(depth, K, self.levels - self.raycast_level)
         return [maps[0]] * self.raycast_level + maps
@@ -602,11 +610,13 @@ class Tracker:
         """Register the next depth image Float[Tensor, "h w"] (metres, 0 invalid), with its colour image
         Float[Tensor, "h w 3"] or UInt8 (used when `photometric` > 0), and return its camera-to-world pose
         Float64[Tensor, "4 4"] (CPU); raises TrackingLostError naming the frame."""
+        if self._unfused is not None:  # the last frame is fused while this one is prepared
+            self._fusing, self._unfused = self._executor.submit(self._fuse, *self._unfused), None
         depth = torch.where(depth <= self.max_depth, depth, 0.0)
         if self.downsample is None:
             self.downsample = int(math.log2(depth.shape[-1] / 320)) if depth.shape[-1] >= 320 else 0
         registered, self.K_registered = depth_pyramid(depth, self.K.to(depth), self.downsample + 1,
-                                                      self.max_distance / 2)[-1]
+                                                      self.max_distance / 2, self.compiled)[-1]
         grey = self._grey(colors.to(depth.device) if colors is not None else None, registered.shape)
         index = len(self.poses)
         if index == 0:
@@ -614,8 +624,8 @@ class Tracker:
             self.last_fit = FrameFit(torch.eye(4, dtype=torch.float64), 1.0, 0.0, False)
         else:
             previous = self.poses[-1]
-            model = self._model(previous.to(depth.device))
             source = self._maps(self._smooth(registered), stride=self.finest_stride)
+            model = self._model(previous.to(depth.device))  # waits for the last frame's fusion
             motion = torch.eye(4, dtype=torch.float64)
             if self.constant_velocity and index > 1:
                 motion = torch.linalg.inv(self.poses[-2]) @ previous
@@ -633,14 +643,15 @@ class Tracker:
                 raise TrackingLostError(index, fit.inlier_share, fit.rmse, reason)
             pose = previous @ fit.transform.cpu()
         if self.mode == "model":
-            self._fuse(registered, pose)
+            self._unfused = registered, self.K_registered.to(registered), pose
         self._previous = registered
         self._previous_grey = None if grey is None else [with_gradients(level) for level in grey]
         self.poses.append(pose)
         return pose
 
 
-_COMPILED = {function: CompiledOnCPU(function, "camera tracking") for function in (trilinear_tsdf, icp_equations)}
+_COMPILED = {function: CompiledOnCPU(function, "camera tracking")
+             for function in (trilinear_tsdf, icp_equations, surface_map, downsample_depth)}
 
 
 def track_frames(frames: DepthFrames, progress: bool = True, compiled: bool | None = None, **settings) -> Trajectory:
@@ -685,6 +696,8 @@ __all__ = [
     "projective_matches",
     "raycast_volume",
     "register_maps",
+    "surface_map",
+    "surface_maps",
     "track_frames",
     "trilinear_tsdf",
     "with_gradients",

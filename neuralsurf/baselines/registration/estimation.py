@@ -27,12 +27,14 @@ __all__ = [
     "PointToPoint",
     "Tukey",
     "apply_transform",
+    "axis_angle_to_matrix",
     "check_options",
     "check_transform",
     "cloud_arrays",
     "degenerate_plane_system",
     "kabsch",
     "point_to_plane_step",
+    "small_motion",
     "voxel_downsample",
 ]
 
@@ -147,7 +149,7 @@ def apply_transform(points: np.ndarray, matrix: np.ndarray) -> np.ndarray:
     return points @ matrix[:3, :3].T + matrix[:3, 3]
 
 
-def _axis_angle_to_matrix(omega: np.ndarray) -> np.ndarray:
+def axis_angle_to_matrix(omega: np.ndarray) -> np.ndarray:
     """Rotation (3, 3) of axis-angle vector omega (3,) (Rodrigues), exact for any angle."""
     angle = np.linalg.norm(omega)
     k = np.array([[0, -omega[2], omega[1]], [omega[2], 0, -omega[0]], [-omega[1], omega[0], 0]])
@@ -234,13 +236,22 @@ def point_to_plane_step(
     residual = ((source - target) * normals).sum(1)
     jacobian = np.concatenate([np.cross(source, normals), normals], axis=1)  # (n, 6)
     weighted = jacobian * weights[:, None]
-    hessian = weighted.T @ jacobian
-    eigenvalues = np.linalg.eigvalsh(hessian)
-    if not eigenvalues[0] > 1e-12 * max(eigenvalues[-1], 1e-300):
+    motion = small_motion(weighted.T @ jacobian, weighted.T @ residual, 1e-12)
+    if motion is None:
         raise degenerate_plane_system()
-    x = -np.linalg.solve(hessian, weighted.T @ residual)
+    return motion
+
+
+def small_motion(hessian: np.ndarray, gradient: np.ndarray, min_conditioning: float) -> np.ndarray | None:
+    """The rigid motion (4, 4) [exp(omega) t; 0 1] minimising x^T hessian x / 2 + gradient^T x over x = (omega, t),
+    from Gauss-Newton's normal equations: `hessian` (6, 6), `gradient` (6,); None when the hessian's smallest
+    eigenvalue is not above `min_conditioning` times its largest (degenerate: fewer than six directions constrained)."""
+    eigenvalues = np.linalg.eigvalsh(hessian)
+    if not eigenvalues[0] > min_conditioning * max(eigenvalues[-1], 1e-300):
+        return None
+    x = -np.linalg.solve(hessian, gradient)
     matrix = np.eye(4)
-    matrix[:3, :3], matrix[:3, 3] = _axis_angle_to_matrix(x[:3]), x[3:]
+    matrix[:3, :3], matrix[:3, 3] = axis_angle_to_matrix(x[:3]), x[3:]
     return matrix
 
 
