@@ -46,3 +46,7 @@ class CompiledOnCPU:
                     stacklevel=3,
                 )
         return self.function(*args)
+
+    def on(self, device: torch.device, compiled: bool):
+        """This compiled form where `compiled` and `device` is a CPU, else the function itself (eager)."""
+        return self if compiled and device.type == "cpu" else self.function
