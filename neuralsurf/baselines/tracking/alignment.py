@@ -136,7 +136,8 @@ class FrameFit:
     transform: Tensor
     """Float64[Tensor, "4 4"]: source camera -> model camera."""
     inlier_share: float
-    """Share of the source's valid finest-level points that are inliers at `transform`."""
+    """Share of the source's valid finest-level points that are inliers at the start of the last Gauss-Newton
+    step (the finest level's; once converged, within 0.1 mm and 1e-4 rad of `transform`)."""
     rmse: float
     """Point-to-plane RMSE (metres) of those inliers."""
     degenerate: bool
@@ -165,7 +166,7 @@ def register_maps(source: list[SurfaceMap], model: list[SurfaceMap], init: Tenso
     Gauss-Newton steps at level l (finest first). `compiled`: on a CPU, `icp_equations` through torch.compile.
     `grey`: each step also aligns the source's grey levels with the target's (`photometric_equations`)."""
     transform = init.double().clone()
-    degenerate = False
+    degenerate, finest = False, None
     equations = _COMPILED_EQUATIONS.on(source[0].points.device, compiled)
 
     def sums(level: int, points: Tensor, normals: Tensor) -> tuple[Tensor, int, float]:
@@ -179,7 +180,9 @@ def register_maps(source: list[SurfaceMap], model: list[SurfaceMap], init: Tenso
         points, normals = src.points[valid], src.normals[valid]
         source_grey = None if grey is None else grey.source[level][valid]
         for _ in range(iterations[level]):
-            system, count, _ = sums(level, points, normals)
+            system, count, squares = sums(level, points, normals)
+            if level == 0:
+                finest = count, squares, len(points)
             if grey is not None:
                 system = system + grey.weight**2 * photometric_equations(
                     points, source_grey, transform.to(points), grey.target[level], src.K.to(points), grey.kernel_scale)
@@ -190,11 +193,11 @@ def register_maps(source: list[SurfaceMap], model: list[SurfaceMap], init: Tenso
             transform = update @ transform
             if float(update[:3, 3].norm()) < 1e-4 and float((update[:3, :3].diagonal().sum() - 1) / 2) > 1 - 5e-9:
                 break  # converged: the step moved less than 0.1 mm and turned less than 1e-4 rad
-    finest = source[0]
-    points = finest.points[finest.valid]
-    _, count, squares = sums(0, points, finest.normals[finest.valid])
-    rmse = math.sqrt(squares / count) if count else math.inf
-    return FrameFit(transform, count / max(len(points), 1), rmse, degenerate)
+    if finest is None:  # no step at the finest level: its statistics at `transform`
+        points = source[0].points[source[0].valid]
+        finest = *sums(0, points, source[0].normals[source[0].valid])[1:], len(points)
+    count, squares, n_points = finest
+    return FrameFit(transform, count / max(n_points, 1), math.sqrt(squares / count) if count else math.inf, degenerate)
 
 
 _COMPILED_EQUATIONS = CompiledOnCPU(icp_equations, "camera tracking")
