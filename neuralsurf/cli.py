@@ -8,6 +8,7 @@ from any folder.
 
 from __future__ import annotations
 
+import copy
 import functools
 import json
 import logging
@@ -20,7 +21,7 @@ from typing import Any
 
 import hydra
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from neuralsurf.baselines import register_meshes
 from neuralsurf.checkpoints import CHECKPOINT_NAME, load_checkpoint
@@ -104,54 +105,131 @@ def build_observations(cfg: DictConfig, scene) -> list:
     return [instantiate(config, _convert_="all")(scene) for config in observation_configs(cfg).values()]
 
 
-def observation_configs(cfg: DictConfig, overrides: list[str] | None = None,
-                        choices: dict | None = None) -> dict[str, DictConfig]:
-    """The entries of `cfg.observation` that the selected observation group options define (with a `_target_`).
+CONFIGS = Path(__file__).parent / "configs"
+"""The shipped Hydra configs (train.py's and evaluate.py's config_path)."""
 
-    A data config that switches the observation group (data=rgbd: observation=depth_rays) replaces the group's
-    entries, but options an experiment merges afterwards (bunny_sdf: observation.points.batch_size) survive as a
-    bare entry without `_target_`. Such leftovers tune an observation that is not selected: they are left out and
-    logged. One that the command line sets (`overrides`) is a ConfigError naming the key and the selected
-    observation, since the user asked for it. `overrides` and `choices` default to Hydra's task overrides and
-    group choices of the running job (none outside one).
-    """
-    from hydra.core.hydra_config import HydraConfig
 
-    runtime = HydraConfig.get() if HydraConfig.initialized() else None
-    if overrides is None:
-        overrides = list(runtime.overrides.task) if runtime else []
-    if choices is None:
-        choices = dict(runtime.runtime.choices) if runtime else {}
-    selected = {name: entry for name, entry in cfg.observation.items()
-                if isinstance(entry, DictConfig) and "_target_" in entry}
+def observation_configs(cfg: DictConfig) -> dict[str, DictConfig]:
+    """The entries of `cfg.observation` (name -> config of an Observation.from_scene partial), each one that the
+    selected observation options define. An entry without a `_target_` sets options of an observation that is not
+    selected (an experiment tuned `points`, the command line chose observation=depth_rays): a ConfigError naming it
+    and how to drop it, as is an empty selection."""
+    entries = dict(cfg.observation.items())
+    selected = {name: entry for name, entry in entries.items() if isinstance(entry, DictConfig) and "_target_" in entry}
     if not selected:
-        raise ConfigError(f"no observation is selected (cfg.observation holds {list(cfg.observation)}, none with a "
-                          f"_target_); choose one with observation=<points|depth_rays|normal_maps|shape_sdf|...>")
-    context = [f"{group}={choices[group]}" for group in ("observation", "data") if choices.get(group)]
-    described = ", ".join(map(repr, selected)) + (f" ({', '.join(context)})" if context else "")
-    keys = {_override_key(override): override for override in overrides}
-    # Hydra cannot drop what a later config merged into a switched group, so leftovers are told apart here:
-    # the command line's are the user's request (an error), the configs' are defaults of another group (logged).
-    for name in [name for name in cfg.observation if name not in selected]:
-        asked = [override for key, override in keys.items()
-                 if key == f"observation.{name}" or key.startswith(f"observation.{name}.")]
-        if asked:
-            raise ConfigError(
-                f"{asked[0]} sets options of observation {name!r}, which is not selected: the selected observation "
-                f"is {described}. Drop the override or set the selected one's options instead "
-                f"(observation.{next(iter(selected))}.<option>=...)")
-        entry = cfg.observation[name]
-        options = ", ".join(map(str, entry.keys())) if isinstance(entry, DictConfig) else repr(entry)
-        source = f"experiment={choices['experiment']}" if choices.get("experiment") else "a config's defaults"
-        report = log.warning if "experiment" in keys else log.info  # the user chose that experiment
-        report("observation.%s (%s) left unused: %s tunes observation %r, but the selected observation is %s",
-               name, options, source, name, described)
+        raise ConfigError(f"no observation is selected (cfg.observation holds {list(entries)}, none with a "
+                          f"_target_); choose one with observation=<{'|'.join(sorted(set(observation_options().values())))}>")
+    unselected = [name for name in entries if name not in selected]
+    if unselected:
+        name, options = unselected[0], observation_options()
+        keys = ", ".join(map(str, entries[name].keys())) if isinstance(entries[name], DictConfig) else repr(entries[name])
+        chosen = selected_options(selected)
+        fitting = experiments_selecting(set(chosen))
+        raise ConfigError(
+            f"observation.{name} ({keys}) sets options of observation={options.get(name, name)}, which is not "
+            f"selected (observation={','.join(chosen)} is): drop them with '~observation.{name}'"
+            + (f" or choose an experiment that selects {','.join(chosen)}: {named(fitting)}"
+               if fitting else ""))
     return selected
 
 
-def _override_key(override: str) -> str:
-    """The dotted key of a command-line override: "+observation.points.batch_size=10" -> "observation.points.batch_size"."""
-    return override.split("=", 1)[0].lstrip("~+").strip()
+def check_feeds(cfg: DictConfig, choices: dict | None = None) -> None:
+    """Before anything is built: a ConfigError unless the data feeds every selected observation (`data.feeds`: the
+    observation options it can feed), naming the selected experiment and observation, the data, what it feeds and
+    the fix. `choices`: Hydra's group choices (experiment, data) for the message; default: the running job's."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if choices is None:
+        choices = dict(HydraConfig.get().runtime.choices) if HydraConfig.initialized() else {}
+    chosen = selected_options({name: entry for name, entry in cfg.observation.items()
+                               if isinstance(entry, DictConfig) and "_target_" in entry})
+    data = f"data={choices.get('data') or cfg.data.get('name') or cfg.data.get('_target_')}"
+    feeds = cfg.data.get("feeds")
+    if feeds is None:
+        raise ConfigError(f"{data} does not say which observations it feeds: give its config a feeds: [...] key "
+                          f"listing the observation options it can feed (configs/data/*.yaml do)")
+    missing = [option for option in chosen if option not in feeds]
+    if not missing:
+        observation_configs(cfg)  # nothing left over, something selected
+        return
+    experiment = choices.get("experiment")
+    selected = f"observation={','.join(chosen)}" + (f" (experiment={experiment})" if experiment else "")
+    fitting = [name for name in experiments_selecting(set(feeds), first_for=choices.get("data")) if name != experiment]
+    tuned = [name for name in experiment_settings(experiment)["tunes"] if name in cfg.observation
+             and observation_options().get(name) != feeds[0]] if experiment else []  # left over by observation=
+    drop = "".join(f" '~observation.{name}'" for name in tuned)
+    raise ConfigError(
+        f"{selected} does not fit {data}, which feeds {', '.join(feeds)} (data.feeds), not {', '.join(missing)}. "
+        + (f"Choose an experiment that fits it, {named(fitting)}, or " if fitting else "Choose ")
+        + f"an observation it feeds: observation={feeds[0]}{drop}"
+        + (f" (dropping experiment={experiment}'s settings of {', '.join(tuned)})" if tuned else ""))
+
+
+def selected_options(selected: dict[str, DictConfig]) -> list[str]:
+    """The observation options (configs/observation/<option>.yaml) that define these entries of `cfg.observation`."""
+    options = observation_options()
+    return list(dict.fromkeys(options.get(name, name) for name in selected))
+
+
+@functools.cache
+def observation_options() -> dict[str, str]:
+    """Entry of `cfg.observation` -> the observation option that defines it ("rays" -> "depth_rays")."""
+    return {name: path.stem for path in sorted((CONFIGS / "observation").glob("*.yaml"))
+            for name in OmegaConf.load(path)}
+
+
+@functools.cache
+def experiment_settings(name: str) -> dict[str, Any]:
+    """What experiment `name` chooses, read from its file and those it extends: {"data": its data option or None,
+    "observations": the observation options it selects, "tunes": the cfg.observation entries it sets}; empty for
+    an experiment that is not shipped."""
+    path = CONFIGS / "experiment" / f"{name}.yaml"
+    if not path.is_file():
+        return {"data": None, "observations": (), "tunes": ()}
+    config = OmegaConf.load(path)
+    settings = {"data": None, "observations": (), "tunes": ()}
+    for entry in config.get("defaults", []):
+        if isinstance(entry, str) and entry != "_self_":  # an experiment it extends
+            settings = dict(experiment_settings(entry))
+        elif isinstance(entry, DictConfig):
+            key, value = next(iter(entry.items()))
+            if key == "override /data":
+                settings["data"] = value
+            elif key == "override /observation":
+                settings["observations"] = (value,) if isinstance(value, str) else tuple(value)
+    settings["tunes"] = tuple(dict.fromkeys([*settings["tunes"], *config.get("observation", {})]))
+    return settings
+
+
+def experiments_selecting(options: set[str], first_for: str | None = None) -> list[str]:
+    """The shipped experiments whose observations are all among `options`, those made for data `first_for` first."""
+    names = sorted(path.stem for path in (CONFIGS / "experiment").glob("*.yaml"))
+    fitting = [name for name in names if set(experiment_settings(name)["observations"] or ("?",)) <= options]
+    return sorted(fitting, key=lambda name: experiment_settings(name)["data"] != first_for)
+
+
+def named(experiments: list[str]) -> str:
+    """["room", "bunny_depth"] -> "experiment=room (or bunny_depth)"."""
+    return f"experiment={experiments[0]}" + (f" (or {', '.join(experiments[1:])})" if len(experiments) > 1 else "")
+
+
+def without_feeds(cfg: DictConfig) -> DictConfig:
+    """A copy of `cfg` without the `feeds` of the data configs it holds (train.py's `data`, the collections that
+    evaluate.py's scenes and methods nest): what data can feed is checked (`check_feeds`), never passed to its
+    target, stored with a run or hashed into a result's settings."""
+    cfg = copy.deepcopy(cfg)
+
+    def strip(node: Any) -> None:
+        if not isinstance(node, DictConfig):
+            return
+        if "_target_" in node and "feeds" in node:
+            with open_dict(node):
+                del node["feeds"]
+        for _, child in node.items_ex(resolve=False):
+            strip(child)
+
+    strip(cfg)
+    return cfg
 
 
 def train(cfg: DictConfig) -> dict[str, float]:
@@ -159,6 +237,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
     <run dir>/mesh.<extract.format> (mesh.ply by default), metrics.json, checkpoints/last.pt and
     TensorBoard events."""
     extension = mesh_format(cfg.extract.get("format", "ply"))  # a bad format fails before the fit
+    check_feeds(cfg)  # the data feeds the selected observations, before anything is built
+    cfg = without_feeds(cfg)
     device = resolve_device(init_from_environment(cfg.device))  # torchrun: the process group, a GPU per rank
     run_dir = shared_run_directory(cfg)
     with run_lock(run_dir, hold=is_main_process()):  # one run per run directory
@@ -201,8 +281,8 @@ def room_mesh(scene, settings: RoomSettings, device) -> tuple[Mesh, float, float
     """`fit_room` of a depth scene's frames: (coloured mesh, fit seconds, 0 extraction seconds (the mesh comes
     with the fit), 0 steps). ConfigError for a scene without depth frames."""
     if scene.frames is None:
-        raise ConfigError(f"model=room_voxels fits depth frames; scene {scene.name!r} has none: use data=rgbd "
-                          f"data.path=<capture> (or redkitchen), or a neural model (model=sdf_hashgrid)")
+        raise ConfigError(f"model=room_voxels fits depth frames; scene {scene.name!r} has none: use experiment=room "
+                          f"data.path=<capture> (or data=redkitchen), or a neural model (model=sdf_hashgrid)")
     started = time.perf_counter()
     mesh = fit_room(scene.frames, settings, str(device)).mesh
     return mesh, time.perf_counter() - started, 0.0, 0
@@ -297,6 +377,7 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     every stored row after each one: results.csv, results.json, results.md, plots/ and report.html.
     The results dir: cfg.results_dir, else Hydra's run directory (a multirun: its sweep directory, shared
     by the jobs). With cfg.report set, only rebuilds the report of that folder. Returns this job's rows."""
+    cfg = without_feeds(cfg)  # the collections that scenes and methods nest are data configs
     if cfg.get("report"):
         if not any((Path(cfg.report) / "rows").glob("*.json")):
             raise ConfigError(f"report={cfg.report}: no stored rows in {Path(cfg.report) / 'rows'}; give the results "
