@@ -1,5 +1,5 @@
 """Rooms from depth frames, in one run: the library's room fit (`neuralsurf.rooms.fit_room`, what
-`train.py data=rgbd` runs: TSDF fusion at 1 cm fitted to the rays in one least-squares solve), the project's TSDF
+`train.py experiment=room` runs: TSDF fusion at 1 cm fitted to the rays in one least-squares solve), the project's TSDF
 fusion at the same voxel and Open3D's VoxelBlockGrid at the same voxel (the reference), side by side: time, peak
 memory and the held-out depth scores (mean, mean over the pixels every row shows, median, completeness, the share
 of readings explained within 1 cm, F-score at 1 cm, the part of the mean from surfaces in front of the reading).
