@@ -18,6 +18,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 import neuralsurf as ns
+from neuralsurf.cli import without_feeds
 from neuralsurf.evaluation.methods import tsdf
 
 
@@ -38,7 +39,7 @@ def main() -> None:
           + (f" ({torch.cuda.get_device_name()})" if device.type == "cuda" else " (no GPU: CPU figures)"))
 
     rows: list = []
-    scene = instantiate(cfg.data)
+    scene = instantiate(without_feeds(cfg).data)
     print(scene.description)
     torch.manual_seed(0)
     model = instantiate(cfg.model, _convert_="all")

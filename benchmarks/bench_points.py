@@ -34,6 +34,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 import neuralsurf as ns
+from neuralsurf.cli import build_observations, without_feeds
 from neuralsurf.geometry import cloud_from_mesh, knn, point_to_mesh_distance, sample_mesh_surface
 from neuralsurf.scenes import Scene
 from neuralsurf.scenes.recipes import extract_scene_mesh
@@ -47,7 +48,7 @@ FAST = "experiment=points_fast"
 def configured(overrides: list[str]):
     """train.py's config with these overrides (experiment bunny_sdf, its default, unless overridden)."""
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        return compose(config_name="train", overrides=overrides)
+        return without_feeds(compose(config_name="train", overrides=overrides))
 
 
 def clock(function, *args, **kwargs):
@@ -60,8 +61,7 @@ def clock(function, *args, **kwargs):
 def ours(cfg, scene: Scene, extract: dict | None = None):
     """train.py's fit and extraction of `scene` under `cfg`: (mesh, fit result, wall s, CPU s)."""
     trainer = {**OmegaConf.to_container(cfg.trainer, resolve=True), "progress": False, "image_every": 0}
-    observations = [instantiate(entry, _convert_="all")(scene) for entry in cfg.observation.values()
-                    if "_target_" in entry]
+    observations = build_observations(cfg, scene)
     torch.manual_seed(cfg.seed)
     model = instantiate(cfg.model, _convert_="all")
     result, fit_wall, fit_cpu = clock(ns.fit, model, observations, optimizer=instantiate(cfg.optimizer), device="cpu",

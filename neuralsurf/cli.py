@@ -217,19 +217,18 @@ def without_feeds(cfg: DictConfig) -> DictConfig:
     """A copy of `cfg` without the `feeds` of the data configs it holds (train.py's `data`, the collections that
     evaluate.py's scenes and methods nest): what data can feed is checked (`check_feeds`), never passed to its
     target, stored with a run or hashed into a result's settings."""
-    cfg = copy.deepcopy(cfg)
+    def declaring(config: Any, path: str = "") -> list[str]:  # the dotted paths of the configs holding one
+        if not isinstance(config, dict):
+            return []
+        own = [path] if "_target_" in config and "feeds" in config else []
+        return own + [found for key, value in config.items() for found in declaring(value, f"{path}.{key}".lstrip("."))]
 
-    def strip(node: Any) -> None:
-        if not isinstance(node, DictConfig):
-            return
-        if "_target_" in node and "feeds" in node:
-            with open_dict(node):
-                del node["feeds"]
-        for _, child in node.items_ex(resolve=False):
-            strip(child)
-
-    strip(cfg)
-    return cfg
+    stripped = copy.deepcopy(cfg)
+    for path in declaring(OmegaConf.to_container(cfg, resolve=False)):
+        node = OmegaConf.select(stripped, path) if path else stripped
+        with open_dict(node):
+            del node["feeds"]
+    return stripped
 
 
 def train(cfg: DictConfig) -> dict[str, float]:

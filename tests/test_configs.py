@@ -1,8 +1,8 @@
-"""Every config composes and instantiates; every experiment runs a few steps; every data config, experiment
-and observation combine into observations that instantiate; bad names fail clearly."""
+"""Every config composes and instantiates; every experiment runs a few steps; every experiment names its
+observation and its data feeds it, each data config's feeds build; a mismatch or an unselected observation's
+options are clear errors, as are bad names."""
 
 import functools
-import logging
 import subprocess
 import sys
 from pathlib import Path
@@ -16,12 +16,20 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from PIL import Image
 
-from neuralsurf.cli import build_observations, observation_configs
+from neuralsurf.cli import (
+    build_observations,
+    check_feeds,
+    experiment_settings,
+    observation_configs,
+    without_feeds,
+)
 from neuralsurf.errors import ConfigError
+from neuralsurf.geometry import cloud_from_mesh
+from neuralsurf.io import write_point_cloud
 from neuralsurf.models import OccupancyNetwork
-from neuralsurf.observations import DepthRays, Observation
+from neuralsurf.observations import Observation
 from neuralsurf.rooms import RoomSettings
-from neuralsurf.scenes import Scene, data_root
+from neuralsurf.scenes import Scene, Sphere, data_root
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = REPO / "configs"
@@ -29,7 +37,6 @@ EXPERIMENTS = sorted(p.stem for p in (CONFIGS / "experiment").glob("*.yaml"))
 MODELS = sorted(p.stem for p in (CONFIGS / "model").glob("*.yaml"))
 DATA = sorted(p.stem for p in (CONFIGS / "data").glob("*.yaml"))
 OBSERVATIONS = sorted(p.stem for p in (CONFIGS / "observation").glob("*.yaml"))
-OBSERVATION_CHOICES = [*OBSERVATIONS, "[depth_rays,normal_maps]"]  # each option, and the fusion pair
 
 # tiny settings for smoke runs: a few steps, small pools and inputs, coarse extraction
 TINY = ["trainer.steps=3", "trainer.log_every=1", "trainer.image_every=3", "trainer.progress=false",
@@ -74,7 +81,7 @@ def test_every_model_config_instantiates_and_runs(model):
 
 def test_data_observation_and_optimizer_configs_instantiate():
     cfg = compose_train(["data=sphere", "data.n_points=500"])
-    scene = instantiate(cfg.data)
+    scene = instantiate(without_feeds(cfg).data)
     assert isinstance(scene, Scene) and len(scene.cloud) == 500 and scene.ground_truth is not None
     observation = instantiate(cfg.observation.points)(scene)
     assert isinstance(observation, Observation) and observation.weights["surface"] == 3.0
@@ -95,8 +102,13 @@ def test_every_experiment_runs_a_few_steps(experiment, tmp_path):
     cfg.run_dir = str(tmp_path)
     if "n_train" in cfg.data:  # a shape collection: built for the test, not in the user's cache
         cfg.data.root = str(tmp_path / "shapes")
+    if cfg.data._target_.endswith("rgbd_scene"):  # an RGB-D folder: a few frames of a wall
+        cfg.data.update(path=str(write_7scenes_plane(tmp_path / "capture")), hold_out_every=0)
     metrics = train(cfg)
     assert (tmp_path / "mesh.ply").is_file() and (tmp_path / "metrics.json").is_file()
+    if isinstance(instantiate(cfg.model), RoomSettings):  # a room's voxel fit: one solve, no training loop
+        assert metrics["steps"] == 0 and metrics["fit_seconds"] > 0
+        return
     assert (tmp_path / "checkpoints" / "last.pt").is_file()
     assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
     assert metrics["steps"] == 3
@@ -112,90 +124,127 @@ def test_unknown_experiment_is_a_clear_error():
 
 
 # ---------------------------------------------------------------------------------------------
-# observations: data x experiment x observation
+# observations: each experiment names its own, each data config says what it feeds
 
 
-def observation_entries(choice: str) -> set[str]:
-    """The cfg.observation entries that observation=<choice> defines: the keys of its file(s)."""
-    return {key for option in choice.strip("[]").split(",") for key in OmegaConf.load(CONFIGS / "observation" /
-                                                                                        f"{option}.yaml")}
-
-
-def combination_problems(data: str, experiment: str, observation: str | None, tuned: set[str]) -> list[str]:
-    """What is wrong with the observations of one combination (empty: none). `tuned`: the observation entries
-    the experiment's own composition holds (the only ones a group switch may leave unused)."""
-    overrides = [f"data={data}", f"experiment={experiment}"] + ([f"observation={observation}"] if observation else [])
-    cfg = compose(config_name="train", overrides=overrides, return_hydra_config=True)
-    where = " ".join(overrides)
-    selected = observation_configs(cfg, overrides, dict(cfg.hydra.runtime.choices))
-    problems = [f"{where}: observation.{name} has no _target_" for name, c in selected.items() if "_target_" not in c]
-    problems += [f"{where}: observation.{name} does not instantiate as a partial"
-                 for name, c in selected.items() if not isinstance(instantiate(c, _convert_="all"), functools.partial)]
-    if observation is not None and set(selected) != observation_entries(observation):
-        problems.append(f"{where}: builds {sorted(selected)}, not observation={observation}'s entries")
-    problems += [f"{where}: observation.{name} is left over but not the experiment's tuning"
-                 for name in set(cfg.observation) - set(selected) - tuned]
-    return problems
-
-
-@pytest.mark.parametrize("experiment", EXPERIMENTS)
-def test_every_data_and_observation_with_an_experiment_builds_selected_observations_only(experiment):
-    """The experiment with every data config (the observation they select), and with every observation option
-    given on the command line: the observations built are the selected ones, each with a _target_ and
-    instantiating as a partial; what the experiment tunes for a group that is no longer selected is left over,
-    nothing else. A command-line observation= overrides a data config's switch, so with one only the data
-    configs that mention observations (and the default, bunny) can change the outcome."""
-    touching = [d for d in DATA if d == "bunny" or "observation" in (CONFIGS / "data" / f"{d}.yaml").read_text()]
-    problems, combinations = [], 0
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        tuned = set(compose(config_name="train", overrides=[f"experiment={experiment}"]).observation)
-        for data in DATA:
-            for observation in [None, *OBSERVATION_CHOICES] if data in touching else [None]:
-                problems += combination_problems(data, experiment, observation, tuned)
-                combinations += 1
-    assert combinations == len(DATA) + len(touching) * len(OBSERVATION_CHOICES) and not problems, problems
-    assert {"bunny_depth", "redkitchen", "rgbd"} <= set(touching)  # the depth data configs switch to depth_rays
-
-
-@pytest.mark.parametrize("experiment", EXPERIMENTS)
-def test_every_experiment_uses_all_of_its_observation_settings(experiment):
-    cfg = compose_train([f"experiment={experiment}"])
-    assert all("_target_" in entry for entry in cfg.observation.values()), OmegaConf.to_yaml(cfg.observation)
-    assert set(observation_configs(cfg, [], {})) == set(cfg.observation)
-
-
-def test_a_depth_data_config_leaves_the_experiments_point_settings_unused_and_says_so(tmp_path, caplog):
-    """`train.py data=rgbd data.path=<folder> model=sdf_hashgrid` (default experiment bunny_sdf, tuned for points)."""
-    cfg = compose_train(["data=rgbd", f"data.path={write_7scenes_plane(tmp_path)}", "data.hold_out_every=0",
-                         "model=sdf_hashgrid"])
-    assert set(cfg.observation) == {"rays", "points"} and "_target_" not in cfg.observation.points
-    with caplog.at_level(logging.INFO, logger="neuralsurf"):
-        observations = build_observations(cfg, instantiate(cfg.data))
-    assert len(observations) == 1 and isinstance(observations[0], DepthRays)
-    assert "observation.points (batch_size, near_gradient, n_near, n_free) left unused" in caplog.text
-
-
-def test_an_override_of_an_observation_that_is_not_selected_is_a_config_error():
-    overrides = ["data=rgbd", "data.path=x", "observation.points.batch_size=10"]
+def compose_with_choices(overrides: list[str]):
+    """(train.py's config, its group choices) for these overrides."""
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         cfg = compose(config_name="train", overrides=overrides, return_hydra_config=True)
-    with pytest.raises(ConfigError, match=r"observation.points.batch_size=10 sets options of observation 'points', "
-                                          r"which is not selected: the selected observation is 'rays' "
-                                          r"\(observation=depth_rays, data=rgbd\)"):
-        observation_configs(cfg, overrides, dict(cfg.hydra.runtime.choices))
-    assert set(observation_configs(cfg, overrides[:2], dict(cfg.hydra.runtime.choices))) == {"rays"}
+    return cfg, dict(cfg.hydra.runtime.choices)
+
+
+def option_entries(option: str) -> set[str]:
+    """The cfg.observation entries that observation=<option> defines: the keys of its file."""
+    return set(OmegaConf.load(CONFIGS / "observation" / f"{option}.yaml"))
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_every_experiment_names_its_observation_and_its_data_feeds_it(experiment):
+    """Each experiment selects its observation in its defaults (or those of the experiment it extends); it sets
+    options of that observation only; its data lists that observation in `feeds`."""
+    named = experiment_settings(experiment)["observations"]
+    assert named and set(named) <= set(OBSERVATIONS), f"experiment={experiment} names no observation: {named}"
+    cfg, choices = compose_with_choices([f"experiment={experiment}"])
+    check_feeds(cfg, choices)  # no ConfigError
+    selected = observation_configs(cfg)
+    assert set(selected) == set(cfg.observation) == set().union(*map(option_entries, named))
+    assert all(isinstance(instantiate(entry, _convert_="all"), functools.partial) for entry in selected.values())
+    assert set(experiment_settings(experiment)["tunes"]) <= set(selected)
+
+
+@pytest.mark.parametrize("data", DATA)
+def test_every_data_config_feeds_observations_that_exist(data):
+    required = {"file": ["data.path=x"], "rgbd": ["data.path=x"], "shape_folder": ["data.source=x"]}.get(data, [])
+    cfg, _ = compose_with_choices(["~experiment", f"data={data}", *required])
+    assert cfg.data.feeds and set(cfg.data.feeds) <= set(OBSERVATIONS), cfg.data.feeds
+    for option in cfg.data.feeds:
+        fed, choices = compose_with_choices(["~experiment", f"data={data}", f"observation={option}", *required])
+        check_feeds(fed, choices)
+        assert set(observation_configs(fed)) == option_entries(option)
+    assert "feeds" not in without_feeds(cfg).data and "feeds" in cfg.data  # a copy without it
+
+
+def test_each_fed_observation_builds_from_its_data(tmp_path):
+    """The pairs that `feeds` declares work: a small scene of each data config builds each observation it feeds
+    (those that need no fetched data or optional package; the collections are trained in the experiment runs)."""
+    cloud = tmp_path / "cloud.ply"
+    write_point_cloud(cloud, cloud_from_mesh(Sphere(radius=0.3).mesh(), n=2000, noise=0.0, seed=0))
+    cases = {"sphere": ["data.n_points=2000"], "file": [f"data.path={cloud}"],
+             "rgbd": [f"data.path={write_7scenes_plane(tmp_path / 'capture')}", "data.hold_out_every=0",
+                      "data.colors=false"]}
+    for data, overrides in cases.items():
+        cfg, _ = compose_with_choices(["~experiment", f"data={data}", *overrides])
+        scene = instantiate(without_feeds(cfg).data)
+        for option in cfg.data.feeds:
+            fed, _ = compose_with_choices(["~experiment", f"data={data}", f"observation={option}", *overrides])
+            observations = build_observations(fed, scene)
+            assert observations and all(isinstance(o, Observation) for o in observations), (data, option)
+
+
+def test_an_observation_the_data_does_not_feed_is_a_config_error_naming_the_fix():
+    """`train.py data=rgbd data.path=<folder>` with the default experiment, which fits points: nothing is fitted
+    quietly; the error names the experiment, the observation, the data, what it feeds and the fix."""
+    cfg, choices = compose_with_choices(["data=rgbd", "data.path=x"])
+    with pytest.raises(ConfigError) as error:
+        check_feeds(cfg, choices)
+    message = str(error.value)
+    assert message.startswith("observation=points (experiment=bunny_sdf) does not fit data=rgbd, which feeds "
+                              "depth_rays (data.feeds), not points.")
+    assert "experiment=room (or bunny_depth, redkitchen_depth)" in message
+    assert "observation=depth_rays '~observation.points'" in message
+    fixed, choices = compose_with_choices(["experiment=room", "data.path=x"])
+    check_feeds(fixed, choices)
+    fixed, choices = compose_with_choices(["data=rgbd", "data.path=x", "observation=depth_rays", "~observation.points"])
+    check_feeds(fixed, choices)
+    assert set(observation_configs(fixed)) == {"rays"}
+    with pytest.raises(ConfigError, match=r"observation=depth_rays,normal_maps \(experiment=bunny_depth_normals\) "
+                                          r"does not fit data=bunny_depth, which feeds depth_rays \(data.feeds\), "
+                                          r"not normal_maps"):
+        check_feeds(*compose_with_choices(["experiment=bunny_depth_normals", "data=bunny_depth"]))
+
+
+def test_options_of_an_observation_that_is_not_selected_are_a_config_error():
+    """observation= on the command line replaces the experiment's; the experiment's options of the one replaced are
+    not dropped quietly."""
+    cfg, choices = compose_with_choices(["data=rgbd", "data.path=x", "observation=depth_rays"])
+    with pytest.raises(ConfigError, match=r"observation.points \(batch_size, near_gradient, n_near, n_free\) sets "
+                                          r"options of observation=points, which is not selected \(observation="
+                                          r"depth_rays is\): drop them with '~observation.points' or choose an "
+                                          r"experiment that selects depth_rays: experiment=bunny_depth"):
+        check_feeds(cfg, choices)
+    with pytest.raises(ConfigError, match="no observation is selected"):
+        observation_configs(compose_with_choices(["~observation.points"])[0])
+
+
+def test_a_data_config_that_does_not_say_what_it_feeds_is_a_config_error():
+    cfg, choices = compose_with_choices(["data=sphere", "~data.feeds"])
+    with pytest.raises(ConfigError, match="data=sphere does not say which observations it feeds"):
+        check_feeds(cfg, choices)
+
+
+def test_feeds_stay_out_of_what_evaluate_instantiates():
+    """evaluate.py's priors scenes and methods nest the collection data configs: their feeds are a declaration,
+    not an argument of the collection (nor part of a row's settings)."""
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        cfg = compose(config_name="evaluate", overrides=["suite=priors_folder", "folder.source=x"])
+    assert cfg.folder.feeds and cfg.scene.shapes_cloud.collection.feeds
+    stripped = without_feeds(cfg)
+    assert "feeds" not in OmegaConf.to_yaml(stripped, resolve=True)
+    assert instantiate(stripped.method.deepsdf.collection).source == "x"
 
 
 @pytest.mark.subprocess
-def test_train_py_reports_an_override_of_an_unselected_observation_in_one_line(tmp_path):
+def test_train_py_refuses_an_observation_the_data_does_not_feed_before_building_anything(tmp_path):
     folder = write_7scenes_plane(tmp_path / "capture")
-    command = [sys.executable, "train.py", "data=rgbd", f"data.path={folder}", "data.hold_out_every=0",
-               "model=sdf_hashgrid", "observation.points.batch_size=10", f"hydra.run.dir={tmp_path / 'run'}", "device=cpu"]
+    command = [sys.executable, "train.py", "data=rgbd", f"data.path={folder}", f"hydra.run.dir={tmp_path / 'run'}",
+               "device=cpu"]
     done = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=300, check=False)
     output = done.stdout + done.stderr
     assert done.returncode == 1, output[-3000:]
-    assert "ConfigError: observation.points.batch_size=10 sets options of observation 'points'" in output
-    assert "TypeError" not in output and "Traceback" not in output
+    assert "ConfigError: observation=points (experiment=bunny_sdf) does not fit data=rgbd" in output
+    assert "Traceback" not in output and "scene " not in output  # nothing was built
+    assert not list((tmp_path / "run").glob("mesh.*")) and not (tmp_path / "run" / "checkpoints").exists()
 
 
 def write_7scenes_plane(root: Path, n: int = 2) -> Path:

@@ -174,6 +174,25 @@ def test_data_observation_and_model_keys_and_defaults():
     assert not problems, "\n".join(problems)
 
 
+def test_data_feeds_and_experiment_observations():
+    """The data table's feeds column is each data config's `feeds`; the experiment table's observation column
+    names the observations each experiment selects."""
+    problems = []
+    for row in table("data"):
+        for name in option_names(row[0]):
+            feeds = composed("train", ["~experiment", f"data={name}"])["data"]["feeds"]
+            if option_names(row[3]) != feeds:
+                problems.append(f"data={name} feeds {feeds}, the doc says {option_names(row[3])}")
+    for row in table("experiment"):
+        for name in option_names(row[0]):
+            entries = set(composed("train", [f"experiment={name}"])["observation"])
+            documented = {key for option in option_names(row[2])
+                          for key in yaml.safe_load((CONFIGS / "observation" / f"{option}.yaml").read_text())}
+            if not entries <= documented:
+                problems.append(f"experiment={name} selects {sorted(entries)}, the doc says {option_names(row[2])}")
+    assert not problems, "\n".join(problems)
+
+
 def test_method_keys_and_defaults():
     methods = composed("evaluate", [])["method"]
     problems = []

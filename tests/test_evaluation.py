@@ -17,6 +17,7 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from neuralsurf.cli import without_feeds
 from neuralsurf.evaluation.report import CHARTS
 from neuralsurf.scenes import Scene
 from neuralsurf.structures import Mesh
@@ -36,8 +37,9 @@ ALWAYS_FAILS = "+method.broken._target_=failing_method.always_fails"
 
 
 def compose_evaluate(overrides: list[str]):
+    """evaluate.py's config as `cli.evaluate` reads it (the nested collection data configs without their feeds)."""
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        return compose(config_name="evaluate", overrides=overrides)
+        return without_feeds(compose(config_name="evaluate", overrides=overrides))
 
 
 def tiny_run(tmp_path: Path, overrides: list[str] = ()) -> list[dict]:

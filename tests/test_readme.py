@@ -304,8 +304,8 @@ def test_tiny_settings_go_after_every_train_and_evaluate_call():
 
 
 def test_tiny_overrides_follow_the_composed_config():
-    rgbd = tiny_overrides("python train.py data=rgbd data.path=my_capture")
-    assert "data.max_frames=6" in rgbd and "observation.rays.denoise_k=0" in rgbd
-    assert not any(o.startswith("observation.points.") for o in rgbd)  # the experiment's leftover: not selected
+    room = tiny_overrides("python train.py experiment=room data.path=my_capture")
+    assert "data.max_frames=6" in room and "observation.rays.denoise_k=0" in room
+    assert not any(o.startswith("observation.points.") for o in room)  # the rays alone: what the room selects
     assert "observation.points.n_near=20000" in tiny_overrides("python train.py experiment=bunny_sdf")
     assert "data.n_train=2" in tiny_overrides("python train.py experiment=shapes_deepsdf")

@@ -117,7 +117,7 @@ def write_redwood_wall(root: Path, n: int = 3) -> Path:
 def test_train_py_fits_a_depth_capture_as_a_room_and_writes_a_coloured_mesh(tmp_path):
     folder = write_redwood_wall(tmp_path / "capture")
     run = tmp_path / "run"
-    command = [sys.executable, "train.py", "data=rgbd", f"data.path={folder}", "data.hold_out_every=0",
+    command = [sys.executable, "train.py", "experiment=room", f"data.path={folder}", "data.hold_out_every=0",
                f"hydra.run.dir={run}", "device=cpu"]
     done = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=300, check=False)
     assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]

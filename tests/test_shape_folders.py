@@ -239,12 +239,13 @@ def test_suite_priors_folder_sets_one_collection_for_scenes_and_priors(tmp_path)
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
+    from neuralsurf.cli import without_feeds
     from neuralsurf.priors.folders import FolderCollection
 
     configs = Path(__file__).resolve().parents[1] / "configs"
     with initialize_config_dir(config_dir=str(configs), version_base="1.3"):
-        cfg = compose(config_name="evaluate", overrides=["suite=priors_folder", f"folder.source={tmp_path}",
-                                                          "folder.n_train=5"])
+        cfg = without_feeds(compose(config_name="evaluate", overrides=["suite=priors_folder",
+                                                                       f"folder.source={tmp_path}", "folder.n_train=5"]))
     nodes = [cfg.scene.shapes_cloud.collection, cfg.scene.shapes_one_view.collection,
              cfg.method.deepsdf.collection, cfg.method.occupancy_network.collection]
     collections = [instantiate(node) for node in nodes]
@@ -260,6 +261,7 @@ def test_tiny_experiments_take_a_shape_folder_with_their_sizes(tmp_path, experim
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
+    from neuralsurf.cli import without_feeds
     from neuralsurf.priors import ShapeCollection
     from neuralsurf.priors.folders import FolderCollection
 
@@ -268,9 +270,9 @@ def test_tiny_experiments_take_a_shape_folder_with_their_sizes(tmp_path, experim
         procedural = compose(config_name="train", overrides=[f"experiment={experiment}"])
         folder = compose(config_name="train", overrides=[f"experiment={experiment}", "data=shape_folder",
                                                          f"data.source={tmp_path}"])
-    shapes = instantiate(procedural.data)
+    shapes = instantiate(without_feeds(procedural).data)
     assert isinstance(shapes, ShapeCollection) and shapes.mesh_resolution == 64 and shapes.n_train == 2
-    collection = instantiate(folder.data)  # no mesh_resolution: its meshes come from the files
+    collection = instantiate(without_feeds(folder).data)  # no mesh_resolution: its meshes come from the files
     assert isinstance(collection, FolderCollection) and collection.source == str(tmp_path)
     assert (collection.n_train, collection.n_test, collection.n_sdf) == (2, 1, procedural.data.n_sdf)
 

@@ -417,7 +417,7 @@ def test_a_capture_without_intrinsics_names_the_sensor_presets(tmp_path):
 @pytest.mark.subprocess
 def test_train_py_on_frames_only_writes_the_trajectory_beside_the_mesh(tmp_path):
     truth = write_frames_only(tmp_path / "capture")
-    command = [sys.executable, "train.py", "data=rgbd", f"data.path={tmp_path / 'capture'}", "data.hold_out_every=0",
+    command = [sys.executable, "train.py", "experiment=room", f"data.path={tmp_path / 'capture'}", "data.hold_out_every=0",
                "trainer.steps=2", "trainer.progress=false", "extract.resolution=32", "observation.rays.denoise_k=0",
                f"hydra.run.dir={tmp_path / 'run'}", "device=cpu"]
     done = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
