@@ -114,8 +114,7 @@ def observation_configs(cfg: DictConfig) -> dict[str, DictConfig]:
     selected observation options define. An entry without a `_target_` sets options of an observation that is not
     selected (an experiment tuned `points`, the command line chose observation=depth_rays): a ConfigError naming it
     and how to drop it, as is an empty selection."""
-    entries = dict(cfg.observation.items())
-    selected = {name: entry for name, entry in entries.items() if isinstance(entry, DictConfig) and "_target_" in entry}
+    entries, selected = dict(cfg.observation.items()), targeted(cfg.observation)
     if not selected:
         raise ConfigError(f"no observation is selected (cfg.observation holds {list(entries)}, none with a "
                           f"_target_); choose one with observation=<{'|'.join(sorted(set(observation_options().values())))}>")
@@ -141,8 +140,7 @@ def check_feeds(cfg: DictConfig, choices: dict | None = None) -> None:
 
     if choices is None:
         choices = dict(HydraConfig.get().runtime.choices) if HydraConfig.initialized() else {}
-    chosen = selected_options({name: entry for name, entry in cfg.observation.items()
-                               if isinstance(entry, DictConfig) and "_target_" in entry})
+    chosen = selected_options(targeted(cfg.observation))
     data = f"data={choices.get('data') or cfg.data.get('name') or cfg.data.get('_target_')}"
     feeds = cfg.data.get("feeds")
     if feeds is None:
@@ -163,6 +161,11 @@ def check_feeds(cfg: DictConfig, choices: dict | None = None) -> None:
         + (f"Choose an experiment that fits it, {named(fitting)}, or " if fitting else "Choose ")
         + f"an observation it feeds: observation={feeds[0]}{drop}"
         + (f" (dropping experiment={experiment}'s settings of {', '.join(tuned)})" if tuned else ""))
+
+
+def targeted(observation: DictConfig) -> dict[str, DictConfig]:
+    """The entries of `cfg.observation` with a `_target_`: those the selected observation options define."""
+    return {name: entry for name, entry in observation.items() if isinstance(entry, DictConfig) and "_target_" in entry}
 
 
 def selected_options(selected: dict[str, DictConfig]) -> list[str]:
