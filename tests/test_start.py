@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import trimesh
 from hydra import compose, initialize_config_dir
 
 import neuralsurf as ns
@@ -37,21 +38,66 @@ def test_the_start_is_the_analytic_sdf_near_the_points_and_has_its_sign_everywhe
     voxel = 2 * BOX / 64
     assert model.voxel == pytest.approx(voxel) and len(values) == 65**3  # every grid point holds a value
     error = (values - exact)[exact.abs() < voxel].abs()
-    # within a voxel of the surface: the distance to a hundredth of a voxel mostly; off the box's edges and
-    # corners the tangent planes fall short of the distance (there the zero level, below, is what counts)
-    assert error.median() < 0.01 * voxel
+    # within a voxel of the surface: the distance to a few hundredths of a voxel mostly (the membrane term pulls
+    # a curved surface's values toward their neighbours' mean); off the box's edges and corners the tangent planes
+    # fall short of the distance (there the zero level, below, is what counts)
+    assert error.median() < 0.03 * voxel
     if isinstance(shape, Sphere):
-        assert error.max() < 0.1 * voxel
+        assert error.max() < 0.2 * voxel
     far = exact.abs() > 6 * voxel  # beyond the band of tangent planes (off the box's edges they may err)
     assert torch.equal(values[far] > 0, exact[far] > 0)  # inside and outside, far from the points too
     mesh = ns.extract_mesh(model, 64, [[-0.5] * 3, [0.5] * 3], progress=False)
     assert mesh.is_watertight
     off = shape.sdf(mesh.vertices.double()).abs()
-    assert off.median() < 0.01 * voxel and off.max() < 1.5 * voxel
+    assert off.median() < 0.05 * voxel and off.max() < 1.5 * voxel
     smooth = torch.ones(len(off), dtype=torch.bool)
     if isinstance(shape, Box):  # marching cubes cuts the box's edges and corners (a voxel); off them as smooth
         smooth = ((mesh.vertices.double().abs() - torch.tensor(shape.half_extents)).abs() < 2 * voxel).sum(-1) < 2
     assert off[smooth].max() < 0.3 * voxel
+
+
+def pieces_and_wrong_signs(model: VoxelSDF, shape) -> tuple[int, int]:
+    """(connected pieces of the start's zero level, grid points more than two voxels from the surface on its wrong
+    side)."""
+    mesh = ns.extract_mesh(model, 64, [[-0.5] * 3, [0.5] * 3], progress=False)
+    faces = trimesh.Trimesh(mesh.vertices.numpy(), mesh.faces.numpy(), process=False)
+    points, values = grid_values(model)
+    exact = shape.sdf(points.double()).float()
+    far = exact.abs() > 2 * model.voxel
+    return len(faces.split(only_watertight=False)), int(((values > 0) != (exact > 0))[far].sum())
+
+
+UNSMOOTHED = {"smoothness": 0.0, "prior_weight": 1.0}  # each value held to its start, no membrane term
+
+
+@pytest.mark.slow
+def test_overlapping_out_of_register_scans_leave_the_smoothed_start_in_one_piece():
+    """A second scan of the sphere's top, two voxels out along z (as real scans overlap slightly out of register):
+    between the two sheets the nearest tangent plane changes side, and held to those values the start breaks into
+    bubbles; the membrane term keeps one closed surface with the right sign everywhere."""
+    sphere = Sphere(radius=0.3)
+    cloud = sphere.sample_surface(20_000, seed=0)
+    voxel = 2 * BOX / 64
+    top = cloud.points[:, 2] > 0.15
+    points = torch.cat([cloud.points, cloud.points[top] + torch.tensor([0.0, 0.0, 2 * voxel])]).float()
+    normals = torch.cat([cloud.normals, cloud.normals[top]]).float()
+    unsmoothed = voxel_start(points, normals, BOX, resolution=64, coarse=4, **UNSMOOTHED)
+    assert pieces_and_wrong_signs(unsmoothed, sphere)[0] > 1  # the bubbles this guards against
+    assert pieces_and_wrong_signs(voxel_start(points, normals, BOX, resolution=64, coarse=4), sphere) == (1, 0)
+
+
+def test_a_patch_of_flipped_normals_does_not_flip_the_smoothed_starts_sign():
+    """Normals pointing inwards on a cap of the sphere (radius 0.08, about 360 of 20,000 points): their planes and
+    equations say inside where it is outside; held to them the start takes the wrong sign off the cap, smoothed it
+    keeps one surface with the analytic sign everywhere more than two voxels from it."""
+    sphere = Sphere(radius=0.3)
+    cloud = sphere.sample_surface(20_000, seed=0)
+    flipped = (cloud.points - torch.tensor([0.0, 0.0, 0.3])).norm(dim=-1) < 0.08
+    normals = torch.where(flipped[:, None], -cloud.normals, cloud.normals).float()
+    points = cloud.points.float()
+    assert pieces_and_wrong_signs(voxel_start(points, normals, BOX, resolution=64, coarse=4, **UNSMOOTHED),
+                                  sphere)[1] > 0
+    assert pieces_and_wrong_signs(voxel_start(points, normals, BOX, resolution=64, coarse=4), sphere) == (1, 0)
 
 
 def test_band_points_are_the_corners_of_the_cells_near_the_points():

@@ -1,6 +1,6 @@
 """The voxel SDF (neuralsurf.models.grid) and the room fit built on it (neuralsurf.rooms), against
 oracles: a linear field, which trilinear interpolation reproduces exactly, a dense least-squares solve of the same
-equations, and a plane seen by cameras facing it."""
+equations (with and without the grid's membrane term), and a plane seen by cameras facing it."""
 
 from __future__ import annotations
 
@@ -90,6 +90,58 @@ def test_the_solve_is_the_least_squares_solution_of_its_equations():
     assert torch.allclose(solved.double(), expected, atol=1e-5)
     with pytest.raises(ConfigError, match="prior_weight > 0"):
         solve_values(model, points, targets, weights, prior_weight=0.0)
+
+
+def membrane_matrix(model: VoxelSDF) -> torch.Tensor:
+    """The dense graph Laplacian of the observed grid points' axis edges, rows and columns in `values` order."""
+    L = torch.zeros(len(model.values), len(model.values), dtype=torch.float64)
+    rows = model.rows
+    for axis in range(3):
+        here, there = rows.narrow(axis, 0, rows.shape[axis] - 1), rows.narrow(axis, 1, rows.shape[axis] - 1)
+        both = (here >= 0) & (there >= 0)
+        i, j = here[both].long(), there[both].long()
+        L.index_put_((i, i), torch.ones(len(i), dtype=torch.float64), accumulate=True)
+        L.index_put_((j, j), torch.ones(len(j), dtype=torch.float64), accumulate=True)
+        L.index_put_((i, j), -torch.ones(len(i), dtype=torch.float64), accumulate=True)
+        L.index_put_((j, i), -torch.ones(len(i), dtype=torch.float64), accumulate=True)
+    return L
+
+
+@pytest.mark.parametrize("share", [1.0, 0.8], ids=["whole", "sparse"])
+def test_the_smoothed_solve_is_the_least_squares_solution_with_the_membrane_term(share):
+    """With smoothness and every value an unknown, conjugate gradients reach the dense solution of
+    (A^T W A + lam + mu L) v = A^T W t + lam v0, L the Laplacian of the grid's edges between observed points; with
+    only some unknowns, the others are held at their start (the same system with those rows fixed)."""
+    generator = torch.Generator().manual_seed(1)
+    values = linear_grid() + 0.02 * torch.randn(linear_grid().shape, generator=generator)
+    observed = torch.rand(values.shape, generator=generator) < share
+    points = torch.rand(200, 3, generator=generator) * torch.tensor([0.5, 0.4, 0.3]) + torch.tensor([-0.3, -0.2, -0.1])
+    targets, weights = torch.randn(200, generator=generator) * 0.05, torch.rand(200, generator=generator) + 0.5
+    model = VoxelSDF.from_grid(values, observed, (-0.3, -0.2, -0.1), 0.1)
+    rows, w = model.corners(points)
+    A = torch.zeros(200, len(model.values)).scatter_add_(1, rows, w).double()
+    start = model.values[:, 0].detach().double()
+    W = torch.diag(weights.double())
+    diagonal = (A * A * weights.double()[:, None]).sum(0)
+    lam, mu = 0.1 * diagonal[diagonal > 0].mean(), 1.0 * diagonal[diagonal > 0].mean()
+    system = A.T @ W @ A + lam * torch.eye(len(start), dtype=torch.float64) + mu * membrane_matrix(model)
+    right = A.T @ W @ targets.double() + lam * start
+    every = torch.arange(len(model.values))
+    solved = solve_values(model, points, targets, weights, prior_weight=0.1, iterations=300, smoothness=1.0,
+                          unknowns=every).values[:, 0].detach().double()
+    assert torch.allclose(solved, torch.linalg.solve(system, right), atol=1e-5)
+    held = every[::3]  # no equation reads a value far from the points: make some rows held by leaving them out
+    free = torch.ones(len(start), dtype=torch.bool)
+    free[held] = False
+    free[rows.unique()] = True  # the values the equations read are always unknowns
+    model = VoxelSDF.from_grid(values, observed, (-0.3, -0.2, -0.1), 0.1)
+    solved = solve_values(model, points, targets, weights, prior_weight=0.1, iterations=300, smoothness=1.0,
+                          unknowns=every[free]).values[:, 0].detach().double()
+    expected = start.clone()
+    expected[free] = torch.linalg.solve(system[free][:, free], right[free] - system[free][:, ~free] @ start[~free])
+    assert torch.allclose(solved, expected, atol=1e-5)
+    with pytest.raises(ConfigError, match="smoothness >= 0"):
+        solve_values(model, points, targets, weights, smoothness=-1.0)
 
 
 def test_ray_equations_ask_zero_at_the_hits_and_the_normal_distance_around_them():

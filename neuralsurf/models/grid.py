@@ -75,8 +75,8 @@ class VoxelSDF(nn.Module):
         if not len(linear):
             raise ConfigError("VoxelSDF.from_observed: no grid point is observed; fuse frames that see the surface first")
         if len(linear) == shape[0] * shape[1] * shape[2]:  # a whole grid keeps its values in grid order
-            order = linear.argsort()
-            linear, values = linear[order], values[order]
+            values = torch.empty_like(values).index_copy_(0, linear, values)
+            linear = torch.arange(len(linear), device=linear.device)
         model = cls(list(shape), [float(o) for o in origin], voxel, len(linear), outside)
         with torch.no_grad():
             model.values[:, 0] = values.float().cpu()
@@ -122,18 +122,46 @@ class VoxelSDF(nn.Module):
         return values, observed
 
 
+def grid_edges(model: VoxelSDF, unknowns: Tensor) -> tuple[Tensor, Tensor]:
+    """The grid edges from Long[Tensor, "k"] rows of `values` (`unknowns`) to their observed axis neighbours, each
+    edge between two unknowns once from either end: (Long[Tensor, "e"] position of its unknown in `unknowns`,
+    Long[Tensor, "e"] row of its neighbour)."""
+    sizes = model.shape
+    index = unknowns  # a whole grid's rows are its grid order
+    if len(model.values) < sizes[0] * sizes[1] * sizes[2]:
+        observed = (model.rows.view(-1) >= 0).nonzero()[:, 0]
+        linear = torch.empty(len(model.values), dtype=torch.long, device=observed.device)
+        linear[model.rows.view(-1)[observed].long()] = observed  # each row's grid index
+        index = linear[unknowns]
+    strides = (sizes[1] * sizes[2], sizes[2], 1)
+    position, neighbour = [], []
+    for axis in range(3):
+        coordinate = index // strides[axis] % sizes[axis]
+        for step, inside in ((1, coordinate < sizes[axis] - 1), (-1, coordinate > 0)):
+            row = model.rows.view(-1)[torch.where(inside, index + step * strides[axis], 0)].long()
+            keep = inside & (row >= 0)
+            position.append(keep.nonzero()[:, 0])
+            neighbour.append(row[keep])
+    return torch.cat(position), torch.cat(neighbour)
+
+
 @torch.no_grad()
 def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tensor, prior_weight: float = 10.0,
-                 iterations: int = 5, chunk: int = 1 << 20) -> VoxelSDF:
+                 iterations: int = 5, chunk: int = 1 << 20, smoothness: float = 0.0,
+                 unknowns: Tensor | None = None) -> VoxelSDF:
     """`model` with its values v fitted to the equations model(points) = targets (Float[Tensor, "m 3"],
     Float[Tensor, "m"], weighted by Float[Tensor, "m"]) and held to their start v0: the minimum of
-    sum weights (A v - targets)^2 + lam |v - v0|^2, lam = `prior_weight` x the mean data weight of a value (a value
-    no equation touches keeps its start), by `iterations` steps of Jacobi-preconditioned conjugate gradients from
-    v0. Points with no observed corner are left out (the field reads `outside` there, whatever v). Only the values
-    the equations read are unknowns (the others keep their start, as they would in the full system), so the cost
-    follows the equations, not the grid. `chunk`: points looked up at once (bounds memory, same result)."""
-    if not prior_weight > 0 or iterations < 0:
-        raise ConfigError(f"solve_values needs prior_weight > 0 and iterations >= 0, got {prior_weight} and {iterations}")
+    sum weights (A v - targets)^2 + lam |v - v0|^2 + mu sum over grid edges (v_i - v_j)^2, lam = `prior_weight` and
+    mu = `smoothness` x the mean data weight of a value, by `iterations` steps of Jacobi-preconditioned conjugate
+    gradients from v0. The membrane term (`smoothness` > 0) lets a value follow its neighbours where its start
+    disagrees with them, so what the equations say spreads (as far as the iterations carry it) instead of each value
+    keeping its start. Points with no observed corner are left out (the field reads `outside` there, whatever v).
+    The unknowns are the values the equations read and Long[Tensor, "k"] rows `unknowns`; the others keep their
+    start (as they would in the full system without smoothness), so the cost follows the equations, not the grid.
+    `chunk`: points looked up at once (bounds memory, same result)."""
+    if not prior_weight > 0 or iterations < 0 or not smoothness >= 0:
+        raise ConfigError(f"solve_values needs prior_weight > 0, iterations >= 0 and smoothness >= 0, got "
+                          f"{prior_weight}, {iterations} and {smoothness}")
     device = model.values.device
     rows, w, kept = [], [], []
     for start in range(0, len(points), chunk):  # the corners' temporaries are a few times rows' size
@@ -146,8 +174,9 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
     if not used.any():
         return model
     targets, weights = targets.to(device)[used], weights.to(device)[used]
-    touched, flat = torch.unique(rows.reshape(-1), return_inverse=True)  # the unknowns: values the equations read
-    flat = flat.int()  # index_add_ takes int32 indices: half the memory of the largest array
+    read = rows.reshape(-1) if unknowns is None else torch.cat([rows.reshape(-1), unknowns.to(device).int()])
+    touched, flat = torch.unique(read, return_inverse=True)
+    flat = flat[: rows.numel()].int()  # index_add_ takes int32 indices: half the memory of the largest array
     rows = flat.reshape(rows.shape)
     start = model.values[touched, 0]
 
@@ -155,18 +184,33 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
         return torch.zeros_like(start).index_add_(0, flat, (w * (weights * per_equation)[:, None]).reshape(-1))
 
     diagonal = torch.zeros_like(start).index_add_(0, flat, (w * w * weights[:, None]).reshape(-1))
-    lam = prior_weight * diagonal[diagonal > 0].mean()
+    scale = diagonal[diagonal > 0].mean()
+    lam, mu = prior_weight * scale, smoothness * scale
+    right = gather(targets) + lam * start
+    if mu > 0:
+        position, neighbour = grid_edges(model, touched.long())
+        inner = torch.searchsorted(touched, neighbour.to(touched.dtype)).clamp_max(len(touched) - 1)
+        free = touched[inner] == neighbour  # an edge between two unknowns, else to a held value
+        position, inner, held = position.int(), inner[free], neighbour[~free]
+        right.index_add_(0, position[~free], mu * model.values[held, 0])
+        edges = torch.zeros_like(start).index_add_(0, position, torch.ones_like(position, dtype=start.dtype))
+        diagonal += mu * edges
+        position = position[free]
     preconditioner = 1 / (diagonal + lam)
 
-    def normal(v: Tensor) -> Tensor:  # (A^T W A + lam) v
-        return gather((w * v[rows]).sum(-1)) + lam * v
+    def normal(v: Tensor) -> Tensor:  # (A^T W A + lam + mu (edges - adjacency)) v
+        product = gather((w * v[rows]).sum(-1)) + lam * v
+        if mu > 0:
+            product += mu * (edges * v - torch.zeros_like(v).index_add_(0, position, v[inner]))
+        return product
 
     values = start.clone()
-    residual = gather(targets) + lam * start - normal(values)
+    residual = right - normal(values)
     z = preconditioner * residual
     direction, rz = z.clone(), (residual * z).sum()
+    converged = 1e-12 * rz  # float32 round-off beyond this: further steps would divide noise by noise
     for _ in range(iterations):
-        if rz <= 0:
+        if rz <= converged:
             break
         product = normal(direction)
         step = rz / (direction * product).sum()

@@ -4,8 +4,12 @@ The grid covers the fit's box [-box, box]^3 (unit frame) with `resolution` cells
 signed distances to the cloud: on a grid `coarse` times coarser everywhere (`sampling.signed_distance`, with the
 sign of the cloud's winding number far from it), interpolated, and within `band` cells of a point the distance to
 the nearest point's tangent plane (`plane_distance`: the median of several off sharp edges). Then every point p with normal n asks f(p) = 0 and f(p +- h n) = +-h
-(h: one voxel), held to those values (`models.grid.solve_values`, the least squares the room fit solves from
-depth rays). A network then only refines this field (`models.RefinedSDF`).
+(h: one voxel), in one least-squares solve (`models.grid.solve_values`, the one the room fit solves from depth
+rays) with a membrane term over the grid: within a coarse cell of the points every value is an unknown that follows
+its neighbours as well as its start, so where overlapping scans lie slightly out of register (the nearest plane
+changes side between them), or a patch of normals is flipped, or the interpolated coarse field crosses zero near
+the surface, the surface stays one and its side is what its surroundings say, not what one plane says (without it
+the merged Stanford scans' start broke into 502 pieces). A network then only refines this field (`models.RefinedSDF`).
 """
 
 from __future__ import annotations
@@ -78,14 +82,17 @@ def cells_for_spacing(width: float, box: float, most: int, coarse: int) -> int:
 
 @torch.no_grad()
 def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 256, band: int = 2, coarse: int = 8,
-                prior_weight: float = 1.0, iterations: int = 10, winding_points: int = 5000,
-                seed: int = 0, max_points: int = 1_000_000, spacings_per_cell: float | None = None) -> VoxelSDF:
+                prior_weight: float = 0.1, iterations: int = 10, winding_points: int = 5000,
+                seed: int = 0, max_points: int = 1_000_000, spacings_per_cell: float | None = None,
+                smoothness: float = 1.0) -> VoxelSDF:
     """The start of a fit to Float[Tensor, "n 3"] unit-frame `points` with unit outward `normals` (see the
     module docstring): a VoxelSDF with every point of its (resolution + 1)^3 grid over [-box, box]^3 observed.
     `resolution` must be a multiple of `coarse`; `prior_weight` and `iterations` are `solve_values`'. A cloud of more
     than `max_points` is read through a random subset of that many (`seed`): a million points sample a 256-cell grid
     several times over, and the solve's memory grows with the points. With `spacings_per_cell`, `resolution` is the
-    most: cells are at least that many point spacings wide (`cells_for_spacing`)."""
+    most: cells are at least that many point spacings wide (`cells_for_spacing`). `smoothness` weighs the membrane
+    term (`solve_values`) over the values within `coarse` cells of a point; 0: only the values the equations read
+    are solved for, each held to its start."""
     if not (resolution >= 2 * coarse >= 2 and resolution % coarse == 0 and band >= 1):
         raise ConfigError(f"voxel_start needs band >= 1 and a resolution that is a multiple of coarse, at least twice "
                           f"it; got resolution={resolution}, coarse={coarse}, band={band}")
@@ -107,4 +114,9 @@ def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 2
     near = tuple(band_points(points, -box, voxel, resolution, band).T)
     values[near] = plane_distance(-box + torch.stack(near, -1).float() * voxel, points, normals, 2 * voxel)
     model = VoxelSDF.from_grid(values, torch.ones_like(values, dtype=torch.bool), [-box] * 3, voxel, outside=box)
-    return solve_values(model, *point_equations(points, normals, voxel), prior_weight, iterations)
+    unknowns = None
+    if smoothness > 0:  # the values within a coarse cell of a point (a whole grid's rows are its grid order)
+        i, j, k = band_points(points, -box, voxel, resolution, coarse).T
+        unknowns = (i * (resolution + 1) + j) * (resolution + 1) + k
+    return solve_values(model, *point_equations(points, normals, voxel), prior_weight, iterations,
+                        smoothness=smoothness, unknowns=unknowns)
