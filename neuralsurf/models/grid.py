@@ -124,8 +124,8 @@ class VoxelSDF(nn.Module):
 
 def grid_edges(model: VoxelSDF, unknowns: Tensor) -> tuple[Tensor, Tensor]:
     """The grid edges from Long[Tensor, "k"] rows of `values` (`unknowns`) to their observed axis neighbours, each
-    edge between two unknowns once from either end: (Long[Tensor, "e"] position of its unknown in `unknowns`,
-    Long[Tensor, "e"] row of its neighbour)."""
+    edge between two unknowns once from either end: (Int[Tensor, "e"] position of its unknown in `unknowns`,
+    Int[Tensor, "e"] row of its neighbour; int32, as `values` are indexed)."""
     sizes = model.shape
     index = unknowns  # a whole grid's rows are its grid order
     if len(model.values) < sizes[0] * sizes[1] * sizes[2]:
@@ -138,9 +138,9 @@ def grid_edges(model: VoxelSDF, unknowns: Tensor) -> tuple[Tensor, Tensor]:
     for axis in range(3):
         coordinate = index // strides[axis] % sizes[axis]
         for step, inside in ((1, coordinate < sizes[axis] - 1), (-1, coordinate > 0)):
-            row = model.rows.view(-1)[torch.where(inside, index + step * strides[axis], 0)].long()
+            row = model.rows.view(-1)[torch.where(inside, index + step * strides[axis], 0)]
             keep = inside & (row >= 0)
-            position.append(keep.nonzero()[:, 0])
+            position.append(keep.nonzero()[:, 0].int())
             neighbour.append(row[keep])
     return torch.cat(position), torch.cat(neighbour)
 
@@ -188,10 +188,10 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
     lam, mu = prior_weight * scale, smoothness * scale
     right = gather(targets) + lam * start
     if mu > 0:
-        position, neighbour = grid_edges(model, touched.long())
-        inner = torch.searchsorted(touched, neighbour.to(touched.dtype)).clamp_max(len(touched) - 1)
+        position, neighbour = grid_edges(model, touched)
+        inner = torch.searchsorted(touched, neighbour.to(touched.dtype), out_int32=True).clamp_max(len(touched) - 1)
         free = touched[inner] == neighbour  # an edge between two unknowns, else to a held value
-        position, inner, held = position.int(), inner[free], neighbour[~free]
+        inner, held = inner[free], neighbour[~free]
         right.index_add_(0, position[~free], mu * model.values[held, 0])
         edges = torch.zeros_like(start).index_add_(0, position, torch.ones_like(position, dtype=start.dtype))
         diagonal += mu * edges
