@@ -123,7 +123,7 @@ class VoxelSDF(nn.Module):
 
 
 def grid_edges(model: VoxelSDF, unknowns: Tensor) -> tuple[Tensor, Tensor]:
-    """The grid edges from Long[Tensor, "k"] rows of `values` (`unknowns`) to their observed axis neighbours, each
+    """The grid edges from Int[Tensor, "k"] rows of `values` (`unknowns`) to their observed axis neighbours, each
     edge between two unknowns once from either end: (Int[Tensor, "e"] position of its unknown in `unknowns`,
     Int[Tensor, "e"] row of its neighbour; int32, as `values` are indexed)."""
     sizes = model.shape

@@ -8,8 +8,9 @@ the nearest point's tangent plane (`plane_distance`: the median of several off s
 rays) with a membrane term over the grid: within a coarse cell of the points every value is an unknown that follows
 its neighbours as well as its start, so where overlapping scans lie slightly out of register (the nearest plane
 changes side between them), or a patch of normals is flipped, or the interpolated coarse field crosses zero near
-the surface, the surface stays one and its side is what its surroundings say, not what one plane says (without it
-the merged Stanford scans' start broke into 502 pieces). A network then only refines this field (`models.RefinedSDF`).
+the surface, the surface stays one and its side is what its surroundings say, not what one plane says (with
+smoothness 0 the merged Stanford scans' start falls into 502 pieces, with it one; on a smooth clean surface it
+costs accuracy: docs/benchmarks.md). A network then only refines this field (`models.RefinedSDF`).
 """
 
 from __future__ import annotations
