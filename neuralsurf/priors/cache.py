@@ -16,7 +16,8 @@ One file per shape, `<out>/<split>/<name>.npz`, read with `np.load(path, allow_p
   error, never silently mixed.
 
 All samples of a shape come from its own seed, so a file is the same however the build was split
-across processes or interrupted.
+across processes or interrupted. Files are stored uncompressed, so that training reads the rows of a
+step's shapes in place (`SplitArrays`) instead of holding every shape's samples in memory.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from torch import Tensor
 
 from neuralsurf.errors import ConfigError, FileFormatError
 from neuralsurf.geometry import sample_mesh_surface
-from neuralsurf.io.npz import write_npz
+from neuralsurf.io.npz import ArraySpan, npz_spans, write_npz
 from neuralsurf.locks import file_lock
 from neuralsurf.priors.procedural import Shape, ShapeRecord, check_shape
 from neuralsurf.structures import Mesh
@@ -156,6 +157,33 @@ def load_cache(path: str | Path) -> dict[str, np.ndarray]:
         raise FileFormatError(f"shape cache {path} lacks {missing}; it was not written by neuralsurf.priors: "
                               f"delete it and build again")
     return arrays
+
+
+class SplitArrays:
+    """Arrays of the caches of a collection's shapes, read from disk a few rows of a few shapes at a time
+    (`take`), so that training holds a step's batch, not every shape's samples: memory independent of
+    the number of shapes. Each key must have one shape in every cache (one recipe)."""
+
+    def __init__(self, paths: Sequence[Path], keys: tuple[str, ...]):
+        self.spans: list[dict[str, ArraySpan]] = [npz_spans(path, keys) for path in paths]
+        for key in keys:
+            shapes = {spans[key].shape for spans in self.spans}
+            if len(shapes) > 1:
+                raise FileFormatError(f"the caches of one collection hold {key!r} of shapes {sorted(shapes)[:3]}: they "
+                                      f"were built with other recipes; build the collection again into a new folder")
+
+    def __len__(self) -> int:
+        return len(self.spans)
+
+    def rows(self, key: str) -> int:
+        """Rows of `key` in each shape's cache."""
+        return self.spans[0][key].shape[0]
+
+    def take(self, key: str, shapes: Tensor, rows: Tensor) -> Tensor:
+        """Rows `rows` (Int[Tensor, "b k"]) of `key` of the shapes `shapes` (Int[Tensor, "b"]):
+        [b, k, *rest of key's shape] (`cache[shapes[i]][key][rows[i]]`)."""
+        rows = rows.cpu().numpy()
+        return torch.from_numpy(np.stack([self.spans[s][key].rows(r) for s, r in zip(shapes.tolist(), rows)]))
 
 
 def cached_recipe(path: Path) -> str | None:

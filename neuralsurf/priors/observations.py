@@ -11,13 +11,19 @@
 - `LatentPrior`: the code prior of a `models.LatentConditioned` (`code`: ||z||^2), which DeepSDF's
   reconstruction adds to whatever observation it fits (a cloud, depth rays, SDF samples).
 
+Both collection observations read each step's shapes from their caches on disk (`cache.SplitArrays`),
+so a fit holds one batch, not the collection: its memory does not grow with the number of shapes.
+
 A collection lives in its own unit frame (each shape in [-0.5, 0.5]^3): fit with
 `normalization=Normalization()` (the identity); another normalisation maps the samples through it.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import hashlib
+import json
+import os
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -28,9 +34,11 @@ from torch import Tensor, nn
 from neuralsurf.cameras import backproject_depth
 from neuralsurf.distributed import rank_and_world, shard_rows
 from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.io.npz import ArraySpan, npy_span
+from neuralsurf.locks import file_lock
 from neuralsurf.losses import clamped_l1
 from neuralsurf.observations.base import Observation, Sampler, check_weights
-from neuralsurf.priors.cache import cache_path, load_cache, read_manifest
+from neuralsurf.priors.cache import SplitArrays, cache_path, load_cache, read_manifest
 from neuralsurf.priors.procedural import UNIT_BOUNDS
 from neuralsurf.scenes.scanner import ONE_VIEW_IMAGE, one_view_camera, scan_depth
 from neuralsurf.structures import Mesh, Normalization
@@ -49,18 +57,17 @@ def split_paths(root: str | Path, split: str) -> list[Path]:
     return paths
 
 
-def _load(paths: list[Path], keys: tuple[str, ...]) -> dict[str, np.ndarray]:
-    """Stack `keys` of every cache (same sizes in one collection) -> arrays [shapes, ...]."""
-    arrays: dict[str, list[np.ndarray]] = {key: [] for key in keys}
-    for path in paths:
-        with np.load(path, allow_pickle=False) as data:
-            for key in keys:
-                arrays[key].append(data[key])
-    return {key: np.stack(values) for key, values in arrays.items()}
+def _to_unit(points: Tensor, normalization: Normalization) -> Tensor:
+    """Float[Tensor, "... 3"] points of the collection's frame in the fit's unit frame (float32)."""
+    return normalization.to_unit(points.double()).float()
 
 
-def _to_unit(points: np.ndarray, normalization: Normalization, device: torch.device) -> Tensor:
-    return normalization.to_unit(torch.from_numpy(points).double()).float().to(device)
+def global_shapes(shapes_per_batch: int, count: int, world: int, owner: str) -> int:
+    """Shapes per step over all processes: `shapes_per_batch`, or all `count` when fewer, which
+    must split evenly over `world` processes."""
+    shapes = min(shapes_per_batch, count)
+    shard_rows(shapes, world, f"{owner} (shapes_per_batch={shapes_per_batch}, {count} shapes)")
+    return shapes
 
 
 # ----------------------------------------------------------------------------- auto-decoder
@@ -80,16 +87,18 @@ class ShapeSDFBatch:
     """Float[Tensor, "b s"]: their signed distances."""
 
 
-def draw_shape_sdf(points: Tensor, values: Tensor, shapes: int, samples: int,
-                   generator: torch.Generator) -> ShapeSDFBatch:
-    """`shapes` distinct shapes at random (all when fewer), `samples` random samples of each.
-    points: Float[Tensor, "S N 3"], values: Float[Tensor, "S N"]."""
-    count, n = values.shape
-    shape_index = torch.randperm(count, generator=generator)[: min(shapes, count)]
-    sample_index = torch.randint(n, (len(shape_index), samples), generator=generator)
-    device = values.device
-    shape_index, sample_index = shape_index.to(device), sample_index.to(device)
-    return ShapeSDFBatch(shape_index, points[shape_index[:, None], sample_index], values[shape_index[:, None], sample_index])
+def draw_shape_sdf(arrays: SplitArrays, normalization: Normalization, shapes: int, samples: int,
+                   generator: torch.Generator, rank: int = 0, world: int = 1) -> ShapeSDFBatch:
+    """`shapes` distinct shapes at random (all when fewer), `samples` random SDF samples of each (keys
+    `sdf_points`, `sdf_values` of `arrays`), in the unit frame of `normalization`. Under torchrun
+    every rank draws the same global batch and reads its rows `rank::world` alone (see
+    `neuralsurf.distributed`): each rank reads its own share of the step's shapes."""
+    shape_index = torch.randperm(len(arrays), generator=generator)[: min(shapes, len(arrays))]
+    sample_index = torch.randint(arrays.rows("sdf_values"), (len(shape_index), samples), generator=generator)
+    shape_index, sample_index = shape_index[rank::world], sample_index[rank::world]
+    points = arrays.take("sdf_points", shape_index, sample_index)
+    values = arrays.take("sdf_values", shape_index, sample_index).float() / normalization.scale
+    return ShapeSDFBatch(shape_index, _to_unit(points, normalization), values)
 
 
 def auto_decoder_terms(model: nn.Module, batch: ShapeSDFBatch, weights: Mapping[str, float],
@@ -105,26 +114,17 @@ def auto_decoder_terms(model: nn.Module, batch: ShapeSDFBatch, weights: Mapping[
     return terms
 
 
-def rank_rows(batch, rank: int, world: int):
-    """The rows `rank::world` of every tensor of a batch dataclass: this process's share of a global
-    batch that every rank drew alike (see `neuralsurf.distributed`)."""
-    if world == 1:
-        return batch
-    return type(batch)(**{f.name: getattr(batch, f.name)[rank::world] for f in fields(batch)})
-
-
-def global_shapes(shapes_per_batch: int, count: int, world: int, owner: str) -> int:
-    """Shapes per step over all processes: `shapes_per_batch`, or all `count` when fewer, which
-    must split evenly over `world` processes."""
-    shapes = min(shapes_per_batch, count)
-    shard_rows(shapes, world, f"{owner} (shapes_per_batch={shapes_per_batch}, {count} shapes)")
-    return shapes
+def _on(batch, device: torch.device):
+    """A batch dataclass with every tensor on `device`."""
+    return type(batch)(**{f.name: getattr(batch, f.name).to(device) for f in fields(batch)})
 
 
 @dataclass(frozen=True)
 class CollectionSDFSampler(Sampler):
-    points: Tensor
-    values: Tensor
+    arrays: SplitArrays
+    """The split's caches, read a step's shapes at a time."""
+    normalization: Normalization
+    device: torch.device
     weights: dict[str, float]
     shapes_per_batch: int
     """Over all processes."""
@@ -134,20 +134,22 @@ class CollectionSDFSampler(Sampler):
     world: int = 1
 
     def sample(self, generator: torch.Generator) -> ShapeSDFBatch:
-        batch = draw_shape_sdf(self.points, self.values, self.shapes_per_batch, self.samples_per_shape, generator)
-        return rank_rows(batch, self.rank, self.world)
+        batch = draw_shape_sdf(self.arrays, self.normalization, self.shapes_per_batch, self.samples_per_shape,
+                               generator, self.rank, self.world)
+        return _on(batch, self.device)
 
     def losses(self, model: nn.Module, batch: ShapeSDFBatch) -> dict[str, Tensor]:
         codes = getattr(model, "codes", None)
-        if codes is None or len(codes) != len(self.values):
-            raise ConfigError(f"CollectionSDF trains an AutoDecoder with one code per shape ({len(self.values)}); "
+        if codes is None or len(codes) != len(self.arrays):
+            raise ConfigError(f"CollectionSDF trains an AutoDecoder with one code per shape ({len(self.arrays)}); "
                               f"got a {type(model).__name__} with {len(codes) if codes is not None else 'no'} codes")
         return auto_decoder_terms(model, batch, self.weights, self.clamp)
 
 
 @dataclass(frozen=True)
 class CollectionSDF(Observation):
-    """The SDF samples of a collection split, one latent code per shape (DeepSDF's training data)."""
+    """The SDF samples of a collection split, one latent code per shape (DeepSDF's training data),
+    read from the shapes' caches a step's shapes at a time."""
 
     root: str | Path
     """Folder built by `python -m neuralsurf.priors build`."""
@@ -182,13 +184,11 @@ class CollectionSDF(Observation):
         return UNIT_BOUNDS.clone()
 
     def prepare(self, normalization: Normalization, box: float, device: torch.device, seed: int) -> CollectionSDFSampler:
-        arrays = _load(self.paths, ("sdf_points", "sdf_values"))
-        points = _to_unit(arrays["sdf_points"], normalization, device)
-        values = torch.from_numpy(arrays["sdf_values"]).float().to(device) / normalization.scale
+        arrays = SplitArrays(self.paths, ("sdf_points", "sdf_values"))
         rank, world = rank_and_world()
-        shapes = global_shapes(self.shapes_per_batch, len(values), world, "CollectionSDF")
-        return CollectionSDFSampler(points, values, self.weights, shapes, self.samples_per_shape, self.clamp,
-                                    rank, world)
+        shapes = global_shapes(self.shapes_per_batch, len(arrays), world, "CollectionSDF")
+        return CollectionSDFSampler(arrays, normalization, device, self.weights, shapes, self.samples_per_shape,
+                                    self.clamp, rank, world)
 
 
 # ----------------------------------------------------------------------------- occupancy network
@@ -208,11 +208,27 @@ class OccupancyBatch:
     """Float[Tensor, "b t"]: 1 inside, 0 outside."""
 
 
-def facing_mask(normals: Tensor, generator: torch.Generator) -> Tensor:
-    """Bool[Tensor, "b m"]: points whose normal faces a random view direction per row (n . d < 0):
-    one side of each shape, as a camera would see it without self-occlusion. normals: [b, m, 3]."""
-    direction = torch.nn.functional.normalize(torch.randn(normals.shape[0], 3, generator=generator), dim=-1)
-    return (normals * direction.to(normals)[:, None, :]).sum(-1) < 0
+def facing_mask(normals: Tensor, directions: Tensor) -> Tensor:
+    """Bool[Tensor, "b m"]: points whose normal faces the row's view direction (n . d < 0): one side of
+    each shape, as a camera would see it without self-occlusion. normals: [b, m, 3]; directions: [b, 3]."""
+    return (normals * directions.to(normals)[:, None, :]).sum(-1) < 0
+
+
+def iter_view_clouds(meshes: Iterable[Mesh], views: int, points_per_view: int, seed: int) -> Iterator[Tensor]:
+    """`view_clouds` one shape at a time: Float[Tensor, "views points_per_view 3"] per mesh."""
+    generator = torch.Generator().manual_seed(seed)
+    for i, mesh in enumerate(meshes):
+        # camera seeds from 10^6 up: the shapes_one_view scene's cameras take seeds 0, 1, ...
+        poses = torch.stack([one_view_camera(1_000_000 * (seed + 1) + views * i + v) for v in range(views)])
+        frames = scan_depth(mesh, cam_to_world=poses, **ONE_VIEW_IMAGE)
+        points = backproject_depth(frames)
+        clouds = torch.empty(views, points_per_view, 3)
+        for v in range(views):
+            seen = points[v][frames.depth[v] > 0]
+            if not len(seen):
+                raise InputError(f"shape {i} of the collection is not seen from view {v} (camera {poses[v].tolist()})")
+            clouds[v] = seen[torch.randint(len(seen), (points_per_view,), generator=generator)].float()
+        yield clouds
 
 
 def view_clouds(meshes: list, views: int, points_per_view: int, seed: int) -> Tensor:
@@ -220,73 +236,109 @@ def view_clouds(meshes: list, views: int, points_per_view: int, seed: int) -> Te
     views of each mesh (unit frame), cameras and images as the `shapes_one_view` scene's
     (`scenes.scanner.one_view_camera`, `ONE_VIEW_IMAGE`): one-sided clouds with self-occlusion, as one
     depth view sees a shape. Each view's points are drawn at random (with repeats when fewer)."""
-    generator = torch.Generator().manual_seed(seed)
-    clouds = torch.empty(len(meshes), views, points_per_view, 3)
-    for i, mesh in enumerate(meshes):
-        # camera seeds from 10^6 up: the shapes_one_view scene's cameras take seeds 0, 1, ...
-        poses = torch.stack([one_view_camera(1_000_000 * (seed + 1) + views * i + v) for v in range(views)])
-        frames = scan_depth(mesh, cam_to_world=poses, **ONE_VIEW_IMAGE)
-        points = backproject_depth(frames)
-        for v in range(views):
-            seen = points[v][frames.depth[v] > 0]
-            if not len(seen):
-                raise InputError(f"shape {i} of the collection is not seen from view {v} (camera {poses[v].tolist()})")
-            clouds[i, v] = seen[torch.randint(len(seen), (points_per_view,), generator=generator)].float()
-    return clouds
+    return torch.stack(list(iter_view_clouds(meshes, views, points_per_view, seed)))
 
 
-def draw_occupancy(surface: Tensor, normals: Tensor, points: Tensor, inside: Tensor, shapes: int, cloud_points: int,
-                   cloud_noise: float, partial: float, query_points: int,
-                   generator: torch.Generator, views: Tensor | None = None) -> OccupancyBatch:
+def cached_meshes(paths: Iterable[Path]) -> Iterator[Mesh]:
+    """The ground-truth mesh of each cache, read one at a time (the two mesh arrays alone)."""
+    for path in paths:
+        with np.load(path, allow_pickle=False) as data:
+            yield Mesh(torch.from_numpy(data["mesh_vertices"]).double(), torch.from_numpy(data["mesh_faces"]))
+
+
+def write_view_clouds(path: Path, paths: list[Path], views: int, points_per_view: int, seed: int) -> Path:
+    """`view_clouds` of the caches `paths` written to the .npy file `path` one shape at a time (memory of
+    one shape's views), atomically (a temporary file, then a rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    header = {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float32)), "fortran_order": False,
+              "shape": (len(paths), views, points_per_view, 3)}
+    try:
+        with open(temporary, "wb") as file:
+            np.lib.format.write_array_header_1_0(file, header)
+            clouds = iter_view_clouds(cached_meshes(paths), views, points_per_view, seed)
+            file.writelines(shape.numpy().astype(np.float32).tobytes() for shape in clouds)
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+    return path
+
+
+def occupancy_pool(arrays: SplitArrays, shapes: Tensor, query: Tensor, n_near: int) -> tuple[Tensor, Tensor]:
+    """Rows `query` (Int[Tensor, "b t"]) of each shape's pool of labelled points: its first n - n_near
+    uniform occupancy points, then its first `n_near` near-surface ones (n: uniform points a cache).
+    Returns points Float[Tensor, "b t 3"] and inside Bool[Tensor, "b t"]."""
+    if not n_near:
+        return arrays.take("occ_uniform_points", shapes, query), arrays.take("occ_uniform_inside", shapes, query)
+    n_uniform = arrays.rows("occ_uniform_points") - n_near
+    near = query >= n_uniform
+    uniform_rows, near_rows = torch.where(near, 0, query), torch.where(near, query - n_uniform, 0)
+    points = torch.where(near[..., None], arrays.take("occ_near_points", shapes, near_rows),
+                         arrays.take("occ_uniform_points", shapes, uniform_rows))
+    inside = torch.where(near, arrays.take("occ_near_inside", shapes, near_rows),
+                         arrays.take("occ_uniform_inside", shapes, uniform_rows))
+    return points, inside
+
+
+def draw_occupancy(arrays: SplitArrays, normalization: Normalization, shapes: int, cloud_points: int,
+                   cloud_noise: float, partial: float, query_points: int, n_near: int,
+                   generator: torch.Generator, views: ArraySpan | None = None, rank: int = 0,
+                   world: int = 1) -> OccupancyBatch:
     """Shapes at random; for each, a cloud of `cloud_points` surface samples plus N(0, cloud_noise^2)
-    and `query_points` labelled points. A `partial` share of clouds is one-sided: drawn from one of
-    the shape's `views` (`view_clouds`) when given, else the surface samples facing a random direction
-    (`facing_mask`). surface, normals: [S, M, 3]; points: [S, P, 3]; inside: Bool[S, P];
-    views: [S, V, p, 3]."""
-    count, m = surface.shape[:2]
-    device = surface.device
-    shape_index = torch.randperm(count, generator=generator)[: min(shapes, count)]
-    b = len(shape_index)
-    candidates = torch.randint(m, (b, 4 * cloud_points), generator=generator)
-    rows = shape_index[:, None].to(device)
+    (unit frame) and `query_points` labelled points (`occupancy_pool`), in the unit frame of
+    `normalization`. A `partial` share of clouds is one-sided: drawn from one of the shape's `views`
+    (Float[S, V, p, 3], `write_view_clouds`) when given, else the surface samples facing a random
+    direction (`facing_mask`). Every rank draws the same global batch and reads its rows `rank::world`
+    alone (the other rows' one-sided masks are left all true: each row's multinomial draw takes its
+    own stretch of the generator, whatever the other rows' weights)."""
+    mine = slice(rank, None, world)
+    shape_index = torch.randperm(len(arrays), generator=generator)[: min(shapes, len(arrays))]
+    own, b = shape_index[mine], len(shape_index)
+    candidates = torch.randint(arrays.rows("surface_points"), (b, 4 * cloud_points), generator=generator)
     keep = torch.ones(b, 4 * cloud_points, dtype=torch.bool)
     one_sided = torch.rand(b, generator=generator) < partial
     if views is None and one_sided.any():
-        facing = facing_mask(normals[rows, candidates.to(device)].cpu(), generator)
-        keep = torch.where(one_sided[:, None] & facing.any(1, keepdim=True), facing, keep)
+        directions = torch.nn.functional.normalize(torch.randn(b, 3, generator=generator), dim=-1)
+        facing = facing_mask(arrays.take("surface_normals", own, candidates[mine]), directions[mine])
+        keep[mine] = torch.where(one_sided[mine, None] & facing.any(1, keepdim=True), facing, keep[mine])
     pick = torch.multinomial(keep.double(), cloud_points, replacement=True, generator=generator)
-    cloud = surface[rows, candidates.gather(1, pick).to(device)]
+    cloud = arrays.take("surface_points", own, candidates.gather(1, pick)[mine])
     if views is not None and one_sided.any():
-        view = torch.randint(views.shape[1], (b, 1), generator=generator)
-        seen = torch.randint(views.shape[2], (b, cloud_points), generator=generator)
-        from_view = views[rows, view.to(device), seen.to(device)]
-        cloud = torch.where(one_sided[:, None, None].to(device), from_view, cloud)
+        view = torch.randint(views.shape[1], (b, 1), generator=generator)[mine]
+        seen = torch.randint(views.shape[2], (b, cloud_points), generator=generator)[mine]
+        from_view = torch.from_numpy(views.rows((own[:, None].numpy(), view.numpy(), seen.numpy())))
+        cloud = torch.where(one_sided[mine, None, None], from_view, cloud)
     noise = cloud_noise * torch.randn(b, cloud_points, 3, generator=generator)
-    query = torch.randint(points.shape[1], (b, query_points), generator=generator).to(device)
-    return OccupancyBatch(cloud + noise.to(device), points[rows, query], inside[rows, query].float())
+    query = torch.randint(arrays.rows("occ_uniform_points"), (b, query_points), generator=generator)[mine]
+    points, inside = occupancy_pool(arrays, own, query, n_near)
+    return OccupancyBatch(_to_unit(cloud, normalization) + noise[mine], _to_unit(points, normalization),
+                          inside.float())
 
 
 @dataclass(frozen=True)
 class CollectionOccupancySampler(Sampler):
-    surface: Tensor
-    normals: Tensor
-    points: Tensor
-    inside: Tensor
+    arrays: SplitArrays
+    """The split's caches, read a step's shapes at a time."""
+    normalization: Normalization
+    device: torch.device
     weights: dict[str, float]
     shapes_per_batch: int
     cloud_points: int
     cloud_noise: float
+    """Unit frame."""
     partial: float
     query_points: int
-    views: Tensor | None = None
+    n_near: int
+    """Near-surface points in each shape's pool of query points (`occupancy_pool`)."""
+    views: ArraySpan | None = None
     rank: int = 0
     world: int = 1
 
     def sample(self, generator: torch.Generator) -> OccupancyBatch:
-        batch = draw_occupancy(self.surface, self.normals, self.points, self.inside, self.shapes_per_batch,
-                               self.cloud_points, self.cloud_noise, self.partial, self.query_points, generator,
-                               self.views)
-        return rank_rows(batch, self.rank, self.world)
+        batch = draw_occupancy(self.arrays, self.normalization, self.shapes_per_batch, self.cloud_points,
+                               self.cloud_noise, self.partial, self.query_points, self.n_near, generator, self.views,
+                               self.rank, self.world)
+        return _on(batch, self.device)
 
     def losses(self, model: nn.Module, batch: OccupancyBatch) -> dict[str, Tensor]:
         logits = model.logits(batch.points, model.encode(batch.clouds))
@@ -296,7 +348,7 @@ class CollectionOccupancySampler(Sampler):
 @dataclass(frozen=True)
 class CollectionOccupancy(Observation):
     """Occupancy labels of a collection split, with input clouds from each shape's surface
-    (the training data of an Occupancy Network)."""
+    (the training data of an Occupancy Network), read from the shapes' caches a step's shapes at a time."""
 
     root: str | Path
     """Folder built by `python -m neuralsurf.priors build`."""
@@ -314,7 +366,8 @@ class CollectionOccupancy(Observation):
     """Share of input clouds seen from one side only (for completion from one view)."""
     partial_views: int = 0
     """One-sided clouds come from this many synthetic depth views of each shape (`view_clouds`, with
-    self-occlusion, rendered once in `prepare`); 0: the surface samples facing a random direction."""
+    self-occlusion, rendered once into `<root>/views/` and reused); 0: the surface samples facing a
+    random direction."""
     near_fraction: float = 0.0
     """Share of query points drawn from the near-surface pool (the rest: uniform in the box). Uniform
     only, as in the paper: test IoU 0.728 against 0.692 with half near (shapes_onet, 5,000 steps)."""
@@ -340,38 +393,30 @@ class CollectionOccupancy(Observation):
     def prepare(self, normalization: Normalization, box: float, device: torch.device,
                 seed: int) -> CollectionOccupancySampler:
         paths = split_paths(self.root, self.split)
-        arrays = _load(paths, ("surface_points", "surface_normals", "occ_uniform_points", "occ_uniform_inside",
-                               "occ_near_points", "occ_near_inside"))
-        n = arrays["occ_uniform_points"].shape[1]
-        n_near = round(n * self.near_fraction)
-        # a fixed pool with the asked mix: the first n - n_near uniform points and n_near near ones
-        points = np.concatenate([arrays["occ_uniform_points"][:, : n - n_near],
-                                 arrays["occ_near_points"][:, :n_near]], axis=1)
-        inside = np.concatenate([arrays["occ_uniform_inside"][:, : n - n_near],
-                                 arrays["occ_near_inside"][:, :n_near]], axis=1)
+        keys = ("surface_points", "surface_normals", "occ_uniform_points", "occ_uniform_inside", "occ_near_points",
+                "occ_near_inside")
+        arrays = SplitArrays(paths, keys)
         rank, world = rank_and_world()
-        shapes = global_shapes(self.shapes_per_batch, len(points), world, "CollectionOccupancy")
-        return CollectionOccupancySampler(
-            _to_unit(arrays["surface_points"], normalization, device),
-            torch.from_numpy(arrays["surface_normals"]).float().to(device),
-            _to_unit(points, normalization, device), torch.from_numpy(inside).to(device), self.weights,
-            shapes, self.cloud_points, self.cloud_noise / normalization.scale, self.partial,
-            self.query_points, self._views(paths, normalization, device, seed), rank, world)
+        shapes = global_shapes(self.shapes_per_batch, len(arrays), world, "CollectionOccupancy")
+        n_near = round(arrays.rows("occ_uniform_points") * self.near_fraction)
+        return CollectionOccupancySampler(arrays, normalization, device, self.weights, shapes, self.cloud_points,
+                                          self.cloud_noise / normalization.scale, self.partial, self.query_points,
+                                          n_near, self._views(paths, seed), rank, world)
 
-    def _views(self, paths: list[Path], normalization: Normalization, device: torch.device,
-               seed: int) -> Tensor | None:
-        """The `view_clouds` of every shape (4 x cloud_points points a view), or None."""
+    def _views(self, paths: list[Path], seed: int) -> ArraySpan | None:
+        """Where the `view_clouds` of every shape (4 x cloud_points points a view, the collection's frame)
+        lie on disk, or None. Rendered once per caches, views and seed into `<root>/views/<split>-<hash>.npy`
+        (under a lock: the ranks of a run and the jobs of a sweep render it once) and reused."""
         if not (self.partial_views and self.partial):
             return None
-        meshes = []
-        for path in paths:  # the two mesh arrays alone (np.load reads an npz key by key)
-            with np.load(path, allow_pickle=False) as data:
-                meshes.append(Mesh(torch.from_numpy(data["mesh_vertices"]).double(),
-                                   torch.from_numpy(data["mesh_faces"])))
-        clouds = view_clouds(meshes, self.partial_views, 4 * self.cloud_points, seed)
-        for shape in clouds:  # a shape at a time: all of them in float64 at once took 1.3 GB more at peak
-            shape.copy_(normalization.to_unit(shape.double()))
-        return clouds.to(device)
+        points = 4 * self.cloud_points
+        sources = [(p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in paths]
+        digest = hashlib.sha256(json.dumps([sources, self.partial_views, points, seed]).encode()).hexdigest()[:16]
+        path = Path(self.root) / "views" / f"{self.split}-{digest}.npy"
+        with file_lock(path.with_suffix(".lock")):
+            if not path.is_file():
+                write_view_clouds(path, paths, self.partial_views, points, seed)
+        return npy_span(path)
 
 
 # ----------------------------------------------------------------------------- one shape
