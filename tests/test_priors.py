@@ -1,6 +1,7 @@
 """Learned shape priors: DeepSDF auto-decoder and latent reconstruction, Occupancy Network, and
 their observations over a shape collection."""
 
+import dataclasses
 import functools
 
 import numpy as np
@@ -8,8 +9,9 @@ import pytest
 import torch
 from torch import Tensor, nn
 
-from neuralsurf.errors import ConfigError, InputError
+from neuralsurf.errors import ConfigError, FileFormatError, InputError
 from neuralsurf.geometry import noisy_cloud
+from neuralsurf.io.npz import write_npz
 from neuralsurf.losses import clamped_l1, eikonal_loss
 from neuralsurf.models import (
     SDFMLP,
@@ -24,7 +26,7 @@ from neuralsurf.models import (
 from neuralsurf.models.occupancy import local_pool, plane_cells, plane_means, sample_planes
 from neuralsurf.models.spec import build_model, model_spec
 from neuralsurf.priors import ShapeRecord, complete_cloud
-from neuralsurf.priors.cache import CacheRecipe, build_collection, cache_path, load_cache
+from neuralsurf.priors.cache import CacheRecipe, SplitArrays, build_collection, cache_path, load_cache
 from neuralsurf.priors.completion import reconstruct_latent
 from neuralsurf.priors.observations import (
     CollectionOccupancy,
@@ -34,7 +36,7 @@ from neuralsurf.priors.observations import (
     draw_shape_sdf,
     view_clouds,
 )
-from neuralsurf.structures import Normalization
+from neuralsurf.structures import Mesh, Normalization
 from neuralsurf.training import default_optimizer, fit
 
 RECORDS = [ShapeRecord("lamp", "train", 0), ShapeRecord("chair", "train", 0)]
@@ -214,14 +216,70 @@ def test_collection_sdf_batches_and_terms(collection):
         sampler.losses(AutoDecoder(model.decoder, LatentCodes(3, 4)), batch)
 
 
-def test_draw_shape_sdf_is_repeatable_and_keeps_points_with_their_values():
-    points = torch.rand(4, 100, 3)
-    values = points.sum(-1) + 10 * torch.arange(4)[:, None]  # a value that names its shape and point
-    a = draw_shape_sdf(points, values, 3, 10, torch.Generator().manual_seed(1))
-    b = draw_shape_sdf(points, values, 3, 10, torch.Generator().manual_seed(1))
+def _numbered_caches(folder, count=4, rows=100):
+    """Caches whose SDF values name their shape and point: value = sum of the point + 10 x shape."""
+    paths = []
+    for index in range(count):
+        points = np.random.default_rng(index).random((rows, 3), dtype=np.float32)
+        paths.append(write_npz(folder / f"s{index}.npz", {"sdf_points": points,
+                                                          "sdf_values": points.sum(-1) + np.float32(10 * index)}))
+    return paths
+
+
+def test_draw_shape_sdf_is_repeatable_and_reads_each_point_with_its_value(tmp_path):
+    paths = _numbered_caches(tmp_path)
+    arrays = SplitArrays(paths, ("sdf_points", "sdf_values"))
+    assert len(arrays) == 4 and arrays.rows("sdf_values") == 100
+    a = draw_shape_sdf(arrays, Normalization(), 3, 10, torch.Generator().manual_seed(1))
+    b = draw_shape_sdf(arrays, Normalization(), 3, 10, torch.Generator().manual_seed(1))
     assert torch.equal(a.points, b.points) and torch.equal(a.shape_index, b.shape_index)
     assert len(set(a.shape_index.tolist())) == 3
     assert torch.allclose(a.sdf, a.points.sum(-1) + 10 * a.shape_index[:, None])
+    # the rows the generator names: the same draw over the stacked arrays in memory
+    generator = torch.Generator().manual_seed(1)
+    shape_index = torch.randperm(4, generator=generator)[:3]
+    sample_index = torch.randint(100, (3, 10), generator=generator)
+    stacked = torch.stack([torch.from_numpy(np.load(p)["sdf_points"]) for p in paths])
+    assert torch.equal(a.points, stacked[shape_index[:, None], sample_index])
+    # another frame: points mapped into it, distances scaled
+    frame = Normalization(torch.tensor([0.5, 0.5, 0.5], dtype=torch.float64), 2.0)
+    c = draw_shape_sdf(arrays, frame, 3, 10, torch.Generator().manual_seed(1))
+    assert torch.allclose(c.points, (a.points - 0.5) / 2) and torch.allclose(c.sdf, a.sdf / 2)
+
+
+def test_each_rank_reads_its_own_rows_of_the_global_batch(collection):
+    """Two ranks of a global batch: disjoint shapes, together the batch one process draws, row for row
+    (rank r keeps rows r::2), for both priors' samplers and every kind of input cloud."""
+    records = [ShapeRecord("lamp", "train", i) for i in range(2)] + [ShapeRecord("chair", "train", i) for i in range(2)]
+    root = collection.parent / "four_shapes"
+    build_collection(root, records, RECIPE, progress=False)
+    observations = [CollectionSDF(root, shapes_per_batch=4, samples_per_shape=32)] + [
+        CollectionOccupancy(root, shapes_per_batch=4, query_points=20, cloud_points=16, **options)
+        for options in ({"partial": 0.5}, {"partial": 1.0, "partial_views": 2}, {"near_fraction": 0.5})]
+    for observation in observations:
+        single = observation.prepare(Normalization(), 0.55, torch.device("cpu"), 0)
+        whole = single.sample(torch.Generator().manual_seed(3))
+        parts = [dataclasses.replace(single, rank=rank, world=2).sample(torch.Generator().manual_seed(3))
+                 for rank in range(2)]
+        for f in dataclasses.fields(whole):
+            for rank, part in enumerate(parts):
+                assert torch.equal(getattr(part, f.name), getattr(whole, f.name)[rank::2]), (observation, f.name)
+    shapes = [set(part.shape_index.tolist()) for part in
+              (dataclasses.replace(observations[0].prepare(Normalization(), 0.55, torch.device("cpu"), 0), rank=r,
+                                   world=2).sample(torch.Generator().manual_seed(3)) for r in range(2))]
+    assert not shapes[0] & shapes[1] and shapes[0] | shapes[1] == {0, 1, 2, 3}
+
+
+def test_split_arrays_refuse_caches_of_other_recipes_and_compressed_members(tmp_path):
+    paths = _numbered_caches(tmp_path, count=2)
+    write_npz(tmp_path / "short.npz", {"sdf_points": np.zeros((50, 3), np.float32), "sdf_values": np.zeros(50, np.float32)})
+    with pytest.raises(FileFormatError, match="other recipes"):
+        SplitArrays([*paths, tmp_path / "short.npz"], ("sdf_points", "sdf_values"))
+    write_npz(tmp_path / "packed.npz", {"sdf_points": np.zeros((100, 3), np.float32)}, compressed=True)
+    with pytest.raises(FileFormatError, match="compressed"):
+        SplitArrays([tmp_path / "packed.npz"], ("sdf_points",))
+    with pytest.raises(FileFormatError, match="lacks 'sdf_normals'"):
+        SplitArrays(paths, ("sdf_normals",))
 
 
 def test_collection_occupancy_batches_carry_the_cached_labels(collection):
@@ -248,8 +306,6 @@ def test_view_clouds_are_one_sided_surface_points_of_each_view():
     view sees one cap (all points within 90 deg of the view's mean direction)."""
     import trimesh
 
-    from neuralsurf.structures import Mesh
-
     ball = trimesh.creation.icosphere(subdivisions=4, radius=0.4)
     mesh = Mesh(torch.from_numpy(ball.vertices), torch.from_numpy(ball.faces))
     clouds = view_clouds([mesh, mesh], views=3, points_per_view=500, seed=0)
@@ -265,9 +321,14 @@ def test_one_sided_clouds_come_from_the_shapes_views(collection):
     observation = CollectionOccupancy(collection, shapes_per_batch=2, query_points=10, cloud_points=50,
                                       cloud_noise=0.0, partial=1.0, partial_views=2)
     sampler = observation.prepare(Normalization(), 0.55, torch.device("cpu"), 0)
-    assert sampler.views.shape == (2, 2, 200, 3)
+    views = torch.from_numpy(np.load(sampler.views.path))  # rendered once, a shape at a time, into <root>/views/
+    assert sampler.views.path.parent == collection / "views" and views.shape == (2, 2, 200, 3)
+    meshes = [load_cache(cache_path(collection, record)) for record in RECORDS]
+    meshes = [Mesh(torch.from_numpy(m["mesh_vertices"]).double(), torch.from_numpy(m["mesh_faces"])) for m in meshes]
+    assert torch.equal(views, view_clouds(meshes, 2, 200, seed=0))  # the views of all shapes rendered at once
+    assert observation.prepare(Normalization(), 0.55, torch.device("cpu"), 0).views == sampler.views  # reused
     batch = sampler.sample(torch.Generator().manual_seed(0))
-    seen = [{tuple(p) for p in view.tolist()} for view in sampler.views.reshape(4, 200, 3)]
+    seen = [{tuple(p) for p in view.tolist()} for view in views.reshape(4, 200, 3)]
     for cloud in batch.clouds:
         owners = [all(tuple(p) in points for p in cloud.tolist()) for points in seen]
         assert sum(owners) == 1  # every point from one view of one shape

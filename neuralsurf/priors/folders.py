@@ -194,7 +194,14 @@ class FrameStats:
 
     @classmethod
     def from_shapes(cls, surfaces: list[Tensor], sizes: list[float]) -> FrameStats:
-        features = torch.stack([frame_features(s) for s in surfaces])
+        """The statistics of the shapes' surface points (Float[Tensor, "n 3"] each, unit frame) and of
+        their longest sides in their files."""
+        return cls.from_features([frame_features(s) for s in surfaces], sizes)
+
+    @classmethod
+    def from_features(cls, features: list[Tensor], sizes: list[float]) -> FrameStats:
+        """The statistics of the shapes' `frame_features` and of their longest sides in their files."""
+        features = torch.stack(features)
         logs = np.log10(np.maximum(sizes, 1e-30))
         return cls(tuple(features.mean(0).tolist()), tuple(features.std(0, unbiased=False).tolist()),
                    float(logs.mean()), float(logs.std()))
@@ -423,12 +430,12 @@ class FolderCollection:
         return path.is_file() and cached_recipe(path) == _cache_key(entry, record, self.recipe, self.normalize)
 
     def _write_manifest(self, out: Path) -> None:
-        surfaces, sizes = [], []
-        for record in self.records("train"):
-            arrays = load_cache(cache_path(out, record))
-            surfaces.append(torch.from_numpy(arrays["surface_points"]))
-            sizes.append(float(arrays["file_size"]))
-        stats = FrameStats.from_shapes(surfaces, sizes)
+        features, sizes = [], []
+        for record in self.records("train"):  # two arrays of one shape at a time: memory of a shape, not the collection
+            with np.load(cache_path(out, record), allow_pickle=False) as data:
+                features.append(frame_features(torch.from_numpy(data["surface_points"])))
+                sizes.append(float(data["file_size"]))
+        stats = FrameStats.from_features(features, sizes)
         manifest = {"recipe": asdict(self.recipe), "shapes": [asdict(r) for r in self.records()],
                     "source": str(self.source), "files": [str(e.path) for e in self.sources()],
                     "frame": asdict(stats)}
