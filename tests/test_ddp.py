@@ -4,12 +4,17 @@ and resume from rank 0's checkpoint."""
 import functools
 import json
 import os
+import shutil
 import socket
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
+import trimesh
 
 from neuralsurf.checkpoints import load_checkpoint
 from neuralsurf.priors import ShapeRecord, deepsdf
@@ -105,3 +110,40 @@ def test_two_processes_match_one_with_the_same_global_batch_and_resume(collectio
     assert resumed[0]["history"]["total"] == pytest.approx(two[0]["history"]["total"], rel=1e-6)
     assert torch.allclose(torch.tensor(resumed[0]["code"]), torch.tensor(two[0]["code"]), rtol=1e-5, atol=1e-7)
     assert not list((tmp_path / "straight").glob("rank*/")), "only rank 0 writes the run directory"
+
+
+@pytest.mark.subprocess
+@pytest.mark.slow
+def test_torchrun_trains_a_prior_on_a_folder_each_rank_reading_its_own_shapes(tmp_path):
+    """`torchrun --nproc_per_node 2 train.py data=shape_folder ...` (gloo, CPU): every step the two ranks
+    read disjoint halves of the step's shapes from the caches, and the run finishes (rank 0's checkpoint
+    and metrics)."""
+    torchrun = shutil.which("torchrun", path=os.path.dirname(sys.executable)) or shutil.which("torchrun")
+    if torchrun is None:
+        pytest.skip("torchrun is not installed beside this Python")
+    source = tmp_path / "shapes"
+    for kind, mesh in (("box", trimesh.creation.box), ("ball", trimesh.creation.icosphere)):
+        (source / kind).mkdir(parents=True)
+        for i in range(3):
+            shape = mesh((0.6 + 0.1 * i, 1.0, 0.5)) if kind == "box" else mesh(2, radius=0.5 + 0.1 * i)
+            shape.export(source / kind / f"{kind}{i}.ply")
+        (source / kind / "train.lst").write_text(f"{kind}0\n{kind}1\n")
+        (source / kind / "test.lst").write_text(f"{kind}2\n")
+    root = Path(__file__).resolve().parents[1]
+    overrides = ["experiment=shapes_deepsdf_tiny", "data=shape_folder", f"data.source={source}",
+                 f"data.root={tmp_path / 'cache'}", "data.workers=0", "data.n_sdf=4000", "data.n_occ=500",
+                 "data.n_surface=500", "observation.shapes.shapes_per_batch=4", "trainer.steps=6",
+                 "trainer.checkpoint_every=3", "trainer.progress=false", "score.latent_steps=3", "score.n_samples=1000",
+                 "extract.resolution=24", f"hydra.run.dir={tmp_path / 'run'}"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(root)}
+    done = subprocess.run([torchrun, "--nproc_per_node", "2", "--master_port", str(_free_port()),
+                           str(root / "tests" / "torchrun_probe.py"), str(tmp_path / "read"), *overrides],
+                          check=False, cwd=root, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    ranks = [json.loads((tmp_path / f"read.rank{rank}.json").read_text()) for rank in range(2)]
+    assert len(ranks[0]) == len(ranks[1]) == 6
+    for first, second in zip(*ranks):  # the step's 4 shapes: 2 on each rank, none on both
+        assert len(first) == len(second) == 2 and not set(first) & set(second)
+        assert set(first) | set(second) == {0, 1, 2, 3}
+    assert load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt")["step"] == 6
+    assert "chamfer_l1_exact" in json.loads((tmp_path / "run" / "metrics.json").read_text())
