@@ -1,7 +1,7 @@
 """The learning curve of a learned prior: completion from one depth view against the number of
 training shapes, beside TSDF fusion and Poisson of the same views.
 
-    python benchmarks/bench_learning_curve.py --out /tmp/learning_curve [--sizes 12,48,200] [--steps 1500]
+    python benchmarks/bench_learning_curve.py --out /tmp/learning_curve [--sizes 12,48,200] [--steps 600]
         [--n-test 2] [--priors deepsdf] [--plot docs/images/learning_curve.png]
 
 Writes the procedural chairs, slatted chairs, mugs and lamps as a folder of meshes (`python -m
@@ -101,8 +101,8 @@ def main() -> None:
     parser.add_argument("--sizes", default="12,48,200", help="training shapes, multiples of the 4 classes")
     parser.add_argument("--n-test", type=int, default=2, help="held-out shapes per class")
     parser.add_argument("--priors", default="deepsdf", help="deepsdf and/or occupancy_network, comma-separated")
-    parser.add_argument("--steps", type=int, default=1500, help="training steps of each prior")
-    parser.add_argument("--latent-steps", type=int, default=100, help="DeepSDF's latent fit per view")
+    parser.add_argument("--steps", type=int, default=600, help="training steps of each prior")
+    parser.add_argument("--latent-steps", type=int, default=60, help="DeepSDF's latent fit per view")
     parser.add_argument("--mesh-resolution", type=int, default=64)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
