@@ -498,3 +498,29 @@ def test_malformed_ply_headers_name_the_file_and_the_line(tmp_path, header, reas
     (tmp_path / "bad.ply").write_bytes(header + b"0\n")
     with pytest.raises(FileFormatError, match=rf"bad\.ply.*PLY header does not parse: line \d: .*{reason}"):
         read_point_cloud(tmp_path / "bad.ply")
+
+
+def test_npz_spans_read_rows_in_place_and_refuse_crafted_headers(tmp_path):
+    import io
+    import zipfile
+
+    from neuralsurf.io.npz import npy_span, npz_spans, write_npz
+
+    points = np.arange(60, dtype=np.float32).reshape(20, 3)
+    path = write_npz(tmp_path / "a.npz", {"points": points, "labels": np.arange(20) % 2 == 0})
+    spans = npz_spans(path, ("points", "labels"))
+    rows = np.array([[3, 0], [19, 3]])
+    assert np.array_equal(spans["points"].rows(rows), points[rows])
+    assert np.array_equal(spans["labels"].rows(rows), rows % 2 == 0)
+    np.save(tmp_path / "b.npy", points)
+    assert np.array_equal(npy_span(tmp_path / "b.npy").rows(np.array([5, 1])), points[[5, 1]])
+
+    header = io.BytesIO()  # an array header that claims a million rows over 12 bytes of data
+    np.lib.format.write_array_header_1_0(header, {"descr": "<f4", "fortran_order": False, "shape": (10**6, 3)})
+    with zipfile.ZipFile(tmp_path / "crafted.npz", "w") as archive:
+        archive.writestr("points.npy", header.getvalue() + points[0].tobytes())
+    with pytest.raises(FileFormatError, match="declares shape .1000000, 3.* more than its"):
+        npz_spans(tmp_path / "crafted.npz", ("points",))
+    (tmp_path / "short.npy").write_bytes(header.getvalue() + points[0].tobytes())
+    with pytest.raises(FileFormatError, match="truncated"):
+        npy_span(tmp_path / "short.npy")
