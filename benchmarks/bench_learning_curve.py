@@ -16,9 +16,10 @@ at 1 % of the longest side, IoU where both meshes are closed: the priors' comple
 TSDF and Poisson meshes); the table prints the means over the held-out shapes and, with --plot, a
 bar chart of Chamfer-L1 and F@1% per size.
 
-`--steps` and `--latent-steps` set the budget: the defaults are sized so that the whole run fits in
-about 40 minutes on a loaded 2-core CPU, far below a converged prior (train.py's shapes_deepsdf trains
-6,000 steps); read the curve as a small-budget one.
+`--steps` and `--latent-steps` set the budget, the same for every size: the defaults took 29.6 min on
+the 2-core CPU, busy (load average 4-10; the folder's caches built before), far below a converged prior
+(train.py's shapes_deepsdf trains 6,000 steps), and 600 steps leave 200 shapes seen 24 times each: read
+the curve as a small-budget one (docs/benchmarks.md, "The learning curve").
 """
 
 from __future__ import annotations
