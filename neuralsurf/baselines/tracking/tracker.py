@@ -144,9 +144,9 @@ _COMPILED_SAMPLING = CompiledOnCPU(trilinear_tsdf, "camera tracking")
 
 _COMPILED_FRAMES = 500
 """track_frames(compiled=None) compiles the tracker's loops on a CPU for sequences of this many frames or more.
-Measured on the 2-core CPU (benchmarks/bench_tracking.py): compiling took 11 s from torch's on-disk cache and
-about a minute without it; compiled frames took 28 ms (livingroom1) and 42 ms (redkitchen) less CPU than eager
-ones, so compiling pays from a few hundred frames on."""
+Measured on the 2-core CPU (benchmarks/bench_tracking.py): compiling took 16 s from torch's on-disk cache and
+about 45 s without it; compiled frames took 30 ms (livingroom1) and 40 ms (redkitchen) less wall time than eager
+ones, so compiling pays from about five hundred frames on."""
 
 
 class Tracker:
