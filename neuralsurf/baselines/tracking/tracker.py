@@ -176,9 +176,9 @@ class Tracker:
             means; 0: full size); the pyramid's levels, the raycast and `finest_stride` count from there. None:
             the most halvings that keep the width at 320 pixels or more (1 for VGA frames, which tracked
             livingroom1 and redkitchen to the ATE of full size in a third of the time).
-        compiled: on a CPU, run the raycast's volume sampling and the ICP iterations through torch.compile
-            (`implementation`): about a third less CPU a frame after a compilation of 10 s (from torch's on-disk
-            cache) to a minute.
+        compiled: on a CPU, run the raycast's volume sampling, the ICP iterations, the pyramids' downsampling and
+            surface maps and the fusion through torch.compile: about 40 % less wall time a frame after a
+            compilation of 16 s (from torch's on-disk cache) to 45 s.
         photometric: with colour, the weight (metres per unit of grey level) of the grey-level alignment with the
             previous frame in every Gauss-Newton step (`GreyPair`); 0: depth alone. Needs colour registered to the
             depth (`track(depth, colors)`).
@@ -237,12 +237,12 @@ class Tracker:
     @property
     def volume(self) -> TSDFVolume | None:
         """The TSDF volume of the frames tracked so far (frame-to-model), None before the first frame."""
-        if self._unfused is not None:
-            self._fuse(*self._unfused)
-            self._unfused = None
-        if self._fusing is not None:
+        if self._fusing is not None:  # frames are fused in order: the one on the second thread first
             fusing, self._fusing = self._fusing, None
             fusing.result()
+        if self._unfused is not None:
+            unfused, self._unfused = self._unfused, None
+            self._fuse(*unfused)
         return self._volume
 
     def _fuse(self, depth: Tensor, K: Tensor, pose: Tensor) -> None:
