@@ -187,10 +187,10 @@ def experiment_settings(name: str) -> dict[str, Any]:
     "observations": the observation options it selects, "tunes": the cfg.observation entries it sets}; empty for
     an experiment that is not shipped."""
     path = CONFIGS / "experiment" / f"{name}.yaml"
-    if not path.is_file():
-        return {"data": None, "observations": (), "tunes": ()}
-    config = OmegaConf.load(path)
     settings = {"data": None, "observations": (), "tunes": ()}
+    if not path.is_file():
+        return settings
+    config = OmegaConf.load(path)
     for entry in config.get("defaults", []):
         if isinstance(entry, str) and entry != "_self_":  # an experiment it extends
             settings = dict(experiment_settings(entry))

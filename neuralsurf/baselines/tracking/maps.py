@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, reduce
 
 import torch
 from torch import Tensor
@@ -19,7 +18,7 @@ def downsample_depth(depth: Tensor, max_jump: float) -> Tensor:
     discontinuity keeps its nearer surface); 0 where the block has no valid pixel."""
     h, w = depth.shape[-2] // 2 * 2, depth.shape[-1] // 2 * 2
     corners = [depth[..., row:h:2, column:w:2] for row in (0, 1) for column in (0, 1)]  # views, no copy
-    nearest = functools.reduce(torch.minimum, [torch.where(corner > 0, corner, torch.inf) for corner in corners])
+    nearest = reduce(torch.minimum, [torch.where(corner > 0, corner, torch.inf) for corner in corners])
     total, count = torch.zeros_like(nearest), torch.zeros_like(nearest)
     for corner in corners:
         use = (corner > 0) & (corner - nearest <= max_jump)
