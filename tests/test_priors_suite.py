@@ -99,3 +99,17 @@ def test_the_build_command_makes_the_collection_that_train_py_finds(tmp_path):
                                  mesh_resolution=24, root=str(tmp_path))
     assert collection.build(progress=False) == tmp_path  # the same collection: nothing refused, nothing rebuilt
     assert [s.name for s in collection.test_shapes()] == ["lamp_test_0000"]
+
+
+def test_a_trained_prior_is_named_by_what_it_was_trained_on_not_by_the_test_split_or_the_build():
+    from neuralsurf.evaluation.methods import prior_settings
+
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        cfg = compose(config_name="evaluate", overrides=["suite=priors_folder", "folder.source=/shapes"])
+    method = OmegaConf.to_container(cfg.method.deepsdf, resolve=True)
+    other = json.loads(json.dumps(method))
+    other["collection"].update(n_test=1, workers=0, root="/elsewhere")
+    assert prior_settings(other) == prior_settings(method)
+    other["collection"]["n_train"] = 3
+    assert prior_settings(other) != prior_settings(method)
+    assert prior_settings(method)["trainer"] == method["trainer"]

@@ -118,6 +118,20 @@ def tsdf(scene: Scene, *, voxel_fraction: float = 1 / 256, truncation_voxels: fl
     return volume.integrate(scene.frames).extract_mesh()
 
 
+NOT_TRAINED_ON = ("n_test", "workers", "root")
+"""Collection settings that do not change a prior's training shapes or samples: the test split's size, the build's
+parallelism and where the caches lie (their folder is named by the samples' settings)."""
+
+
+def prior_settings(config: dict) -> dict:
+    """What a trained prior depends on, from a learned-prior method's config: its collection (less
+    `NOT_TRAINED_ON`), model, observation, optimizer and trainer. Its hash names the prior's run."""
+    settings = {k: config.get(k) for k in ("collection", "model", "observation", "optimizer", "trainer")}
+    if isinstance(settings["collection"], dict):
+        settings["collection"] = {k: v for k, v in settings["collection"].items() if k not in NOT_TRAINED_ON}
+    return settings
+
+
 def learned_prior(scene: Scene, *, checkpoint: str | None = None, collection=None, model: Callable | None = None,
                   observation: dict[str, Callable] | None = None, optimizer: Callable | None = None,
                   trainer: dict[str, Any] | None = None, latent_steps: int = 200, resolution: int = 128,
@@ -137,7 +151,7 @@ def learned_prior(scene: Scene, *, checkpoint: str | None = None, collection=Non
         if None in (collection, model, observation, trainer, run_dir):
             raise NeuralsurfError("learned_prior needs a checkpoint, or collection, model, observation and "
                                   "trainer settings (configs/method/deepsdf.yaml) to train one")
-        settings = {k: (config or {}).get(k) for k in ("collection", "model", "observation", "optimizer", "trainer")}
+        settings = prior_settings(config or {})
         digest = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()[:10]
         checkpoint = trained_prior(Path(run_dir).parent / f"prior_{digest}", collection, model,
                                    list(observation.values()), optimizer=optimizer, trainer=trainer, seed=seed,
