@@ -122,27 +122,15 @@ class VoxelSDF(nn.Module):
         return values, observed
 
 
-def grid_edges(model: VoxelSDF, unknowns: Tensor) -> tuple[Tensor, Tensor]:
-    """The grid edges from Int[Tensor, "k"] rows of `values` (`unknowns`) to their observed axis neighbours, each
-    edge between two unknowns once from either end: (Int[Tensor, "e"] position of its unknown in `unknowns`,
-    Int[Tensor, "e"] row of its neighbour; int32, as `values` are indexed)."""
-    sizes = model.shape
-    index = unknowns  # a whole grid's rows are its grid order
-    if len(model.values) < sizes[0] * sizes[1] * sizes[2]:
-        observed = (model.rows.view(-1) >= 0).nonzero()[:, 0]
-        linear = torch.empty(len(model.values), dtype=torch.long, device=observed.device)
-        linear[model.rows.view(-1)[observed].long()] = observed  # each row's grid index
-        index = linear[unknowns]
-    strides = (sizes[1] * sizes[2], sizes[2], 1)
-    position, neighbour = [], []
+def neighbour_sum(grid: Tensor) -> Tensor:
+    """Float[Tensor, "x y z"]: each grid point's sum of its axis neighbours' values in Float[Tensor, "x y z"] `grid`
+    (fewer neighbours on its faces)."""
+    total = torch.zeros_like(grid)
     for axis in range(3):
-        coordinate = index // strides[axis] % sizes[axis]
-        for step, inside in ((1, coordinate < sizes[axis] - 1), (-1, coordinate > 0)):
-            row = model.rows.view(-1)[torch.where(inside, index + step * strides[axis], 0)]
-            keep = inside & (row >= 0)
-            position.append(keep.nonzero()[:, 0].int())
-            neighbour.append(row[keep])
-    return torch.cat(position), torch.cat(neighbour)
+        n = grid.shape[axis]
+        total.narrow(axis, 0, n - 1).add_(grid.narrow(axis, 1, n - 1))
+        total.narrow(axis, 1, n - 1).add_(grid.narrow(axis, 0, n - 1))
+    return total
 
 
 @torch.no_grad()
@@ -155,7 +143,8 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
     mu = `smoothness` x the mean data weight of a value, by `iterations` steps of Jacobi-preconditioned conjugate
     gradients from v0. The membrane term (`smoothness` > 0) lets a value follow its neighbours where its start
     disagrees with them, so what the equations say spreads (as far as the iterations carry it) instead of each value
-    keeping its start. Points with no observed corner are left out (the field reads `outside` there, whatever v).
+    keeping its start; it needs a whole grid (every point observed, as `observations.start` builds). Points with no
+    observed corner are left out (the field reads `outside` there, whatever v).
     The unknowns are the values the equations read and Long[Tensor, "k"] rows `unknowns`; the others keep their
     start (as they would in the full system without smoothness), so the cost follows the equations, not the grid.
     `chunk`: points looked up at once (bounds memory, same result)."""
@@ -187,21 +176,27 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
     scale = diagonal[diagonal > 0].mean()
     lam, mu = prior_weight * scale, smoothness * scale
     right = gather(targets) + lam * start
-    if mu > 0:
-        position, neighbour = grid_edges(model, touched)
-        inner = torch.searchsorted(touched, neighbour.to(touched.dtype), out_int32=True).clamp_max(len(touched) - 1)
-        free = touched[inner] == neighbour  # an edge between two unknowns, else to a held value
-        inner, held = inner[free], neighbour[~free]
-        right.index_add_(0, position[~free], mu * model.values[held, 0])
-        edges = torch.zeros_like(start).index_add_(0, position, torch.ones_like(position, dtype=start.dtype))
+    if mu > 0:  # over a whole grid, whose rows are its grid order
+        if len(model.values) != model.shape[0] * model.shape[1] * model.shape[2]:
+            raise ConfigError("solve_values' smoothness needs every grid point observed (a whole grid, as "
+                              "VoxelSDF.from_grid with observed all true makes)")
+
+        index = touched.long()
+
+        def on_grid(per_unknown: Tensor) -> Tensor:  # the unknowns' values in the grid, 0 elsewhere
+            grid = torch.zeros(len(model.values), dtype=start.dtype, device=device)
+            return grid.index_copy_(0, index, per_unknown).view(model.shape)
+
+        edges = neighbour_sum(torch.ones(model.shape, dtype=start.dtype, device=device)).view(-1)[index]
+        held = model.values[:, 0].index_fill(0, index, 0.0)  # the values kept at their start
+        right += mu * neighbour_sum(held.view(model.shape)).view(-1)[index]
         diagonal += mu * edges
-        position = position[free]
     preconditioner = 1 / (diagonal + lam)
 
     def normal(v: Tensor) -> Tensor:  # (A^T W A + lam + mu (edges - adjacency)) v
         product = gather((w * v[rows]).sum(-1)) + lam * v
         if mu > 0:
-            product += mu * (edges * v - torch.zeros_like(v).index_add_(0, position, v[inner]))
+            product += mu * (edges * v - neighbour_sum(on_grid(v)).view(-1)[index])
         return product
 
     values = start.clone()
