@@ -41,13 +41,17 @@ class VoxelSDF(nn.Module):
         self.shape, self.voxel, self.outside = shape, float(voxel), float(outside)
         self.register_buffer("origin", torch.tensor(origin, dtype=torch.float32))
         self.values = nn.Parameter(torch.full((n_observed, 1), float(outside)))
-        whole = n_observed == shape[0] * shape[1] * shape[2]  # every grid point in order: rows follow, not stored
-        rows = torch.arange(n_observed, dtype=torch.int32).reshape(shape) if whole else torch.full(shape, -1,
-                                                                                                    dtype=torch.int32)
-        self.register_buffer("rows", rows, persistent=not whole)
+        rows = torch.arange(n_observed, dtype=torch.int32).reshape(shape) if self.whole else torch.full(
+            shape, -1, dtype=torch.int32)
+        self.register_buffer("rows", rows, persistent=not self.whole)
         corner = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
         self.register_buffer("steps", (corner[:, 0] * shape[1] + corner[:, 1]) * shape[2] + corner[:, 2],
                              persistent=False)
+
+    @property
+    def whole(self) -> bool:
+        """Every grid point observed: the values are in grid order, and the row index follows (not stored)."""
+        return len(self.values) == self.shape[0] * self.shape[1] * self.shape[2]
 
     @classmethod
     def from_grid(cls, values: Tensor, observed: Tensor, origin, voxel: float, outside: float | None = None) -> VoxelSDF:
@@ -177,17 +181,17 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
     lam, mu = prior_weight * scale, smoothness * scale
     right = gather(targets) + lam * start
     if mu > 0:  # over a whole grid, whose rows are its grid order
-        if len(model.values) != model.shape[0] * model.shape[1] * model.shape[2]:
+        if not model.whole:
             raise ConfigError("solve_values' smoothness needs every grid point observed (a whole grid, as "
                               "VoxelSDF.from_grid with observed all true makes)")
-
         index = touched.long()
+        coordinates = torch.stack(torch.unravel_index(index, model.shape), -1)
+        edges = ((coordinates > 0).sum(-1) + (coordinates < index.new_tensor(model.shape) - 1).sum(-1)).to(start.dtype)
+        grid = torch.zeros(len(model.values), dtype=start.dtype, device=device)  # zero but at the unknowns
 
         def on_grid(per_unknown: Tensor) -> Tensor:  # the unknowns' values in the grid, 0 elsewhere
-            grid = torch.zeros(len(model.values), dtype=start.dtype, device=device)
             return grid.index_copy_(0, index, per_unknown).view(model.shape)
 
-        edges = neighbour_sum(torch.ones(model.shape, dtype=start.dtype, device=device)).view(-1)[index]
         held = model.values[:, 0].index_fill(0, index, 0.0)  # the values kept at their start
         right += mu * neighbour_sum(held.view(model.shape)).view(-1)[index]
         diagonal += mu * edges
