@@ -56,6 +56,28 @@ def test_the_start_is_the_analytic_sdf_near_the_points_and_has_its_sign_everywhe
     assert off[smooth].max() < 0.3 * voxel
 
 
+def test_held_out_points_refine_a_clean_start_toward_the_surface():
+    """The membrane pulls a curved surface's values toward their neighbours' mean (the sphere's start lies 0.03
+    voxel off it); with held-out points the solve is refined while their |f| falls, and its zero level comes
+    closer to the analytic sphere. On the box the held-out points do not improve (its edges' and corners' error
+    is the tangent planes', not the membrane's) and the start stays as it was."""
+    for shape in (Sphere(radius=0.3), Box(half_extents=(0.3, 0.2, 0.25))):
+        cloud = shape.sample_surface(20_000, seed=0)
+        points, normals = cloud.points.float(), cloud.normals.float()
+        held_out = shape.sample_surface(1000, seed=1).points.float()
+        off, starts = [], []
+        for extra in ({}, {"held_out": held_out}):
+            model = voxel_start(points, normals, BOX, resolution=64, coarse=4, **extra)
+            mesh = ns.extract_mesh(model, 64, [[-0.5] * 3, [0.5] * 3], progress=False)
+            off.append(float(shape.sdf(mesh.vertices.double()).abs().mean()) / model.voxel)
+            starts.append(model.values.detach().clone())
+            assert pieces_and_wrong_signs(model, shape) == (1, 0)
+        if isinstance(shape, Sphere):
+            assert off[1] < 0.5 * off[0]
+        else:
+            assert torch.equal(starts[0], starts[1])
+
+
 def pieces_and_wrong_signs(model: VoxelSDF, shape) -> tuple[int, int]:
     """(connected pieces of the start's zero level, grid points more than two voxels from the surface on its wrong
     side)."""
@@ -84,6 +106,9 @@ def test_overlapping_out_of_register_scans_leave_the_smoothed_start_in_one_piece
     unsmoothed = voxel_start(points, normals, BOX, resolution=64, coarse=4, **UNSMOOTHED)
     assert pieces_and_wrong_signs(unsmoothed, sphere)[0] > 1  # the bubbles this guards against
     assert pieces_and_wrong_signs(voxel_start(points, normals, BOX, resolution=64, coarse=4), sphere) == (1, 0)
+    kept = torch.arange(len(points)) % 20 > 0  # what a fit holds out scores the refinements: one surface still
+    assert pieces_and_wrong_signs(voxel_start(points[kept], normals[kept], BOX, resolution=64, coarse=4,
+                                              held_out=points[~kept]), sphere) == (1, 0)
 
 
 def test_a_patch_of_flipped_normals_does_not_flip_the_smoothed_starts_sign():
@@ -98,6 +123,9 @@ def test_a_patch_of_flipped_normals_does_not_flip_the_smoothed_starts_sign():
     assert pieces_and_wrong_signs(voxel_start(points, normals, BOX, resolution=64, coarse=4, **UNSMOOTHED),
                                   sphere)[1] > 0
     assert pieces_and_wrong_signs(voxel_start(points, normals, BOX, resolution=64, coarse=4), sphere) == (1, 0)
+    kept = torch.arange(len(points)) % 20 > 0
+    assert pieces_and_wrong_signs(voxel_start(points[kept], normals[kept], BOX, resolution=64, coarse=4,
+                                              held_out=points[~kept]), sphere) == (1, 0)
 
 
 def test_band_points_are_the_corners_of_the_cells_near_the_points():

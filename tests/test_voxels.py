@@ -128,7 +128,23 @@ def test_the_smoothed_solve_is_the_least_squares_solution_with_the_membrane_term
     every = torch.arange(len(model.values))
     solved = solve_values(model, points, targets, weights, prior_weight=0.1, iterations=300, smoothness=1.0,
                           unknowns=every).values[:, 0].detach().double()
-    assert torch.allclose(solved, torch.linalg.solve(system, right), atol=1e-5)
+    exact = torch.linalg.solve(system, right)
+    assert torch.allclose(solved, exact, atol=1e-5)
+    # a refinement pass: the same system solved for a correction from the equations' residual (iterated Tikhonov)
+    refined = exact + torch.linalg.solve(system, A.T @ W @ (targets.double() - A @ exact))
+    model = VoxelSDF.from_grid(values, observed, (-0.3, -0.2, -0.1), 0.1)
+    solved = solve_values(model, points, targets, weights, prior_weight=0.1, iterations=300, smoothness=1.0,
+                          unknowns=every, refinements=1).values[:, 0].detach().double()
+    assert torch.allclose(solved, refined, atol=1e-5)
+    def misfit(v: torch.Tensor) -> float:  # the equations' weighted squared residual
+        return float(weights.double() @ (A @ v - targets.double()) ** 2)
+
+    assert misfit(refined) < misfit(exact)  # a pass takes back some of what the prior and the membrane held
+    scores = iter([1.0, 0.9, 0.97])  # kept while the score falls by REFINEMENT_GAIN: one pass of three
+    model = VoxelSDF.from_grid(values, observed, (-0.3, -0.2, -0.1), 0.1)
+    solved = solve_values(model, points, targets, weights, prior_weight=0.1, iterations=300, smoothness=1.0,
+                          unknowns=every, refinements=3, score=lambda field: next(scores)).values[:, 0].detach()
+    assert torch.allclose(solved.double(), refined, atol=1e-5) and next(scores, None) is None
     held = every[::3]  # no equation reads a value far from the points: make some rows held by leaving them out
     free = torch.ones(len(start), dtype=torch.bool)
     free[held] = False
@@ -141,6 +157,8 @@ def test_the_smoothed_solve_is_the_least_squares_solution_with_the_membrane_term
     assert torch.allclose(solved, expected, atol=1e-5)
     with pytest.raises(ConfigError, match="smoothness >= 0"):
         solve_values(model, points, targets, weights, smoothness=-1.0)
+    with pytest.raises(ConfigError, match="refinements >= 0"):
+        solve_values(model, points, targets, weights, refinements=-1)
     sparse = VoxelSDF.from_grid(values, torch.rand(values.shape, generator=generator) < 0.8, (-0.3, -0.2, -0.1), 0.1)
     with pytest.raises(ConfigError, match="whole grid"):
         solve_values(sparse, points, targets, weights, smoothness=1.0)

@@ -12,6 +12,9 @@ fitted by one least-squares solve (`solve_values`: to depth rays in `rooms`, to 
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
+
 import torch
 from torch import Tensor, nn
 
@@ -137,10 +140,15 @@ def neighbour_sum(grid: Tensor) -> Tensor:
     return total
 
 
+REFINEMENT_GAIN = 0.05
+"""`solve_values` keeps a refinement pass only where it lowers its score by this share."""
+
+
 @torch.no_grad()
 def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tensor, prior_weight: float = 10.0,
                  iterations: int = 5, chunk: int = 1 << 20, smoothness: float = 0.0,
-                 unknowns: Tensor | None = None) -> VoxelSDF:
+                 unknowns: Tensor | None = None, refinements: int = 0,
+                 score: Callable[[VoxelSDF], float] | None = None, score_below: float = math.inf) -> VoxelSDF:
     """`model` with its values v fitted to the equations model(points) = targets (Float[Tensor, "m 3"],
     Float[Tensor, "m"], weighted by Float[Tensor, "m"]) and held to their start v0: the minimum of
     sum weights (A v - targets)^2 + lam |v - v0|^2 + mu sum over grid edges (v_i - v_j)^2, lam = `prior_weight` and
@@ -151,10 +159,15 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
     observed corner are left out (the field reads `outside` there, whatever v).
     The unknowns are the values the equations read and Long[Tensor, "k"] rows `unknowns`; the others keep their
     start (as they would in the full system without smoothness), so the cost follows the equations, not the grid.
+    With `refinements` > 0, the same system is then solved up to that many times more for a correction from the
+    equations' residual alone (iterated Tikhonov): each pass takes back most of the bias the prior and the membrane
+    put on what the equations determine well, while what they leave undetermined stays held; with `score` (of the
+    model, lower is better), the passes start only where the first solve scores below `score_below`, and a pass
+    is kept only while it lowers the score by `REFINEMENT_GAIN`.
     `chunk`: points looked up at once (bounds memory, same result)."""
-    if not prior_weight > 0 or iterations < 0 or not smoothness >= 0:
-        raise ConfigError(f"solve_values needs prior_weight > 0, iterations >= 0 and smoothness >= 0, got "
-                          f"{prior_weight}, {iterations} and {smoothness}")
+    if not prior_weight > 0 or iterations < 0 or not smoothness >= 0 or refinements < 0:
+        raise ConfigError(f"solve_values needs prior_weight > 0, iterations >= 0, smoothness >= 0 and refinements >= 0, "
+                          f"got {prior_weight}, {iterations}, {smoothness} and {refinements}")
     device = model.values.device
     rows, w, kept = [], [], []
     for start in range(0, len(points), chunk):  # the corners' temporaries are a few times rows' size
@@ -203,20 +216,39 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
             product += mu * (edges * v - neighbour_sum(on_grid(v)).view(-1)[index])
         return product
 
-    values = start.clone()
-    residual = right - normal(values)
+    values = conjugate_gradients(normal, right, start.clone(), preconditioner, iterations)
+    model.values[touched, 0] = values
+    best = score(model) if score is not None and refinements else None
+    for _ in range(refinements if best is None or best < score_below else 0):  # the same system, for a correction from what the equations still miss
+        missed = gather(targets - (w * values[rows]).sum(-1))
+        refined = values + conjugate_gradients(normal, missed, torch.zeros_like(values), preconditioner, iterations)
+        model.values[touched, 0] = refined
+        if best is not None:
+            scored = score(model)
+            if scored > (1 - REFINEMENT_GAIN) * best:
+                model.values[touched, 0] = values
+                break
+            best = scored
+        values = refined
+    return model
+
+
+def conjugate_gradients(product: Callable[[Tensor], Tensor], right: Tensor, values: Tensor, preconditioner: Tensor,
+                        iterations: int) -> Tensor:
+    """Float[Tensor, "k"]: `iterations` steps of preconditioned conjugate gradients on product(v) = right from
+    `values` (updated in place), `product` symmetric positive definite, `preconditioner` its inverse diagonal."""
+    residual = right - product(values)
     z = preconditioner * residual
     direction, rz = z.clone(), (residual * z).sum()
     converged = 1e-12 * rz  # float32 round-off beyond this: further steps would divide noise by noise
     for _ in range(iterations):
         if rz <= converged:
             break
-        product = normal(direction)
-        step = rz / (direction * product).sum()
+        step_product = product(direction)
+        step = rz / (direction * step_product).sum()
         values += step * direction
-        residual -= step * product
+        residual -= step * step_product
         z = preconditioner * residual
         rz, previous = (residual * z).sum(), rz
         direction = z + (rz / previous) * direction
-    model.values[touched, 0] = values
-    return model
+    return values

@@ -173,7 +173,7 @@ class PointSampler(Sampler):
         if self.samples.surface_normals is None:
             return None
         return voxel_start(self.samples.surface_points, self.samples.surface_normals, box, resolution, seed=self.seed,
-                           spacings_per_cell=START_SPACINGS)
+                           spacings_per_cell=START_SPACINGS, held_out=self.held_out)
 
     @torch.no_grad()
     def held_out_error(self, model: nn.Module) -> float | None:

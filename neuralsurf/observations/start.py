@@ -23,6 +23,9 @@ from neuralsurf.geometry import cloud_spacing, knn
 from neuralsurf.models.grid import VoxelSDF, solve_values
 from neuralsurf.sampling import signed_distance
 
+REFINE_BELOW = 0.1
+"""`voxel_start` refines its solve only where the held-out points' mean |f| starts below this many voxels."""
+
 
 def grid_points(counts: int, origin: float, step: float) -> Tensor:
     """Float[Tensor, "counts^3 3"]: the points origin + (i, j, k) * step of a cubic grid, i-major."""
@@ -85,7 +88,7 @@ def cells_for_spacing(width: float, box: float, most: int, coarse: int) -> int:
 def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 256, band: int = 2, coarse: int = 8,
                 prior_weight: float = 0.1, iterations: int = 10, winding_points: int = 5000,
                 seed: int = 0, max_points: int = 1_000_000, spacings_per_cell: float | None = None,
-                smoothness: float = 1.0) -> VoxelSDF:
+                smoothness: float = 1.0, held_out: Tensor | None = None, refinements: int = 3) -> VoxelSDF:
     """The start of a fit to Float[Tensor, "n 3"] unit-frame `points` with unit outward `normals` (see the
     module docstring): a VoxelSDF with every point of its (resolution + 1)^3 grid over [-box, box]^3 observed.
     `resolution` must be a multiple of `coarse`; `prior_weight` and `iterations` are `solve_values`'. A cloud of more
@@ -93,7 +96,12 @@ def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 2
     several times over, and the solve's memory grows with the points. With `spacings_per_cell`, `resolution` is the
     most: cells are at least that many point spacings wide (`cells_for_spacing`). `smoothness` weighs the membrane
     term (`solve_values`) over the values within `coarse` cells of a point; 0: only the values the equations read
-    are solved for, each held to its start."""
+    are solved for, each held to its start. With Float[Tensor, "h 3"] `held_out` points (unit frame, kept out of
+    the equations), up to `refinements` passes refine the solve (`solve_values`) while the mean |f| there falls,
+    if it starts below `REFINE_BELOW` voxels: on a clean cloud they take back the membrane's bias (the bunny's 100k
+    points: 1.20e-4 -> 5.4e-5 exact Chamfer-L1 in three); where the held-out points lie farther from the start's
+    surface (noise, scans out of register, sparse points) that bias is not what limits it, and the passes would
+    follow the noise."""
     if not (resolution >= 2 * coarse >= 2 and resolution % coarse == 0 and band >= 1):
         raise ConfigError(f"voxel_start needs band >= 1 and a resolution that is a multiple of coarse, at least twice "
                           f"it; got resolution={resolution}, coarse={coarse}, band={band}")
@@ -119,5 +127,13 @@ def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 2
     if smoothness > 0:  # the values within a coarse cell of a point (a whole grid's rows are its grid order)
         i, j, k = band_points(points, -box, voxel, resolution, coarse).T
         unknowns = (i * (resolution + 1) + j) * (resolution + 1) + k
+    held_out_error = None
+    if held_out is not None and len(held_out):
+        held_out = held_out.detach().cpu().float()
+
+        def held_out_error(field: VoxelSDF) -> float:
+            return float(field(held_out).abs().mean())
+
     return solve_values(model, *point_equations(points, normals, voxel), prior_weight, iterations,
-                        smoothness=smoothness, unknowns=unknowns)
+                        smoothness=smoothness, unknowns=unknowns, refinements=refinements if held_out_error else 0,
+                        score=held_out_error, score_below=REFINE_BELOW * voxel)
