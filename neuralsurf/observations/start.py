@@ -9,8 +9,10 @@ rays) with a membrane term over the grid: within a coarse cell of the points eve
 its neighbours as well as its start, so where overlapping scans lie slightly out of register (the nearest plane
 changes side between them), or a patch of normals is flipped, or the interpolated coarse field crosses zero near
 the surface, the surface stays one and its side is what its surroundings say, not what one plane says (with
-smoothness 0 the merged Stanford scans' start falls into 502 pieces, with it one; on a smooth clean surface it
-costs accuracy: docs/benchmarks.md). A network then only refines this field (`models.RefinedSDF`).
+smoothness 0 the merged Stanford scans' start falls into 502 pieces, with it one). On a smooth clean surface the
+membrane biases the values toward their neighbours' mean; given points held out of the equations, the solve is
+refined while they come closer to its zero level, which takes that bias back where it is what limits the start
+(docs/benchmarks.md). A network then only refines this field (`models.RefinedSDF`).
 """
 
 from __future__ import annotations
