@@ -100,10 +100,12 @@ class VoxelSDF(nn.Module):
         base = base.long()
         inside = ((base >= 0) & (base < base.new_tensor(self.shape) - 1)).all(-1)
         linear = torch.where(inside, (base[:, 0] * self.shape[1] + base[:, 1]) * self.shape[2] + base[:, 2], 0)
-        row = self.rows.view(-1)[linear[:, None] + self.steps].long()
-        present = (row >= 0) & inside[:, None]
         wx, wy, wz = (torch.stack([1 - fraction[:, a], fraction[:, a]], -1) for a in range(3))
-        w = (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(-1, 8) * present
+        w = (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(-1, 8)
+        if self.whole:  # rows are grid order, every corner observed: no lookup, the weights are trilinear's own
+            return linear[:, None] + self.steps, w * inside[:, None]
+        row = self.rows.view(-1)[linear[:, None] + self.steps].long()
+        w = w * ((row >= 0) & inside[:, None])
         total = w.sum(-1, keepdim=True)
         # a cell with some observed corners reads them alone
         return row.clamp_min(0), torch.where(total > 1e-6, w / total.clamp_min(1e-12), 0.0)
@@ -200,7 +202,8 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
             raise ConfigError("solve_values' smoothness needs every grid point observed (a whole grid, as "
                               "VoxelSDF.from_grid with observed all true makes)")
         index = touched.long()
-        coordinates = torch.stack(torch.unravel_index(index, model.shape), -1)
+        _, y, z = model.shape
+        coordinates = torch.stack([index // (y * z), index // z % y, index % z], -1)
         edges = ((coordinates > 0).sum(-1) + (coordinates < index.new_tensor(model.shape) - 1).sum(-1)).to(start.dtype)
         held = model.values[:, 0].index_fill(0, index, 0.0)  # the values kept at their start
         right += mu * neighbour_sum(held.view(model.shape)).view(-1)[index]
