@@ -190,6 +190,9 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
     rows = flat.reshape(rows.shape)
     start = model.values[touched, 0]
 
+    def at_points(v: Tensor) -> Tensor:  # A v: the field at the equations' points
+        return (w * v[rows]).sum(-1)
+
     def gather(per_equation: Tensor) -> Tensor:  # A^T diag(weights) per_equation
         return torch.zeros_like(start).index_add_(0, flat, (w * (weights * per_equation)[:, None]).reshape(-1))
 
@@ -201,35 +204,37 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
         if not model.whole:
             raise ConfigError("solve_values' smoothness needs every grid point observed (a whole grid, as "
                               "VoxelSDF.from_grid with observed all true makes)")
-        index = touched.long()
+        linear = touched.long()
         _, y, z = model.shape
-        coordinates = torch.stack([index // (y * z), index // z % y, index % z], -1)
-        edges = ((coordinates > 0).sum(-1) + (coordinates < index.new_tensor(model.shape) - 1).sum(-1)).to(start.dtype)
-        held = model.values[:, 0].index_fill(0, index, 0.0)  # the values kept at their start
-        right += mu * neighbour_sum(held.view(model.shape)).view(-1)[index]
+        coordinates = torch.stack([linear // (y * z), linear // z % y, linear % z], -1)
+        edges = ((coordinates > 0).sum(-1) + (coordinates < linear.new_tensor(model.shape) - 1).sum(-1)).to(start.dtype)
+        held = model.values[:, 0].index_fill(0, linear, 0.0)  # the values kept at their start
+        right += mu * neighbour_sum(held.view(model.shape)).view(-1)[linear]
         low = coordinates.min(0).values  # the products need only the unknowns' bounding box: zero around it
         box = (coordinates.max(0).values - low + 1).tolist()
-        inside = coordinates - low
-        index = (inside[:, 0] * box[1] + inside[:, 1]) * box[2] + inside[:, 2]
+        in_box = coordinates - low
+        in_box = (in_box[:, 0] * box[1] + in_box[:, 1]) * box[2] + in_box[:, 2]
         grid = torch.zeros(box[0] * box[1] * box[2], dtype=start.dtype, device=device)  # zero but at the unknowns
 
         def on_grid(per_unknown: Tensor) -> Tensor:  # the unknowns' values in their box, 0 elsewhere
-            return grid.index_copy_(0, index, per_unknown).view(box)
+            return grid.index_copy_(0, in_box, per_unknown).view(box)
 
         diagonal += mu * edges
     preconditioner = 1 / (diagonal + lam)
 
     def normal(v: Tensor) -> Tensor:  # (A^T W A + lam + mu (edges - adjacency)) v
-        product = gather((w * v[rows]).sum(-1)) + lam * v
+        product = gather(at_points(v)) + lam * v
         if mu > 0:
-            product += mu * (edges * v - neighbour_sum(on_grid(v)).view(-1)[index])
+            product += mu * (edges * v - neighbour_sum(on_grid(v)).view(-1)[in_box])
         return product
 
     values = conjugate_gradients(normal, right, start.clone(), preconditioner, iterations)
     model.values[touched, 0] = values
     best = score(model) if score is not None and refinements else None
-    for _ in range(refinements if best is None or best < score_below else 0):  # a correction from what is missed
-        missed = gather(targets - (w * values[rows]).sum(-1))
+    if best is not None and not best < score_below:
+        refinements = 0
+    for _ in range(refinements):  # the same system, for a correction from what the equations still miss
+        missed = gather(targets - at_points(values))
         refined = values + conjugate_gradients(normal, missed, torch.zeros_like(values), preconditioner, iterations)
         model.values[touched, 0] = refined
         if best is not None:
