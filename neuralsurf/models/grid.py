@@ -131,6 +131,24 @@ class VoxelSDF(nn.Module):
         return values, observed
 
 
+def grid_adjacency(coordinates: Tensor) -> Tensor:
+    """Float sparse CSR [k, k]: 1 where two of Long[Tensor, "k 3"] distinct grid points, in grid order, are axis
+    neighbours; six entries a row with int32 indices (a product with it reads a fraction of the memory that a
+    dense neighbour sum over the points' bounding box does: 4x faster on the bunny's start)."""
+    low = coordinates.min(0).values - 1  # a box one point wider each side: a neighbour outside it reads "none"
+    size = coordinates.max(0).values - low + 2
+    strides = torch.stack([size[1] * size[2], size[2], torch.ones_like(size[2])])
+    local = ((coordinates[:, 0] - low[0]) * size[1] + coordinates[:, 1] - low[1]) * size[2] + coordinates[:, 2] - low[2]
+    index = torch.full((int(size.prod()),), -1, dtype=torch.int32, device=coordinates.device)
+    index[local] = torch.arange(len(local), dtype=torch.int32, device=coordinates.device)
+    steps = torch.cat([-strides, strides.flip(0)])  # columns in grid order within each row
+    neighbours = index[local[:, None] + steps]
+    present = neighbours >= 0  # 0 where no neighbour: no masked copy to build
+    rows = torch.arange(0, 6 * len(local) + 1, 6, dtype=torch.int32, device=coordinates.device)
+    return torch.sparse_csr_tensor(rows, neighbours.clamp_min_(0).view(-1), present.view(-1).float(),
+                                   (len(local), len(local)))
+
+
 def neighbour_sum(grid: Tensor) -> Tensor:
     """Float[Tensor, "x y z"]: each grid point's sum of its axis neighbours' values in Float[Tensor, "x y z"] `grid`
     (fewer neighbours on its faces)."""
@@ -149,7 +167,7 @@ REFINEMENT_GAIN = 0.05
 @torch.no_grad()
 def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tensor, prior_weight: float = 10.0,
                  iterations: int = 5, chunk: int = 1 << 20, smoothness: float = 0.0,
-                 unknowns: Tensor | None = None, refinements: int = 0,
+                 unknowns: Tensor | None = None, refinements: int = 0, refinement_iterations: int | None = None,
                  score: Callable[[VoxelSDF], float] | None = None, score_below: float = math.inf) -> VoxelSDF:
     """`model` with its values v fitted to the equations model(points) = targets (Float[Tensor, "m 3"],
     Float[Tensor, "m"], weighted by Float[Tensor, "m"]) and held to their start v0: the minimum of
@@ -162,14 +180,16 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
     The unknowns are the values the equations read and Long[Tensor, "k"] rows `unknowns`; the others keep their
     start (as they would in the full system without smoothness), so the cost follows the equations, not the grid.
     With `refinements` > 0, the same system is then solved up to that many times more for a correction from the
-    equations' residual alone (iterated Tikhonov): each pass takes back most of the bias the prior and the membrane
-    put on what the equations determine well, while what they leave undetermined stays held; with `score` (of the
-    model, lower is better), the passes start only where the first solve scores below `score_below`, and a pass
-    is kept only while it lowers the score by `REFINEMENT_GAIN`.
+    equations' residual alone (iterated Tikhonov), by `refinement_iterations` steps each (default `iterations`): each
+    pass takes back most of the bias the prior and the membrane put on what the equations determine well, while what
+    they leave undetermined stays held; with `score` (of the model, lower is better), the passes start only where the
+    first solve scores below `score_below`, and a pass is kept only while it lowers the score by `REFINEMENT_GAIN`.
     `chunk`: points looked up at once (bounds memory, same result)."""
-    if not prior_weight > 0 or iterations < 0 or not smoothness >= 0 or refinements < 0:
-        raise ConfigError(f"solve_values needs prior_weight > 0, iterations >= 0, smoothness >= 0 and refinements >= 0, "
-                          f"got {prior_weight}, {iterations}, {smoothness} and {refinements}")
+    refinement_iterations = iterations if refinement_iterations is None else refinement_iterations
+    if not prior_weight > 0 or min(iterations, refinement_iterations, refinements) < 0 or not smoothness >= 0:
+        raise ConfigError(f"solve_values needs prior_weight > 0, smoothness >= 0 and iterations, refinement_iterations "
+                          f"and refinements >= 0, got {prior_weight}, {smoothness}, {iterations}, "
+                          f"{refinement_iterations} and {refinements}")
     device = model.values.device
     rows, w, kept = [], [], []
     for start in range(0, len(points), chunk):  # the corners' temporaries are a few times rows' size
@@ -210,23 +230,13 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
         edges = ((coordinates > 0).sum(-1) + (coordinates < linear.new_tensor(model.shape) - 1).sum(-1)).to(start.dtype)
         held = model.values[:, 0].index_fill(0, linear, 0.0)  # the values kept at their start
         right += mu * neighbour_sum(held.view(model.shape)).view(-1)[linear]
-        low = coordinates.min(0).values  # the products need only the unknowns' bounding box: zero around it
-        box = (coordinates.max(0).values - low + 1).tolist()
-        in_box = coordinates - low
-        in_box = (in_box[:, 0] * box[1] + in_box[:, 1]) * box[2] + in_box[:, 2]
-        grid = torch.zeros(box[0] * box[1] * box[2], dtype=start.dtype, device=device)  # zero but at the unknowns
-
-        def on_grid(per_unknown: Tensor) -> Tensor:  # the unknowns' values in their box, 0 elsewhere
-            return grid.index_copy_(0, in_box, per_unknown).view(box)
-
-        diagonal += mu * edges
-    preconditioner = 1 / (diagonal + lam)
+        adjacency = grid_adjacency(coordinates).to(start.dtype)
+    own = lam + mu * edges if mu > 0 else lam  # the prior's and the membrane's diagonal
+    preconditioner = 1 / (diagonal + own)
 
     def normal(v: Tensor) -> Tensor:  # (A^T W A + lam + mu (edges - adjacency)) v
-        product = gather(at_points(v)) + lam * v
-        if mu > 0:
-            product += mu * (edges * v - neighbour_sum(on_grid(v)).view(-1)[in_box])
-        return product
+        product = gather(at_points(v)).addcmul_(own, v) if mu > 0 else gather(at_points(v)).add_(own * v)
+        return product.sub_(adjacency @ v, alpha=float(mu)) if mu > 0 else product
 
     values = conjugate_gradients(normal, right, start.clone(), preconditioner, iterations)
     model.values[touched, 0] = values
@@ -235,7 +245,8 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
         refinements = 0
     for _ in range(refinements):  # the same system, for a correction from what the equations still miss
         missed = gather(targets - at_points(values))
-        refined = values + conjugate_gradients(normal, missed, torch.zeros_like(values), preconditioner, iterations)
+        refined = values + conjugate_gradients(normal, missed, torch.zeros_like(values), preconditioner,
+                                                refinement_iterations)
         model.values[touched, 0] = refined
         if best is not None:
             scored = score(model)
@@ -253,16 +264,16 @@ def conjugate_gradients(product: Callable[[Tensor], Tensor], right: Tensor, valu
     `values` (updated in place), `product` symmetric positive definite, `preconditioner` its inverse diagonal."""
     residual = right - product(values)
     z = preconditioner * residual
-    direction, rz = z.clone(), (residual * z).sum()
+    direction, rz = z.clone(), float(residual.dot(z))
     converged = 1e-12 * rz  # float32 round-off beyond this: further steps would divide noise by noise
     for _ in range(iterations):
         if rz <= converged:
             break
         step_product = product(direction)
-        step = rz / (direction * step_product).sum()
-        values += step * direction
-        residual -= step * step_product
-        z = preconditioner * residual
-        rz, previous = (residual * z).sum(), rz
-        direction = z + (rz / previous) * direction
+        step = rz / float(direction.dot(step_product))
+        values.add_(direction, alpha=step)
+        residual.sub_(step_product, alpha=step)
+        torch.mul(preconditioner, residual, out=z)
+        rz, previous = float(residual.dot(z)), rz
+        direction.mul_(rz / previous).add_(z)
     return values

@@ -87,15 +87,15 @@ def cells_for_spacing(width: float, box: float, most: int, coarse: int) -> int:
 
 
 @torch.no_grad()
-def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 256, band: int = 2, coarse: int = 8,
-                prior_weight: float = 0.1, iterations: int = 10, winding_points: int = 5000,
-                seed: int = 0, max_points: int = 1_000_000, spacings_per_cell: float | None = None,
-                smoothness: float = 1.0, held_out: Tensor | None = None, refinements: int = 3) -> VoxelSDF:
+def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 256, band: int = 1, coarse: int = 8,
+                prior_weight: float = 0.1, iterations: int = 10, winding_points: int = 5000, seed: int = 0,
+                max_points: int = 1_000_000, spacings_per_cell: float | None = None, smoothness: float = 1.0,
+                held_out: Tensor | None = None, refinements: int = 3, refinement_iterations: int = 5) -> VoxelSDF:
     """The start of a fit to Float[Tensor, "n 3"] unit-frame `points` with unit outward `normals` (see the
     module docstring): a VoxelSDF with every point of its (resolution + 1)^3 grid over [-box, box]^3 observed.
-    `resolution` must be a multiple of `coarse`; `prior_weight` and `iterations` are `solve_values`'. A cloud of more
-    than `max_points` is read through a random subset of that many (`seed`): a million points sample a 256-cell grid
-    several times over, and the solve's memory grows with the points. With `spacings_per_cell`, `resolution` is the
+    `resolution` must be a multiple of `coarse`; `prior_weight`, `iterations` and `refinement_iterations` are
+    `solve_values`'. A cloud of more than `max_points` is read through a random subset of that many (`seed`): a
+    million points sample a 256-cell grid several times over, and the solve's memory grows with the points. With `spacings_per_cell`, `resolution` is the
     most: cells are at least that many point spacings wide (`cells_for_spacing`). `smoothness` weighs the membrane
     term (`solve_values`) over the values within `coarse` cells of a point; 0: only the values the equations read
     are solved for, each held to its start. With Float[Tensor, "h 3"] `held_out` points (unit frame, kept out of
@@ -138,4 +138,5 @@ def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 2
 
     return solve_values(model, *point_equations(points, normals, voxel), prior_weight, iterations,
                         smoothness=smoothness, unknowns=unknowns, refinements=refinements if held_out_error else 0,
+                        refinement_iterations=refinement_iterations,
                         score=held_out_error, score_below=REFINE_BELOW * voxel)
