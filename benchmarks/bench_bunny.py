@@ -1,5 +1,6 @@
-"""The bunny, end to end: fit steps/s, extraction time (dense vs coarse-to-fine) and peak memory,
-with Open3D's screened Poisson on the same 100k oriented points as the reference, in one run.
+"""The bunny fitted by the hash-grid MLP alone (experiment=bunny_mlp), end to end: fit steps/s, extraction time
+(dense vs coarse-to-fine) and peak memory, with Open3D's screened Poisson on the same 100k oriented points as the
+reference, in one run (train.py's default, which refines a start, against Poisson: bench_points.py).
 
     python benchmarks/bench_bunny.py [--steps 1500] [--device auto] [--resolutions 256 512]
 
@@ -64,7 +65,7 @@ def main() -> None:
     args = parser.parse_args()
 
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        cfg = compose(config_name="train", overrides=["experiment=bunny_sdf"])
+        cfg = compose(config_name="train", overrides=["experiment=bunny_mlp"])
     trainer = OmegaConf.to_container(cfg.trainer, resolve=True)
     trainer.update(steps=args.steps or trainer["steps"], progress=False, image_every=0)
     device = ns.training.resolve_device(args.device)

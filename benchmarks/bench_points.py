@@ -1,6 +1,6 @@
-"""Point clouds against screened Poisson: train.py's fast point fit (experiment=points_fast: a voxel SDF solved from
-the points, refined by a hash-grid MLP until held-out points stop improving, extracted near the surface only), its
-default fit (experiment=bunny_sdf) and Open3D's screened Poisson on the same points and normals, timed in one run.
+"""Point clouds against screened Poisson: train.py's point fit (its default, experiment=bunny_sdf: a voxel SDF solved
+from the points, refined by a hash-grid MLP until held-out points stop improving, extracted near the surface only)
+and Open3D's screened Poisson on the same points and normals, timed in one run.
 
     python benchmarks/bench_points.py bunny    # the demo's 100k points against Poisson depth 10 and 9
     python benchmarks/bench_points.py scans    # train.py data=file on the Stanford range scans merged ($NEURALSURF_DATA)
@@ -40,13 +40,11 @@ from neuralsurf.scenes import Scene
 from neuralsurf.scenes.recipes import extract_scene_mesh
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-
-
-FAST = "experiment=points_fast"
+OURS = "train.py (fit + extraction)"
 
 
 def configured(overrides: list[str]):
-    """train.py's config with these overrides (experiment bunny_sdf, its default, unless overridden)."""
+    """train.py's config with these overrides (its default experiment, bunny_sdf, unless overridden)."""
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         return without_feeds(compose(config_name="train", overrides=overrides))
 
@@ -89,18 +87,16 @@ def bunny(args) -> None:
     for depth in (10, 9):
         mesh, wall, cpu = poisson(cloud, depth)
         runs[f"poisson depth {depth}"] = (mesh, wall, cpu, {})
-    for name, experiment in (("ours (train.py points_fast)", FAST), ("train.py default (bunny_sdf)", "experiment=bunny_sdf")):
-        mesh, result, wall, cpu = ours(configured([experiment]), scene)
-        runs[name] = (mesh, wall, cpu, {"steps": result.steps})
+    mesh, result, wall, cpu = ours(configured([]), scene)
+    runs[OURS] = (mesh, wall, cpu, {"steps": result.steps})
     for name, (mesh, wall, cpu, extra) in runs.items():
         metrics = ns.metrics.evaluate_mesh(mesh, gt)
         line(name, wall, cpu, {"chamfer_l1_exact": metrics["chamfer_l1_exact"],
                                "normal_consistency": metrics["normal_consistency"],
                                "watertight": mesh.is_watertight, **extra})
-    for name in ("ours (train.py points_fast)", "train.py default (bunny_sdf)"):
-        for depth in (10, 9):
-            a, b = runs[name], runs[f"poisson depth {depth}"]
-            print(f"time {name} / Poisson depth {depth}: {a[1] / b[1]:.2f}x wall, {a[2] / b[2]:.2f}x CPU")
+    for depth in (10, 9):
+        a, b = runs[OURS], runs[f"poisson depth {depth}"]
+        print(f"time {OURS} / Poisson depth {depth}: {a[1] / b[1]:.2f}x wall, {a[2] / b[2]:.2f}x CPU")
 
 
 def scan_distances(mesh, cloud, n: int = 100_000) -> dict[str, float]:
@@ -124,19 +120,15 @@ def scans(args) -> None:
         runs = {}
         mesh, wall, cpu = poisson(file_scene.cloud, 9)
         runs["poisson depth 9"] = (mesh, wall, cpu, {})
-        for name, experiment in (("ours (points_fast data=file)", FAST), ("train.py default (data=file)", None)):
-            cfg = configured([experiment, "data=file", f"data.path={path}"] if experiment else
-                             ["data=file", f"data.path={path}"])
-            mesh, result, wall, cpu = ours(cfg, file_scene)
-            runs[name] = (mesh, wall, cpu, {"steps": result.steps})
+        mesh, result, wall, cpu = ours(configured(["data=file", f"data.path={path}"]), file_scene)
+        runs[OURS] = (mesh, wall, cpu, {"steps": result.steps})
     print(f"{len(scene.cloud)} points, normals {scene.cloud.has_normals}")
     for name, (mesh, wall, cpu, extra) in runs.items():
         against = ns.metrics.evaluate_mesh(mesh, scene.ground_truth)
         line(name, wall, cpu, {**scan_distances(mesh, scene.cloud), "chamfer_l1_exact_zippered":
                                against["chamfer_l1_exact"], "nc_zippered": against["normal_consistency"], **extra})
-    for name in ("ours (points_fast data=file)", "train.py default (data=file)"):
-        a, b = runs[name], runs["poisson depth 9"]
-        print(f"time {name} / Poisson depth 9: {a[1] / b[1]:.2f}x wall, {a[2] / b[2]:.2f}x CPU")
+    a, b = runs[OURS], runs["poisson depth 9"]
+    print(f"time {OURS} / Poisson depth 9: {a[1] / b[1]:.2f}x wall, {a[2] / b[2]:.2f}x CPU")
 
 
 def peak_rss_mib() -> float:
@@ -161,7 +153,7 @@ def one_case(kind: str, n: int, resolution: int) -> dict:
     if kind == "poisson":
         _, wall, cpu = poisson(cloud, 9)
         return {"wall": wall, "cpu": cpu, "peak_mib": peak_rss_mib(), "input_mib": before}
-    cfg = configured([FAST, "data=file", "data.path=unused"])
+    cfg = configured(["data=file", "data.path=unused"])
     scene = Scene("cloud", cloud, None)
     if kind == "fit":
         mesh, result, wall, cpu = ours(cfg, scene)
@@ -203,7 +195,7 @@ def plot(measured: list, path: Path) -> None:
 
     from neuralsurf.evaluation.render import scatter_plot
 
-    series = {"fit": "points_fast: fit + extract 256", "poisson": "Poisson depth 9"}
+    series = {"fit": "train.py: fit + extract 256", "poisson": "Poisson depth 9"}
     points = [(n, result["wall"], series[kind], f"{n // 1000}k") for kind, n, _, result in measured
               if kind in series and n]
     memory = [(n, result["peak_mib"], series[kind], f"{n // 1000}k") for kind, n, _, result in measured

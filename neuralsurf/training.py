@@ -148,17 +148,18 @@ class FitDiverged(NeuralsurfError):
 class Checkpoints:
     """A fit's training state in `run_dir/checkpoints/last.pt` (nothing without `run_dir`).
 
-    `save` writes the field (`field_state`: what `load_field` reads) with the optimiser, the scheduler,
-    the sampling generator, torch's global RNG, the history, the wall time and `config`, atomically
-    and only where `writes` (rank 0). `resume` loads all of it back (on every rank), so that the fit
-    continues exactly where it stopped."""
+    `save` writes the field (`field_state`: what `load_field` reads) with the optimiser, the scheduler, the
+    sampling generator, torch's global RNG, the held-out stop's reads (`stopper`, an `EarlyStop`), the history, the
+    wall time and `config`, atomically and only where `writes` (rank 0). `resume` loads all of it back (on every
+    rank), so that the fit continues exactly where it stopped, and a fit the held-out points stopped stays stopped."""
 
     def __init__(self, run_dir: str | Path | None, model: nn.Module, normalization: Normalization, margin: float,
                  optimizer: torch.optim.Optimizer, scheduler: torch.optim.lr_scheduler.LRScheduler,
-                 generator: torch.Generator, config: dict | None = None, writes: bool = True) -> None:
+                 generator: torch.Generator, config: dict | None = None, writes: bool = True,
+                 stopper: EarlyStop | None = None) -> None:
         self.path = Path(run_dir) / "checkpoints" / CHECKPOINT_NAME if run_dir is not None else None
         self.model, self.normalization, self.margin = model, normalization, margin
-        self.optimizer, self.scheduler, self.generator = optimizer, scheduler, generator
+        self.optimizer, self.scheduler, self.generator, self.stopper = optimizer, scheduler, generator, stopper
         self.config, self.writes = config or {}, writes
 
     def resume(self, steps: int) -> tuple[int, float, dict[str, list[float]]]:
@@ -177,6 +178,8 @@ class Checkpoints:
         self.scheduler.load_state_dict(state["scheduler"])
         self.generator.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])
+        if self.stopper is not None:
+            self.stopper.load_state_dict(state.get("early_stop"))
         step = int(state["step"])
         if step >= steps:
             warnings.warn(f"{self.path} already holds {step} >= {steps} steps; nothing to train")
@@ -189,8 +192,9 @@ class Checkpoints:
         save_checkpoint(self.path, {
             **field_state(self.model, self.normalization, self.margin, step),
             "optimizer": _portable(self.optimizer.state_dict()), "scheduler": self.scheduler.state_dict(),
-            "generator": self.generator.get_state(), "torch_rng": torch.get_rng_state(), "history": history,
-            "seconds": seconds, "config": self.config,
+            "generator": self.generator.get_state(), "torch_rng": torch.get_rng_state(),
+            "early_stop": self.stopper and self.stopper.state_dict(), "history": history, "seconds": seconds,
+            "config": self.config,
         })
 
 
@@ -351,7 +355,7 @@ def fit(
     progress: bool = True,
     cuda_graph: bool = True,
     patience: int = 0,
-    validate_every: int = 25,
+    validate_every: int = 10,
 ) -> FitResult:
     """Fit `model` (unit frame, x[..., 3] -> sdf) to `observations` (world frame) and return a FitResult.
 
@@ -389,14 +393,14 @@ def fit(
         optimizer, lambda s: cosine_schedule(s, steps, warmup_steps, min_lr_ratio))
     generator = torch.Generator().manual_seed(seed)
     rank, world = rank_and_world()
+    stopper = EarlyStop(model, samplers, patience, validate_every)
     checkpoints = Checkpoints(run_dir, model, normalization, margin, optimizer, scheduler, generator, config,
-                              writes=rank == 0)
+                              writes=rank == 0, stopper=stopper)
     start_step, seconds, history = checkpoints.resume(steps) if resume else (0, 0.0, {})
     world_field = NormalizedField(model, normalization, margin=margin)
     monitor = FitMonitor(steps, start_step, seconds, history, params, optimizer, world_field,
                          run_dir if rank == 0 else None, progress and rank == 0, log_every, image_every, mesh_every)
 
-    stopper = EarlyStop(model, samplers, patience, validate_every, start_step)
     done = start_step
     with only_trainable(model, params):
         train_step = TrainStep(model, observations, samplers, optimizer, device, world, cuda_graph)
@@ -431,21 +435,33 @@ def fit(
 class EarlyStop:
     """`fit`'s stop on held-out data: every `every` steps (and at the first) the mean of the samplers'
     `held_out_error`; `stops(step)` is True once it has not fallen by 1 % for `patience` reads in a row, and then
-    puts the model back to the state of its best read. Off (never stops) with `patience` 0 or no held-out data."""
+    puts the model back to the state of its best read (and stays True). Off (never stops) with `patience` 0 or no
+    held-out data. Its reads so far are `state_dict()`, which a checkpoint keeps."""
 
-    def __init__(self, model: nn.Module, samplers: list, patience: int, every: int, start_step: int) -> None:
+    def __init__(self, model: nn.Module, samplers: list, patience: int, every: int) -> None:
         if not (isinstance(patience, int) and patience >= 0 and isinstance(every, int) and every >= 1):
             raise ConfigError(f"fit needs integers patience >= 0 and validate_every >= 1, got {patience!r} and {every!r}")
-        self.model, self.samplers, self.patience, self.every, self.start_step = model, samplers, patience, every, start_step
-        self.best, self.best_state, self.misses = math.inf, None, 0
+        self.model, self.samplers, self.patience, self.every = model, samplers, patience, every
+        self.best, self.best_state, self.misses, self.stopped = math.inf, None, 0, False
         self.enabled = patience > 0 and self._error() is not None
 
     def _error(self) -> float | None:
         errors = [e for e in (s.held_out_error(self.model) for s in self.samplers) if e is not None]
         return sum(errors) / len(errors) if errors else None
 
+    def state_dict(self) -> dict:
+        return {"best": self.best, "best_state": self.best_state, "misses": self.misses, "stopped": self.stopped}
+
+    def load_state_dict(self, state: dict | None) -> None:
+        """The reads of `state_dict()` (None: a checkpoint written without them, nothing read yet)."""
+        if state is not None:
+            self.best, self.best_state = float(state["best"]), state["best_state"]
+            self.misses, self.stopped = int(state["misses"]), bool(state["stopped"])
+
     def stops(self, step: int) -> bool:
-        if not self.enabled or (step - self.start_step) % self.every:
+        if self.stopped:
+            return True
+        if not self.enabled or step % self.every:
             return False
         error = self._error()
         if error < 0.99 * self.best:
@@ -458,6 +474,7 @@ class EarlyStop:
         if self.misses < self.patience:
             return False
         self.model.load_state_dict(self.best_state, strict=False)
+        self.stopped = True
         return True
 
 

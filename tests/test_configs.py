@@ -208,7 +208,8 @@ def test_options_of_an_observation_that_is_not_selected_are_a_config_error():
     """observation= on the command line replaces the experiment's; the experiment's options of the one replaced are
     not dropped quietly."""
     cfg, choices = compose_with_choices(["data=rgbd", "data.path=x", "observation=depth_rays"])
-    with pytest.raises(ConfigError, match=r"observation.points \(batch_size, near_gradient, n_near, n_free\) sets "
+    with pytest.raises(ConfigError, match=r"observation.points \(batch_size, near_gradient, n_near, n_free, held_out\) "
+                                          r"sets "
                                           r"options of observation=points, which is not selected \(observation="
                                           r"depth_rays is\): drop them with '~observation.points' or choose an "
                                           r"experiment that selects depth_rays: experiment=bunny_depth"):

@@ -63,7 +63,7 @@ def test_pip_install_then_train_from_an_empty_folder(tmp_path):
     folder = tmp_path / "empty"
     folder.mkdir()
     done = subprocess.run([env_dir / "bin" / "neuralsurf-train", "experiment=bunny_sdf", "trainer.steps=5",
-                           "extract.resolution=32", "trainer.progress=false", "device=cpu"],
+                           "model.start_resolution=32", "extract.resolution=32", "trainer.progress=false", "device=cpu"],
                           cwd=folder, capture_output=True, text=True, timeout=900, check=False)
     assert done.returncode == 0, done.stderr[-3000:]
     metrics = list(folder.glob("outputs/bunny_sdf/bunny/*/metrics.json"))

@@ -146,13 +146,14 @@ def composed(call: str) -> dict:
 
 
 def tiny_overrides(call: str) -> list[str]:
-    """Overrides that shrink what a train.py call prepares (its observations' pools, its data, the
-    prior's scoring), read from its composed config."""
+    """Overrides that shrink what a train.py call prepares (its observations' pools, its data, a refined
+    model's start, the prior's scoring), read from its composed config."""
     cfg = composed(call)
     overrides = [f"observation.{name}.{key}={value}" for name, options in (cfg.get("observation") or {}).items()
                  for kind, small in SMALL_OBSERVATIONS.items() if f".{kind}." in options.get("_target_", "")
                  for key, value in small.items() if key in options]
     overrides += [f"data.{key}={value}" for key, value in SMALL_DATA.items() if key in cfg["data"]]
+    overrides += ["model.start_resolution=32"] if "start_resolution" in cfg["model"] else []
     return overrides + (["score.latent_steps=5"] if "latent_steps" in (cfg.get("score") or {}) else [])
 
 

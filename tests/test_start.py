@@ -1,8 +1,9 @@
 """The closed-form start of a point fit (observations.start), the model that refines it (models.RefinedSDF) and
-the fit's path through both (experiment=points_fast), against analytic SDFs: a sphere and a box sampled with exact normals."""
+the fit's path through both (train.py's default), against analytic SDFs: a sphere and a box sampled with exact normals."""
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import pytest
@@ -182,18 +183,15 @@ def test_a_partial_grid_keeps_its_row_index_and_a_whole_one_its_grid_order():
     assert torch.equal(whole.dense()[0], values)
 
 
-def test_points_fast_refines_a_start_stops_on_held_out_points_and_extracts_sparsely_the_default_does_not():
+def test_the_default_point_fit_refines_a_start_stops_on_held_out_points_and_extracts_sparsely():
     for data in ("sphere", "bunny", "file"):
         with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-            fast = compose(config_name="train", overrides=["experiment=points_fast", f"data={data}"])
             default = compose(config_name="train", overrides=[f"data={data}"])
             method = compose(config_name="evaluate", overrides=["methods=[neural_sdf_fast]"]).method.neural_sdf_fast
-        for cfg in (fast, method):
+        for cfg in (default, method):
             assert cfg.model._target_ == "neuralsurf.models.RefinedSDF" and cfg.model.start_resolution == 256
             points = cfg.observation.points if "observation" in cfg else cfg.observations.points
             assert points.held_out > 0 and cfg.trainer.patience > 0 and cfg.extract.sparse
-        assert default.model._target_ == "neuralsurf.models.SDFMLP"
-        assert default.observation.points.held_out == 0 and default.trainer.patience == 0 and not default.extract.sparse
 
 
 @pytest.mark.slow
@@ -209,6 +207,22 @@ def test_a_point_fit_refines_the_start_and_stops_on_held_out_points():
     assert result.field(x).abs().mean() < 0.5 * 1.1 / 32  # half a start voxel (world = unit frame here)
     with pytest.raises(ConfigError, match="patience"):
         ns.fit(small_refined(), observation, steps=5, patience=-1, device="cpu", progress=False)
+
+
+def test_a_fit_stopped_on_held_out_points_stays_stopped_when_started_again(tmp_path):
+    sphere = Sphere(radius=0.3)
+    observation = PointSamples(sphere.sample_surface(2000, seed=0), n_near=4000, n_free=1000, batch_size=256,
+                               held_out=0.05)
+    options = {"steps": 300, "patience": 1, "validate_every": 5, "device": "cpu", "progress": False,
+               "image_every": 0, "run_dir": tmp_path}
+    first = ns.fit(small_refined(), observation, **options)
+    assert first.steps < 300  # stopped by the held-out points
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "nothing to train" either: the stop, not the step count, ends it
+        again = ns.fit(small_refined(), observation, **options)
+    assert again.steps == first.steps
+    x = sphere.sample_surface(500, seed=1).points.float()
+    assert torch.equal(first.field(x), again.field(x))
 
 
 def test_held_out_share_is_checked_and_leaves_the_pools():

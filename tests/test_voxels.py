@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from neuralsurf.errors import ConfigError
-from neuralsurf.models.grid import VoxelSDF, solve_values
+from neuralsurf.models.grid import VoxelSDF, grid_adjacency, solve_values
 from neuralsurf.models.spec import build_model, model_spec
 from neuralsurf.rooms import fused_voxels, ray_equations, voxel_mesh
 from neuralsurf.structures import DepthFrames, Normalization
@@ -162,6 +162,17 @@ def test_the_smoothed_solve_is_the_least_squares_solution_with_the_membrane_term
     sparse = VoxelSDF.from_grid(values, torch.rand(values.shape, generator=generator) < 0.8, (-0.3, -0.2, -0.1), 0.1)
     with pytest.raises(ConfigError, match="whole grid"):
         solve_values(sparse, points, targets, weights, smoothness=1.0)
+
+
+def test_the_grid_adjacency_links_exactly_the_axis_neighbours():
+    generator = torch.Generator().manual_seed(3)
+    linear = torch.randperm(6 * 5 * 7, generator=generator)[:120].sort().values  # distinct, in grid order
+    coordinates = torch.stack([linear // 35, linear // 7 % 5, linear % 7], -1)
+    expected = ((coordinates[:, None] - coordinates[None]).abs().sum(-1) == 1).float()
+    adjacency = grid_adjacency(coordinates)
+    assert torch.equal(adjacency.to_dense(), expected)
+    values = torch.randn(len(linear), generator=generator)
+    assert torch.allclose(adjacency @ values, expected @ values, atol=1e-6)
 
 
 def test_ray_equations_ask_zero_at_the_hits_and_the_normal_distance_around_them():

@@ -87,7 +87,7 @@ def cells_for_spacing(width: float, box: float, most: int, coarse: int) -> int:
 
 
 @torch.no_grad()
-def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 256, band: int = 1, coarse: int = 8,
+def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 256, band: int = 2, coarse: int = 8,
                 prior_weight: float = 0.1, iterations: int = 10, winding_points: int = 5000, seed: int = 0,
                 max_points: int = 1_000_000, spacings_per_cell: float | None = None, smoothness: float = 1.0,
                 held_out: Tensor | None = None, refinements: int = 3, refinement_iterations: int = 5) -> VoxelSDF:
