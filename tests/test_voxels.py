@@ -46,6 +46,19 @@ def test_trilinear_interpolation_reproduces_a_linear_field_and_its_gradient():
     assert torch.allclose(gradient, torch.tensor([0.3, -0.5, 0.8]).expand_as(gradient), atol=1e-4)
 
 
+def test_a_whole_grid_reads_the_same_without_gradients_as_with_them():
+    generator = torch.Generator().manual_seed(1)
+    values = torch.randn(6, 5, 4, generator=generator)
+    model = VoxelSDF.from_grid(values, torch.ones_like(values, dtype=torch.bool), (-0.3, -0.2, -0.1), 0.1, 2.0)
+    points = torch.rand(500, 3, generator=generator) * 0.8 - 0.4  # some outside the grid: they read `outside`
+    points[:3] = torch.tensor([[-0.3, -0.2, -0.1], [0.2, 0.2, 0.2], [0.1999, 0.1999, 0.1999]])  # corners
+    with torch.no_grad():
+        sampled = model(points)
+    gathered = model(points.clone().requires_grad_(True)).detach()
+    assert torch.allclose(sampled, gathered, atol=1e-5) and (sampled == 2.0).sum() > 50
+    assert sampled[0] == values[0, 0, 0] and sampled[1] == 2.0
+
+
 def test_unobserved_corners_are_left_out_and_unobserved_cells_read_outside():
     values = linear_grid()
     observed = torch.zeros_like(values, dtype=torch.bool)
