@@ -62,7 +62,7 @@ class FitResult:
     steps: int = 0
     """Optimisation steps done, counting those before a resume."""
     seconds: float = 0.0
-    """Wall time of the optimisation, counting those before a resume."""
+    """Wall time of the fit (its set-up, a start's solve included), counting that before a resume."""
 
     def save(self, path: str | Path) -> None:
         """Write the fitted field (model spec and weights, normalisation, margin) atomically; read it
@@ -376,6 +376,7 @@ def fit(
     """
     if not (isinstance(steps, int) and not isinstance(steps, bool) and steps >= 1):
         raise ConfigError(f"fit needs an integer steps >= 1, got {steps!r}")
+    begun = time.perf_counter()  # the fit's time counts its set-up: sample pools, a start's solve
     observations = _as_observations(observations)
     device = resolve_device(device)
     normalization = normalization or Normalization.from_points(union_bounds(observations))
@@ -398,6 +399,7 @@ def fit(
                               writes=rank == 0, stopper=stopper)
     start_step, seconds, history = checkpoints.resume(steps) if resume else (0, 0.0, {})
     world_field = NormalizedField(model, normalization, margin=margin)
+    seconds += time.perf_counter() - begun
     monitor = FitMonitor(steps, start_step, seconds, history, params, optimizer, world_field,
                          run_dir if rank == 0 else None, progress and rank == 0, log_every, image_every, mesh_every)
 

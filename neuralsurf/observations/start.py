@@ -95,15 +95,15 @@ def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 2
     module docstring): a VoxelSDF with every point of its (resolution + 1)^3 grid over [-box, box]^3 observed.
     `resolution` must be a multiple of `coarse`; `prior_weight`, `iterations` and `refinement_iterations` are
     `solve_values`'. A cloud of more than `max_points` is read through a random subset of that many (`seed`): a
-    million points sample a 256-cell grid several times over, and the solve's memory grows with the points. With `spacings_per_cell`, `resolution` is the
-    most: cells are at least that many point spacings wide (`cells_for_spacing`). `smoothness` weighs the membrane
-    term (`solve_values`) over the values within `coarse` cells of a point; 0: only the values the equations read
-    are solved for, each held to its start. With Float[Tensor, "h 3"] `held_out` points (unit frame, kept out of
-    the equations), up to `refinements` passes refine the solve (`solve_values`) while the mean |f| there falls,
-    if it starts below `REFINE_BELOW` voxels: on a clean cloud they take back the membrane's bias (the bunny's 100k
-    points: 1.20e-4 -> 5.4e-5 exact Chamfer-L1 in three); where the held-out points lie farther from the start's
-    surface (noise, scans out of register, sparse points) that bias is not what limits it, and the passes would
-    follow the noise."""
+    million points sample a 256-cell grid several times over, and the solve's memory grows with the points. With
+    `spacings_per_cell`, `resolution` is the most: cells are at least that many point spacings wide
+    (`cells_for_spacing`). `smoothness` weighs the membrane term (`solve_values`) over the values within `coarse`
+    cells of a point; 0: only the values the equations read are solved for, each held to its start. With
+    Float[Tensor, "h 3"] `held_out` points (unit frame, kept out of the equations), up to `refinements` passes
+    refine the solve (`solve_values`) while the mean |f| there falls, if it starts below `REFINE_BELOW` voxels: on a
+    clean cloud they take back the membrane's bias (the bunny's 100k points: 1.20e-4 -> 5.3e-5 exact Chamfer-L1 in
+    three); where the held-out points lie farther from the start's surface (noise, scans out of register, sparse
+    points) that bias is not what limits it, and the passes would follow the noise."""
     if not (resolution >= 2 * coarse >= 2 and resolution % coarse == 0 and band >= 1):
         raise ConfigError(f"voxel_start needs band >= 1 and a resolution that is a multiple of coarse, at least twice "
                           f"it; got resolution={resolution}, coarse={coarse}, band={band}")
