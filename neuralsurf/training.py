@@ -445,7 +445,7 @@ class EarlyStop:
             raise ConfigError(f"fit needs integers patience >= 0 and validate_every >= 1, got {patience!r} and {every!r}")
         self.model, self.samplers, self.patience, self.every = model, samplers, patience, every
         self.best, self.best_state, self.misses, self.stopped = math.inf, None, 0, False
-        self.enabled = patience > 0 and self._error() is not None
+        self.enabled = patience > 0  # until the first read finds no held-out data
 
     def _error(self) -> float | None:
         errors = [e for e in (s.held_out_error(self.model) for s in self.samplers) if e is not None]
@@ -466,6 +466,9 @@ class EarlyStop:
         if not self.enabled or step % self.every:
             return False
         error = self._error()
+        if error is None:
+            self.enabled = False
+            return False
         if error < 0.99 * self.best:
             self.best, self.misses = error, 0
             self.best_state = {k: v.detach().clone() for k, v in (*self.model.named_parameters(),

@@ -90,11 +90,11 @@ class VoxelSDF(nn.Module):
             raise ConfigError("VoxelSDF.from_observed: no grid point is observed; fuse frames that see the surface first")
         if len(linear) == shape[0] * shape[1] * shape[2]:  # a whole grid keeps its values in grid order
             values = torch.empty_like(values).index_copy_(0, linear, values)
-            linear = torch.arange(len(linear), device=linear.device)
         model = cls(list(shape), [float(o) for o in origin], voxel, len(linear), outside)
         with torch.no_grad():
             model.values[:, 0] = values.float().cpu()
-            model.rows.view(-1)[linear.cpu()] = torch.arange(len(linear), dtype=torch.int32)
+            if not model.whole:  # a whole grid's rows are its grid order already
+                model.rows.view(-1)[linear.cpu()] = torch.arange(len(linear), dtype=torch.int32)
         return model
 
     def corners(self, x: Tensor) -> tuple[Tensor, Tensor]:
