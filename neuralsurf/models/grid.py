@@ -51,6 +51,8 @@ class VoxelSDF(nn.Module):
         corner = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
         self.register_buffer("steps", (corner[:, 0] * shape[1] + corner[:, 1]) * shape[2] + corner[:, 2],
                              persistent=False)
+        # the last cell's index per axis, kept on the values' device (a CUDA graph cannot copy it there in a step)
+        self.register_buffer("last", torch.tensor(shape) - 1, persistent=False)
 
     @property
     def whole(self) -> bool:
@@ -105,7 +107,7 @@ class VoxelSDF(nn.Module):
         base = g.detach().floor()
         fraction = g - base
         base = base.long()
-        inside = ((base >= 0) & (base < base.new_tensor(self.shape) - 1)).all(-1)
+        inside = ((base >= 0) & (base < self.last)).all(-1)
         linear = torch.where(inside, (base[:, 0] * self.shape[1] + base[:, 1]) * self.shape[2] + base[:, 2], 0)
         wx, wy, wz = (torch.stack([1 - fraction[:, a], fraction[:, a]], -1) for a in range(3))
         w = (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(-1, 8)
@@ -134,9 +136,8 @@ class VoxelSDF(nn.Module):
         `grid_sample`'s trilinear interpolation (2.6x faster than the gathers of `corners`; no second derivative,
         so `forward` takes it only where no gradient is asked for)."""
         g = (x.reshape(-1, 3) - self.origin) / self.voxel
-        last = g.new_tensor(self.shape) - 1
-        inside = ((g >= 0) & (g < last)).all(-1)
-        where = (2 * g / last - 1).flip(-1).view(1, 1, 1, -1, 3)  # grid_sample's (z, y, x) order in [-1, 1]
+        inside = ((g >= 0) & (g < self.last)).all(-1)
+        where = (2 * g / self.last - 1).flip(-1).view(1, 1, 1, -1, 3)  # grid_sample's (z, y, x) order in [-1, 1]
         value = torch.nn.functional.grid_sample(self.values.view(1, 1, *self.shape), where, align_corners=True)
         return torch.where(inside, value.view(-1), self.outside).reshape(x.shape[:-1])
 
@@ -168,6 +169,7 @@ def grid_adjacency(coordinates: Tensor) -> Tensor:
     columns = torch.masked_select(neighbours, present)
     with warnings.catch_warnings():  # "sparse CSR support is in beta": construction and products are all it needs
         warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta", category=UserWarning)
+        warnings.filterwarnings("ignore", message="Sparse invariant checks are implicitly disabled", category=UserWarning)
         return torch.sparse_csr_tensor(rows, columns, torch.ones(len(columns), device=coordinates.device),
                                        (len(local), len(local)), check_invariants=False)  # valid as built
 
