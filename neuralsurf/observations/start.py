@@ -40,7 +40,7 @@ def band_points(points: Tensor, origin: float, voxel: float, resolution: int, ba
     `origin`) that are corners of cells within `band` cells of a cell holding one of Float[Tensor, "n 3"]
     `points`."""
     cells = ((points.double() - origin) / voxel).floor().long().clamp(0, resolution - 1)
-    near = torch.zeros((resolution + 1,) * 3, dtype=torch.bool)  # cells, then their corners (one more a side)
+    near = torch.zeros((resolution + 1,) * 3, dtype=torch.bool, device=points.device)  # cells, then their corners
     near[cells[:, 0], cells[:, 1], cells[:, 2]] = True
     size = resolution + 1
     for axis in range(3):  # dilated by `band` cells either way, then to the far corners: separable shifts
@@ -75,7 +75,7 @@ def point_equations(points: Tensor, normals: Tensor, offset: float) -> tuple[Ten
     points and unit normals. Returns (points Float[Tensor, "3n 3"], targets Float[Tensor, "3n"], weights
     Float[Tensor, "3n"] (ones)), the input of `solve_values`."""
     where = torch.cat([points, points + offset * normals, points - offset * normals])
-    targets = torch.zeros(len(where), dtype=points.dtype)
+    targets = torch.zeros(len(where), dtype=points.dtype, device=points.device)
     targets[len(points) : 2 * len(points)], targets[2 * len(points) :] = offset, -offset
     return where, targets, torch.ones_like(targets)
 
@@ -92,7 +92,8 @@ def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 2
                 max_points: int = 1_000_000, spacings_per_cell: float | None = None, smoothness: float = 1.0,
                 held_out: Tensor | None = None, refinements: int = 3, refinement_iterations: int = 5) -> VoxelSDF:
     """The start of a fit to Float[Tensor, "n 3"] unit-frame `points` with unit outward `normals` (see the
-    module docstring): a VoxelSDF with every point of its (resolution + 1)^3 grid over [-box, box]^3 observed.
+    module docstring): a VoxelSDF with every point of its (resolution + 1)^3 grid over [-box, box]^3 observed, on
+    the points' device (a GPU's nearest-neighbour queries beyond `geometry.GPU_BRUTE_FORCE_PAIRS` run on the CPU).
     `resolution` must be a multiple of `coarse`; `prior_weight`, `iterations` and `refinement_iterations` are
     `solve_values`'. A cloud of more than `max_points` is read through a random subset of that many (`seed`): a
     million points sample a 256-cell grid several times over, and the solve's memory grows with the points. With
@@ -110,7 +111,7 @@ def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 2
     if normals is None or normals.shape != points.shape or len(points) < 2:
         raise InputError(f"voxel_start needs at least 2 points with one normal each, got points "
                          f"{tuple(points.shape)} and normals {None if normals is None else tuple(normals.shape)}")
-    points, normals = points.detach().cpu().float(), normals.detach().cpu().float()
+    points, normals = points.detach().float(), normals.detach().to(points.device).float()
     if len(points) > max_points:
         chosen = torch.randperm(len(points), generator=torch.Generator().manual_seed(seed))[:max_points]
         points, normals = points[chosen], normals[chosen]
@@ -119,19 +120,21 @@ def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 2
         resolution = cells_for_spacing(spacing * spacings_per_cell, box, resolution, coarse)
     voxel = 2 * box / resolution
     size = resolution // coarse + 1
-    far = signed_distance(grid_points(size, -box, coarse * voxel), points, normals, spacing, winding_points, seed)
+    far = signed_distance(grid_points(size, -box, coarse * voxel).to(points.device), points, normals, spacing,
+                          winding_points, seed)
     values = torch.nn.functional.interpolate(far.reshape(1, 1, size, size, size), size=(resolution + 1,) * 3,
                                              mode="trilinear", align_corners=True)[0, 0]
     near = tuple(band_points(points, -box, voxel, resolution, band).T)
     values[near] = plane_distance(-box + torch.stack(near, -1).float() * voxel, points, normals, 2 * voxel)
-    model = VoxelSDF.from_grid(values, torch.ones_like(values, dtype=torch.bool), [-box] * 3, voxel, outside=box)
+    model = VoxelSDF.from_grid(values, torch.ones_like(values, dtype=torch.bool), [-box] * 3, voxel,
+                               outside=box).to(points.device)
     unknowns = None
     if smoothness > 0:  # the values within a coarse cell of a point (a whole grid's rows are its grid order)
         i, j, k = band_points(points, -box, voxel, resolution, coarse).T
         unknowns = (i * (resolution + 1) + j) * (resolution + 1) + k
     held_out_error = None
     if held_out is not None and len(held_out):
-        held_out = held_out.detach().cpu().float()
+        held_out = held_out.detach().to(points.device).float()
 
         def held_out_error(field: VoxelSDF) -> float:
             return float(field(held_out).abs().mean())
