@@ -113,7 +113,7 @@ def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 2
                          f"{tuple(points.shape)} and normals {None if normals is None else tuple(normals.shape)}")
     points, normals = points.detach().float(), normals.detach().to(points.device).float()
     if len(points) > max_points:
-        chosen = torch.randperm(len(points), generator=torch.Generator().manual_seed(seed))[:max_points]
+        chosen = torch.randperm(len(points), generator=torch.Generator().manual_seed(seed))[:max_points].to(points.device)
         points, normals = points[chosen], normals[chosen]
     spacing = cloud_spacing(points)
     if spacings_per_cell is not None:
