@@ -252,7 +252,7 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
         linear = touched.long()
         _, y, z = model.shape
         coordinates = torch.stack([linear // (y * z), linear // z % y, linear % z], -1)
-        edges = ((coordinates > 0).sum(-1) + (coordinates < linear.new_tensor(model.shape) - 1).sum(-1)).to(start.dtype)
+        edges = ((coordinates > 0).sum(-1) + (coordinates < model.last).sum(-1)).to(start.dtype)
         held = model.values[:, 0].index_fill(0, linear, 0.0)  # the values kept at their start
         right += mu * neighbour_sum(held.view(model.shape)).view(-1)[linear]
         adjacency = grid_adjacency(coordinates).to(start.dtype)
