@@ -195,7 +195,7 @@ def plot(measured: list, path: Path) -> None:
 
     from neuralsurf.evaluation.render import scatter_plot
 
-    series = {"fit": "train.py: fit + extract 256", "poisson": "Poisson depth 9"}
+    series = {"fit": "train.py", "poisson": "Poisson depth 9"}
     points = [(n, result["wall"], series[kind], f"{n // 1000}k") for kind, n, _, result in measured
               if kind in series and n]
     memory = [(n, result["peak_mib"], series[kind], f"{n // 1000}k") for kind, n, _, result in measured
