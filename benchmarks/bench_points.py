@@ -13,7 +13,8 @@ the mesh and from the mesh (100k surface samples) to the scan points, as fractio
 diagonal, and the metrics against Stanford's zippered reconstruction. `curves` runs every case in a child process
 (its peak resident memory is the case's own): the fast fit of 10k to 5M points sampled from the bunny with their
 normals (and the merged scans when present), and the extraction of the 100k fit at each resolution, against
-Poisson depth 9 on the same points. Threads: as the environment sets them (OMP_NUM_THREADS); Poisson runs on one.
+Poisson depth 9 on the same points; fits and Poisson are scored by exact Chamfer-L1 against the bunny (the scans:
+the zippered mesh). Threads: as the environment sets them (OMP_NUM_THREADS); Poisson runs on one.
 """
 
 from __future__ import annotations
@@ -145,20 +146,34 @@ def sampled_cloud(n: int):
     return ns.PointCloud(points.float(), normals.float())
 
 
+def exact_chamfer(mesh, n: int) -> float:
+    """Exact Chamfer-L1 of `mesh` against the surface the n-point cloud came from (the bunny; for n = 0 Stanford's
+    zippered reconstruction)."""
+    if n == 0:
+        from neuralsurf.scenes.recipes import stanford_scans
+
+        truth = stanford_scans(root=os.environ.get("NEURALSURF_DATA")).ground_truth
+    else:
+        truth = ns.scenes.bunny()
+    return ns.metrics.evaluate_mesh(mesh, truth)["chamfer_l1_exact"]
+
+
 def one_case(kind: str, n: int, resolution: int) -> dict:
-    """A child's case: the fit (and default extraction) of n points, Poisson depth 9 on them, or the extraction of
-    the n-point fit at `resolution` (timed alone)."""
+    """A child's case: the fit (and default extraction) of n points, Poisson depth 9 on them (both scored after
+    the timing and the peak memory are read), or the extraction of the n-point fit at `resolution` (timed alone)."""
     cloud = sampled_cloud(n)
     before = peak_rss_mib()
     if kind == "poisson":
-        _, wall, cpu = poisson(cloud, 9)
-        return {"wall": wall, "cpu": cpu, "peak_mib": peak_rss_mib(), "input_mib": before}
+        mesh, wall, cpu = poisson(cloud, 9)
+        peak = peak_rss_mib()
+        return {"wall": wall, "cpu": cpu, "peak_mib": peak, "input_mib": before, "chamfer": exact_chamfer(mesh, n)}
     cfg = configured(["data=file", "data.path=unused"])
     scene = Scene("cloud", cloud, None)
     if kind == "fit":
         mesh, result, wall, cpu = ours(cfg, scene)
-        return {"wall": wall, "cpu": cpu, "peak_mib": peak_rss_mib(), "input_mib": before, "steps": result.steps,
-                "faces": len(mesh.faces)}
+        peak = peak_rss_mib()
+        return {"wall": wall, "cpu": cpu, "peak_mib": peak, "input_mib": before, "steps": result.steps,
+                "faces": len(mesh.faces), "chamfer": exact_chamfer(mesh, n)}
     _, result, _, _ = ours(cfg, scene)
     Path("/proc/self/clear_refs").write_text("5")  # the extraction's own peak from here (Linux)
     mesh, wall, cpu = clock(ns.extract_mesh, result.field, resolution=resolution, sparse=True, progress=False,
@@ -190,7 +205,8 @@ def curves(args) -> None:
 
 
 def plot(measured: list, path: Path) -> None:
-    """Wall time and peak memory against points (fit, Poisson) and against resolution (extraction), log-log."""
+    """Wall time, peak memory and accuracy against points (fit, Poisson) and time and memory against resolution
+    (extraction), log-log."""
     from PIL import Image
 
     from neuralsurf.evaluation.render import scatter_plot
@@ -200,10 +216,13 @@ def plot(measured: list, path: Path) -> None:
               if kind in series and n]
     memory = [(n, result["peak_mib"], series[kind], f"{n // 1000}k") for kind, n, _, result in measured
               if kind in series and n]
+    accuracy = [(n, result["chamfer"], series[kind], f"{n // 1000}k") for kind, n, _, result in measured
+                if kind in series and n]
     extraction = [(res, result[key], name, f"{res}") for kind, _, res, result in measured if kind == "extract"
                   for key, name in (("wall", "wall s"), ("peak_mib", "peak RSS MiB"))]
     panels = [scatter_plot("time against points", "points", "wall s", points),
               scatter_plot("peak memory against points", "points", "peak RSS MiB", memory),
+              scatter_plot("accuracy against points", "points", "exact Chamfer-L1 to the bunny", accuracy),
               scatter_plot("extraction of the 100k fit (sparse)", "cells per side", "wall s | MiB", extraction)]
     canvas = Image.new("RGB", (sum(p.width for p in panels), max(p.height for p in panels)), (255, 255, 255))
     x = 0

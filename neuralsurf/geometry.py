@@ -475,9 +475,19 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 # oriented point clouds: spacing, areas, generalised winding number
 
 
+SPACING_QUERIES = 100_000
+"""`cloud_spacing` reads the median of this many points' nearest-neighbour distances (a fixed random draw): on 5M
+points the whole cloud's queries took 15 s, and the median of 100k of them differs in the third digit."""
+
+
 def cloud_spacing(points: Tensor) -> float:
-    """Median distance from a point to its nearest other point. points: Float[Tensor, "n 3"]."""
-    distance, _ = knn(points, points, 2)
+    """Median distance from a point to its nearest other point, over all Float[Tensor, "n 3"] `points` or a
+    fixed random `SPACING_QUERIES` of them."""
+    query = points
+    if len(points) > SPACING_QUERIES:
+        chosen = torch.randperm(len(points), generator=torch.Generator().manual_seed(0))[:SPACING_QUERIES]
+        query = points[chosen.to(points.device)]
+    distance, _ = knn(query, points, 2)
     return float(distance[:, 1].median())
 
 

@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from neuralsurf.errors import InputError
-from neuralsurf.geometry import cloud_winding_number, point_areas
+from neuralsurf.geometry import SPACING_QUERIES, cloud_spacing, cloud_winding_number, knn, point_areas
 from neuralsurf.sampling import approximate_sdf, draw_batch, make_sdf_samples
 from neuralsurf.scenes import Box, Sphere, Torus
 
@@ -106,3 +106,15 @@ def test_brute_force_knn_matches_the_kd_tree():
         reference, reference_index = _tree_knn(_kd_tree(points), query, k)
         assert torch.allclose(distance, reference, atol=1e-6)
         assert (index == reference_index).float().mean() > 0.999
+
+
+def test_a_large_cloud_s_spacing_is_read_from_a_subset_of_its_points():
+    # a regular grid: every point's nearest neighbour lies one step away, whichever points are asked
+    side = torch.arange(60, dtype=torch.float32) * 0.01
+    grid = torch.stack(torch.meshgrid(side, side, side[:30], indexing="ij"), -1).reshape(-1, 3)
+    assert len(grid) > SPACING_QUERIES
+    assert cloud_spacing(grid) == pytest.approx(0.01, rel=1e-5)
+    # an irregular one: the subset's median is the whole cloud's to a fraction of a percent
+    points = Torus(major=0.3, minor=0.1).sample_surface(150_000, seed=0).points.float()
+    whole = float(knn(points, points, 2)[0][:, 1].median())
+    assert cloud_spacing(points) == pytest.approx(whole, rel=5e-3)
