@@ -59,24 +59,21 @@ def test_the_start_is_the_analytic_sdf_near_the_points_and_has_its_sign_everywhe
 
 def test_held_out_points_refine_a_clean_start_toward_the_surface():
     """The membrane pulls a curved surface's values toward their neighbours' mean (the sphere's start lies 0.03
-    voxel off it); with held-out points the solve is refined while their |f| falls, and its zero level comes
-    closer to the analytic sphere. On the box the held-out points do not improve (its edges' and corners' error
-    is the tangent planes', not the membrane's) and the start stays as it was."""
+    voxel off it); with held-out points the solve is refined while their |f| falls, and the values it moved by less
+    than a tenth of a voxel go back to their plane distances: the zero level comes closer to the analytic sphere
+    (0.028 -> 0.010 voxel) and to the box (0.027 -> 0.014 voxel, whose flat faces' planes are exact), one piece
+    with no wrong sign either way."""
     for shape in (Sphere(radius=0.3), Box(half_extents=(0.3, 0.2, 0.25))):
         cloud = shape.sample_surface(20_000, seed=0)
         points, normals = cloud.points.float(), cloud.normals.float()
         held_out = shape.sample_surface(1000, seed=1).points.float()
-        off, starts = [], []
+        off = []
         for extra in ({}, {"held_out": held_out}):
             model = voxel_start(points, normals, BOX, resolution=64, coarse=4, **extra)
             mesh = ns.extract_mesh(model, 64, [[-0.5] * 3, [0.5] * 3], progress=False)
             off.append(float(shape.sdf(mesh.vertices.double()).abs().mean()) / model.voxel)
-            starts.append(model.values.detach().clone())
             assert pieces_and_wrong_signs(model, shape) == (1, 0)
-        if isinstance(shape, Sphere):
-            assert off[1] < 0.5 * off[0]
-        else:
-            assert torch.equal(starts[0], starts[1])
+        assert off[1] < 0.6 * off[0]
 
 
 def pieces_and_wrong_signs(model: VoxelSDF, shape) -> tuple[int, int]:

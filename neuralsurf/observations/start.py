@@ -11,8 +11,9 @@ changes side between them), or a patch of normals is flipped, or the interpolate
 the surface, the surface stays one and its side is what its surroundings say, not what one plane says (with
 smoothness 0 the merged Stanford scans' start falls into 502 pieces, with it one). On a smooth clean surface the
 membrane biases the values toward their neighbours' mean; given points held out of the equations, the solve is
-refined while they come closer to its zero level, which takes that bias back where it is what limits the start
-(docs/benchmarks.md). A network then only refines this field (`models.RefinedSDF`).
+refined while they come closer to its zero level, and the values it moved by less than a tenth of a voxel go back
+to their plane distances, which takes that bias back where it is what limits the start (docs/benchmarks.md). A
+network then only refines this field (`models.RefinedSDF`).
 """
 
 from __future__ import annotations
@@ -27,6 +28,11 @@ from neuralsurf.sampling import signed_distance
 
 REFINE_BELOW = 0.1
 """`voxel_start` refines its solve only where the held-out points' mean |f| starts below this many voxels."""
+
+KEEP_START = 0.1
+"""On a cloud that passes `REFINE_BELOW`, each value the solve moved by less than this many voxels goes back to its
+start (the plane distances), and by more is moved back this far, where that brings the held-out points closer;
+values whose start has the other sign keep the solve's."""
 
 
 def grid_points(counts: int, origin: float, step: float) -> Tensor:
@@ -104,7 +110,9 @@ def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 2
     refine the solve (`solve_values`) while the mean |f| there falls, if it starts below `REFINE_BELOW` voxels: on a
     clean cloud they take back the membrane's bias (the bunny's 100k points: 1.20e-4 -> 5.3e-5 exact Chamfer-L1 in
     three); where the held-out points lie farther from the start's surface (noise, scans out of register, sparse
-    points) that bias is not what limits it, and the passes would follow the noise."""
+    points) that bias is not what limits it, and the passes would follow the noise. On such a clean cloud the values
+    then go back toward their start by at most `KEEP_START` voxels, where the held-out points come closer (the
+    bunny's: 5.3e-5 -> 4.0e-5)."""
     if not (resolution >= 2 * coarse >= 2 and resolution % coarse == 0 and band >= 1):
         raise ConfigError(f"voxel_start needs band >= 1 and a resolution that is a multiple of coarse, at least twice "
                           f"it; got resolution={resolution}, coarse={coarse}, band={band}")
@@ -139,7 +147,15 @@ def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 2
         def held_out_error(field: VoxelSDF) -> float:
             return float(field(held_out).abs().mean())
 
-    return solve_values(model, *point_equations(points, normals, voxel), prior_weight, iterations,
-                        smoothness=smoothness, unknowns=unknowns, refinements=refinements if held_out_error else 0,
-                        refinement_iterations=refinement_iterations,
-                        score=held_out_error, score_below=REFINE_BELOW * voxel)
+    start = model.values.detach().clone() if held_out_error else None
+    model = solve_values(model, *point_equations(points, normals, voxel), prior_weight, iterations,
+                         smoothness=smoothness, unknowns=unknowns, refinements=refinements if held_out_error else 0,
+                         refinement_iterations=refinement_iterations,
+                         score=held_out_error, score_below=REFINE_BELOW * voxel)
+    if start is not None and (solved_error := held_out_error(model)) < REFINE_BELOW * voxel:
+        solved = model.values.detach().clone()  # no value changes its sign: the zero level's topology is the solve's
+        back = (start - solved).clamp_(-KEEP_START * voxel, KEEP_START * voxel)
+        model.values.add_(torch.where((start > 0) == (solved > 0), back, 0.0))
+        if not held_out_error(model) < solved_error:
+            model.values.copy_(solved)
+    return model
