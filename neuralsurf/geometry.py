@@ -477,7 +477,7 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 SPACING_QUERIES = 100_000
 """`cloud_spacing` reads the median of this many points' nearest-neighbour distances (a fixed random draw): on 5M
-points the whole cloud's queries took 15 s, and the median of 100k of them differs in the third digit."""
+points the whole cloud's queries took 17 s and 100k of them 3 s, their median 0.3 % off."""
 
 
 def cloud_spacing(points: Tensor) -> float:

@@ -12,8 +12,8 @@ the surface, the surface stays one and its side is what its surroundings say, no
 smoothness 0 the merged Stanford scans' start falls into 502 pieces, with it one). On a smooth clean surface the
 membrane biases the values toward their neighbours' mean; given points held out of the equations, the solve is
 refined while they come closer to its zero level, and the values it moved by less than a tenth of a voxel go back
-to their plane distances, which takes that bias back where it is what limits the start (docs/benchmarks.md). A
-network then only refines this field (`models.RefinedSDF`).
+to their plane distances (none changes its sign), which takes that bias back where it is what limits the start
+(docs/benchmarks.md). A network then only refines this field (`models.RefinedSDF`).
 """
 
 from __future__ import annotations
@@ -112,7 +112,7 @@ def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 2
     three); where the held-out points lie farther from the start's surface (noise, scans out of register, sparse
     points) that bias is not what limits it, and the passes would follow the noise. On such a clean cloud the values
     then go back toward their start by at most `KEEP_START` voxels, where the held-out points come closer (the
-    bunny's: 5.3e-5 -> 4.0e-5)."""
+    bunny's: 5.3e-5 -> 4.1e-5)."""
     if not (resolution >= 2 * coarse >= 2 and resolution % coarse == 0 and band >= 1):
         raise ConfigError(f"voxel_start needs band >= 1 and a resolution that is a multiple of coarse, at least twice "
                           f"it; got resolution={resolution}, coarse={coarse}, band={band}")
