@@ -137,43 +137,38 @@ def peak_rss_mib() -> float:
 
 
 def sampled_cloud(n: int):
-    """n points of the bunny's surface with their normals (the scans merged for n = 0)."""
-    if n == 0:
-        from neuralsurf.scenes.recipes import stanford_scans
-
-        return stanford_scans(root=os.environ.get("NEURALSURF_DATA")).cloud
-    points, normals = sample_mesh_surface(ns.scenes.bunny(), n, torch.Generator().manual_seed(0))
-    return ns.PointCloud(points.float(), normals.float())
-
-
-def exact_chamfer(mesh, n: int) -> float:
-    """Exact Chamfer-L1 of `mesh` against the surface the n-point cloud came from (the bunny; for n = 0 Stanford's
+    """(n points of the bunny's surface with their normals, the bunny); for n = 0 (the scans merged, Stanford's
     zippered reconstruction)."""
     if n == 0:
         from neuralsurf.scenes.recipes import stanford_scans
 
-        truth = stanford_scans(root=os.environ.get("NEURALSURF_DATA")).ground_truth
-    else:
-        truth = ns.scenes.bunny()
-    return ns.metrics.evaluate_mesh(mesh, truth)["chamfer_l1_exact"]
+        scene = stanford_scans(root=os.environ.get("NEURALSURF_DATA"))
+        return scene.cloud, scene.ground_truth
+    bunny = ns.scenes.bunny()
+    points, normals = sample_mesh_surface(bunny, n, torch.Generator().manual_seed(0))
+    return ns.PointCloud(points.float(), normals.float()), bunny
 
 
 def one_case(kind: str, n: int, resolution: int) -> dict:
     """A child's case: the fit (and default extraction) of n points, Poisson depth 9 on them (both scored after
     the timing and the peak memory are read), or the extraction of the n-point fit at `resolution` (timed alone)."""
-    cloud = sampled_cloud(n)
+    cloud, truth = sampled_cloud(n)
     before = peak_rss_mib()
+
+    def exact_chamfer(mesh) -> float:
+        return ns.metrics.evaluate_mesh(mesh, truth)["chamfer_l1_exact"]
+
     if kind == "poisson":
         mesh, wall, cpu = poisson(cloud, 9)
         peak = peak_rss_mib()
-        return {"wall": wall, "cpu": cpu, "peak_mib": peak, "input_mib": before, "chamfer": exact_chamfer(mesh, n)}
+        return {"wall": wall, "cpu": cpu, "peak_mib": peak, "input_mib": before, "chamfer": exact_chamfer(mesh)}
     cfg = configured(["data=file", "data.path=unused"])
     scene = Scene("cloud", cloud, None)
     if kind == "fit":
         mesh, result, wall, cpu = ours(cfg, scene)
         peak = peak_rss_mib()
         return {"wall": wall, "cpu": cpu, "peak_mib": peak, "input_mib": before, "steps": result.steps,
-                "faces": len(mesh.faces), "chamfer": exact_chamfer(mesh, n)}
+                "faces": len(mesh.faces), "chamfer": exact_chamfer(mesh)}
     _, result, _, _ = ours(cfg, scene)
     Path("/proc/self/clear_refs").write_text("5")  # the extraction's own peak from here (Linux)
     mesh, wall, cpu = clock(ns.extract_mesh, result.field, resolution=resolution, sparse=True, progress=False,
@@ -212,17 +207,17 @@ def plot(measured: list, path: Path) -> None:
     from neuralsurf.evaluation.render import scatter_plot
 
     series = {"fit": "train.py", "poisson": "Poisson depth 9"}
-    points = [(n, result["wall"], series[kind], f"{n // 1000}k") for kind, n, _, result in measured
-              if kind in series and n]
-    memory = [(n, result["peak_mib"], series[kind], f"{n // 1000}k") for kind, n, _, result in measured
-              if kind in series and n]
-    accuracy = [(n, result["chamfer"], series[kind], f"{n // 1000}k") for kind, n, _, result in measured
+
+    def against_points(key: str) -> list:
+        return [(n, result[key], series[kind], f"{n // 1000}k") for kind, n, _, result in measured
                 if kind in series and n]
+
     extraction = [(res, result[key], name, f"{res}") for kind, _, res, result in measured if kind == "extract"
                   for key, name in (("wall", "wall s"), ("peak_mib", "peak RSS MiB"))]
-    panels = [scatter_plot("time against points", "points", "wall s", points),
-              scatter_plot("peak memory against points", "points", "peak RSS MiB", memory),
-              scatter_plot("accuracy against points", "points", "exact Chamfer-L1 to the bunny", accuracy),
+    panels = [scatter_plot("time against points", "points", "wall s", against_points("wall")),
+              scatter_plot("peak memory against points", "points", "peak RSS MiB", against_points("peak_mib")),
+              scatter_plot("accuracy against points", "points", "exact Chamfer-L1 to the bunny",
+                           against_points("chamfer")),
               scatter_plot("extraction of the 100k fit (sparse)", "cells per side", "wall s | MiB", extraction)]
     canvas = Image.new("RGB", (sum(p.width for p in panels), max(p.height for p in panels)), (255, 255, 255))
     x = 0
