@@ -46,7 +46,8 @@ def main() -> None:
     observation = instantiate(cfg.observation.rays, _convert_="all")(scene)
     result, fit_seconds = timed(f"neural fit from rays, {trainer['steps']} steps", rows, ns.fit, model, observation,
                                 optimizer=instantiate(cfg.optimizer), device=device, **trainer)
-    extract = {k: v for k, v in OmegaConf.to_container(cfg.extract, resolve=True).items() if k != "near_distance"}
+    extract = {k: v for k, v in OmegaConf.to_container(cfg.extract, resolve=True).items()
+               if k not in ("near_distance", "onto_points")}
     mesh, extract_seconds = timed("extract 256^3 coarse-to-fine", rows, ns.extract_mesh, result.field, **extract)
     fused, tsdf_seconds = timed("reference: TSDF fusion, 1/256 voxels", rows, tsdf, scene, device=str(device))
     neural = ns.metrics.evaluate_mesh(mesh, scene.ground_truth)

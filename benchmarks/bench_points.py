@@ -66,7 +66,7 @@ def ours(cfg, scene: Scene, extract: dict | None = None):
     result, fit_wall, fit_cpu = clock(ns.fit, model, observations, optimizer=instantiate(cfg.optimizer), device="cpu",
                                       seed=cfg.seed, **trainer)
     options = {**OmegaConf.to_container(cfg.extract, resolve=True), "progress": False, **(extract or {})}
-    mesh, extract_wall, extract_cpu = clock(extract_scene_mesh, result.field, scene, options)
+    mesh, extract_wall, extract_cpu = clock(extract_scene_mesh, result.field, scene, options, cfg.seed)
     return mesh, result, fit_wall + extract_wall, fit_cpu + extract_cpu
 
 

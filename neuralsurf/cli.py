@@ -258,7 +258,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
             result = fit(model, build_observations(cfg, scene), optimizer=instantiate(cfg.optimizer), device=device,
                          seed=cfg.seed, run_dir=run_dir, config=config, **config["trainer"])
             started = time.perf_counter()
-            mesh = extract_scene_mesh(result.field, scene, config["extract"])
+            mesh = extract_scene_mesh(result.field, scene, config["extract"], cfg.seed)
             fit_seconds, extract_seconds, steps = result.seconds, time.perf_counter() - started, result.steps
         mesh_path = run_dir / f"mesh{extension}"
         write_mesh(mesh_path, mesh)

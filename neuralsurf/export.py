@@ -111,9 +111,9 @@ def build_stored_scene(scene: dict[str, Any]):
 
 
 def meshed_near_input(scene: dict[str, Any] | None, extract: dict[str, Any]) -> bool:
-    """Whether the extraction depends on the scene's input: `near_distance` or `observed_voxel` set in
-    `extract`, or a `near_distance` of the scene's config (given, or its target's default)."""
-    if extract.get("near_distance") is not None or extract.get("observed_voxel") is not None:
+    """Whether the extraction depends on the scene's input: `near_distance`, `observed_voxel` or `onto_points` set
+    in `extract`, or a `near_distance` of the scene's config (given, or its target's default)."""
+    if extract.get("near_distance") is not None or extract.get("observed_voxel") is not None or extract.get("onto_points"):
         return True
     if not scene or "_target_" not in scene:
         return False
@@ -192,8 +192,9 @@ def _extract(field, run_dir: Path, config: dict[str, Any], extract: dict[str, An
         built = build_stored_scene(scene)
         if bounds is not None and extract.pop("observed_voxel", None) is not None:
             log.info("--box: meshing within the scene's near_distance of the input, not on observed voxels")
-        return extract_scene_mesh(field, built, {**extract, **({"bounds": bounds} if bounds is not None else {})})
-    options = {k: v for k, v in extract.items() if k not in ("near_distance", "observed_voxel")}
+        return extract_scene_mesh(field, built, {**extract, **({"bounds": bounds} if bounds is not None else {})},
+                                  config.get("seed", 0))
+    options = {k: v for k, v in extract.items() if k not in ("near_distance", "observed_voxel", "onto_points")}
     return extract_mesh(field, bounds=bounds, **options)
 
 

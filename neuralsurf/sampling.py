@@ -61,6 +61,14 @@ def winding_signs(
     return torch.where(winding < 0.5, 1.0, -1.0), reach
 
 
+def held_out_split(count: int, share: float, seed: int) -> tuple[Tensor, Tensor]:
+    """(held out, kept): Long[Tensor] indices of `count` points, a random `share` of them held out (`seed`), the
+    same for the same arguments: the fit's held-out points and the mesh's (`snapping`) are one set."""
+    order = torch.randperm(count, generator=torch.Generator().manual_seed(seed))
+    split = int(share * count)
+    return order[:split], order[split:]
+
+
 @dataclass(frozen=True)
 class SDFSamples:
     """A pool of training samples in the unit frame, drawn once per fit."""

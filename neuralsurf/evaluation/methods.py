@@ -61,7 +61,7 @@ def fit_and_extract(scene: Scene, model: nn.Module | None = None,
     (a scene lacking one is NotApplicable); with `first_applicable`, only the first one the scene has
     (depth rays for a depth capture, else its point cloud)."""
     if checkpoint is not None:
-        return extract_scene_mesh(load_field(checkpoint, device=device), scene, extract)
+        return extract_scene_mesh(load_field(checkpoint, device=device), scene, extract, seed)
     builders = [b for b in (observations.values() if isinstance(observations, Mapping) else observations or [])
                 if b is not None]
     if model is None or not builders:
@@ -80,7 +80,7 @@ def fit_and_extract(scene: Scene, model: nn.Module | None = None,
     fit_dir = Path(run_dir) if (run_dir is not None and save_checkpoint) else None
     result = fit(model, fitted, optimizer=optimizer or default_optimizer, device=device, seed=seed,
                  run_dir=fit_dir, config=config or {}, **trainer)
-    return extract_scene_mesh(result.field, scene, extract)
+    return extract_scene_mesh(result.field, scene, extract, seed)
 
 
 def poisson(scene: Scene, *, depth: int = 9, density_trim: float | None = None, scale: float = 1.1,

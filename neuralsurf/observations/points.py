@@ -16,7 +16,7 @@ from neuralsurf.losses import clamped_l1, eikonal_loss, normal_loss, off_surface
 from neuralsurf.models.grid import VoxelSDF
 from neuralsurf.observations.base import Observation, Sampler, check_weights
 from neuralsurf.observations.start import voxel_start
-from neuralsurf.sampling import SDFBatch, SDFSamples, draw_batch, make_sdf_samples
+from neuralsurf.sampling import SDFBatch, SDFSamples, draw_batch, held_out_split, make_sdf_samples
 from neuralsurf.strategies import choose, register
 from neuralsurf.structures import Normalization, PointCloud
 
@@ -254,10 +254,8 @@ class PointSamples(Observation):
         cloud = normalization.cloud_to_unit(prepare_cloud(self.cloud, self.normals, self.normal_k, self.denoise))
         held_out = None
         if self.held_out > 0:
-            order = torch.randperm(len(cloud), generator=torch.Generator().manual_seed(seed))
-            split = int(self.held_out * len(cloud))
-            held_out = cloud.points[order[:split]].float().to(device)
-            kept = order[split:]
+            held, kept = held_out_split(len(cloud), self.held_out, seed)
+            held_out = cloud.points[held].float().to(device)
             cloud = PointCloud(cloud.points[kept], None if cloud.normals is None else cloud.normals[kept])
         samples = make_sdf_samples(cloud, n_near=self.n_near, n_free=self.n_free, near_sigmas=self.near_sigmas,
                                    box=box, winding_points=self.winding_points, seed=seed, device=device)

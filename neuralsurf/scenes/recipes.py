@@ -38,6 +38,7 @@ from neuralsurf.scenes.analytic import analytic_shape
 from neuralsurf.scenes.bunny import bunny
 from neuralsurf.scenes.photometric_rig import SpecularLobe, cap_lights, render_photometric
 from neuralsurf.scenes.scanner import intrinsics_from_fov, look_at, orbit_cameras, scan_depth
+from neuralsurf.snapping import snap_to_cloud
 from neuralsurf.structures import DepthFrames, Mesh, PhotometricCapture, PointCloud
 
 
@@ -82,18 +83,24 @@ class Scene:
     capture order) when the capture came without poses or they were not used; None otherwise."""
 
 
-def extract_scene_mesh(field: torch.nn.Module, scene: Scene, extract: dict[str, Any] | None = None) -> Mesh:
+def extract_scene_mesh(field: torch.nn.Module, scene: Scene, extract: dict[str, Any] | None = None,
+                       seed: int = 0) -> Mesh:
     """`extract_mesh(field, **extract)` for a world-frame field fitted to `scene`; a room (the scene's
     `near_distance`, or a `near_distance` option) is meshed only that close to its input points, or with an
-    `observed_voxel` option only where its frames observed a surface (`extract_observed`, voxels of that size)."""
+    `observed_voxel` option only where its frames observed a surface (`extract_observed`, voxels of that size).
+    An `onto_points` option (a share) moves the mesh onto the scene's cloud where held out points say it comes
+    closer (`snapping.snap_to_cloud`, that share held out with `seed`: a point fit's own held-out points)."""
     options = dict(extract or {})
     options.pop("format", None)  # the file format of train.py's mesh, not an extract_mesh argument
     voxel = options.pop("observed_voxel", None)
+    share = options.pop("onto_points", None)
     near = options.pop("near_distance", None) or scene.near_distance
     if voxel and near is not None and scene.frames is not None:
         kept = {k: options[k] for k in ("resolution", "chunk_size", "level", "progress") if k in options}
-        return extract_observed(field, ObservedSurface.from_frames(scene.frames, voxel), **kept)
-    return extract_mesh(field if near is None else NearPointsField(field, scene.cloud.points, near), **options)
+        mesh = extract_observed(field, ObservedSurface.from_frames(scene.frames, voxel), **kept)
+    else:
+        mesh = extract_mesh(field if near is None else NearPointsField(field, scene.cloud.points, near), **options)
+    return snap_to_cloud(mesh, scene.cloud, share, seed) if share else mesh
 
 
 def data_root(root: str | Path | None = None) -> Path:
