@@ -88,7 +88,8 @@ def main() -> None:
           f"{result.history['steps_per_s'][-1]:.2f} steps/s in the last logging window")
 
     extract = OmegaConf.to_container(cfg.extract)  # the experiment's chunks, as train.py extracts
-    extract = {k: v for k, v in extract.items() if k not in ("resolution", "coarse_to_fine", "near_distance", "onto_points")}
+    extract = {k: v for k, v in extract.items()
+               if k not in ("resolution", "coarse_to_fine", "near_distance", "onto_points")}
     meshes = {}
     for resolution in args.resolutions:
         for coarse_to_fine in (False, True):

@@ -4,13 +4,15 @@ and Open3D's screened Poisson on the same points and normals, timed in one run.
 
     python benchmarks/bench_points.py bunny    # the demo's 100k points against Poisson depth 10 and 9
     python benchmarks/bench_points.py scans    # train.py data=file on the Stanford range scans merged ($NEURALSURF_DATA)
+    python benchmarks/bench_points.py misregistered  # synthetic scans of the bunny out of register
     python benchmarks/bench_points.py curves [--sizes 10000 100000 1000000 5000000] [--resolutions 128 256 512 1024]
                                              [--plot docs/images/points_scaling.png]
 
 `bunny` and `scans` print wall and CPU seconds of fit + extraction and of Poisson, and their accuracy: exact
 Chamfer-L1 and normal consistency against the bunny mesh; for the scans the mean distance from the scan points to
 the mesh and from the mesh (100k surface samples) to the scan points, as fractions of the scan's bounding-box
-diagonal, and the metrics against Stanford's zippered reconstruction. `curves` runs every case in a child process
+diagonal, and the metrics against Stanford's zippered reconstruction. `misregistered` fits scans whose true surface
+is known (`misregistered_scans`) with and without the move onto the points (`extract.onto_points`). `curves` runs every case in a child process
 (its peak resident memory is the case's own): the fast fit of 10k to 5M points sampled from the bunny with their
 normals (and the merged scans when present), and the extraction of the 100k fit at each resolution, against
 Poisson depth 9 on the same points; fits and Poisson are scored by exact Chamfer-L1 against the bunny (the scans:
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import resource
 import subprocess
@@ -35,10 +38,13 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 import neuralsurf as ns
+from neuralsurf.baselines.registration.estimation import axis_angle_to_matrix
+from neuralsurf.cameras import depth_to_cloud
 from neuralsurf.cli import build_observations, without_feeds
 from neuralsurf.geometry import cloud_from_mesh, knn, point_to_mesh_distance, sample_mesh_surface
 from neuralsurf.scenes import Scene
 from neuralsurf.scenes.recipes import extract_scene_mesh
+from neuralsurf.scenes.scanner import scan_depth
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 OURS = "train.py (fit + extraction)"
@@ -130,6 +136,38 @@ def scans(args) -> None:
                                against["chamfer_l1_exact"], "nc_zippered": against["normal_consistency"], **extra})
     a, b = runs[OURS], runs["poisson depth 9"]
     print(f"time {OURS} / Poisson depth 9: {a[1] / b[1]:.2f}x wall, {a[2] / b[2]:.2f}x CPU")
+
+
+def misregistered_scans(views: int = 10, noise: float = 2e-4, shift: float = 2e-4, degrees: float = 0.02,
+                        seed: int = 0) -> Scene:
+    """The bunny (diagonal 1) seen by the depth scanner from `views` views of 400 x 300 pixels with Gaussian depth
+    noise `noise`, each view's points (with their normals) then turned by `degrees` about a random axis through the
+    bunny's centre and shifted by `shift` in a random direction: range scans out of register, the true surface known."""
+    bunny = ns.scenes.bunny()
+    frames = scan_depth(bunny, n_views=views, width=400, height=300, noise="gaussian", sigma=noise, seed=seed)
+    generator = torch.Generator().manual_seed(seed + 1)
+    center = bunny.vertices.double().mean(0)
+    points, normals = [], []
+    for i in range(len(frames)):
+        view = depth_to_cloud(frames[i : i + 1], with_normals=True)
+        axis, offset = torch.randn(2, 3, generator=generator, dtype=torch.float64)
+        turn = torch.from_numpy(axis_angle_to_matrix((axis / axis.norm() * math.radians(degrees)).numpy()))
+        points.append((view.points.double() - center) @ turn.T + center + shift * offset / offset.norm())
+        normals.append(view.normals.double() @ turn.T)
+    return Scene("misregistered", ns.PointCloud(torch.cat(points), torch.cat(normals)), bunny)
+
+
+def misregistered(args) -> None:
+    scene = misregistered_scans()
+    print(f"{len(scene.cloud)} points")
+    runs = {"poisson depth 9": (*poisson(scene.cloud, 9), {})}
+    for name, overrides in ((OURS, []), (f"{OURS}, not moved", ["extract.onto_points=null"])):
+        mesh, result, wall, cpu = ours(configured(overrides), scene)
+        runs[name] = (mesh, wall, cpu, {"steps": result.steps})
+    for name, (mesh, wall, cpu, extra) in runs.items():
+        metrics = ns.metrics.evaluate_mesh(mesh, scene.ground_truth)
+        line(name, wall, cpu, {"chamfer_l1_exact": metrics["chamfer_l1_exact"],
+                               "normal_consistency": metrics["normal_consistency"], "faces": len(mesh.faces), **extra})
 
 
 def peak_rss_mib() -> float:
@@ -234,12 +272,12 @@ def main() -> None:
         print(json.dumps(one_case(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]))))
         return
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["bunny", "scans", "curves"])
+    parser.add_argument("what", choices=["bunny", "scans", "misregistered", "curves"])
     parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000, 5_000_000])
     parser.add_argument("--resolutions", type=int, nargs="+", default=[128, 256, 512, 1024])
     parser.add_argument("--plot", type=Path, default=None)
     args = parser.parse_args()
-    {"bunny": bunny, "scans": scans, "curves": curves}[args.what](args)
+    {"bunny": bunny, "scans": scans, "misregistered": misregistered, "curves": curves}[args.what](args)
 
 
 if __name__ == "__main__":

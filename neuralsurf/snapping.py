@@ -4,7 +4,7 @@ A field on a grid (the point fit's start: 256 cells a side) cannot bend between 
 lie closer together than the grid's cells can. `snap_to_points` subdivides the mesh once and moves each vertex along
 the points' normal onto their implicit moving-least-squares surface (`plane_offsets`), the move averaged with the
 mesh's neighbours (`ring_mean`) as many rounds as points held out of it ask for: where the points are exact the whole
-move, where they are noisy or out of register a smooth one, and none where no move brings the held-out points closer.
+move, where they are noisy or out of register a smooth one, and none unless the held-out points come `GAIN` closer.
 """
 
 from __future__ import annotations
@@ -84,17 +84,19 @@ def footprints(query: Tensor, mesh: Mesh) -> tuple[Tensor, Tensor, Tensor]:
     child = torch.where(u >= 0.5, 0, torch.where(v >= 0.5, 1, torch.where(w >= 0.5, 2, 3)))
     weights = torch.stack([torch.stack(t, -1) for t in ((2 * u - 1, 2 * v, 2 * w), (2 * u, 2 * v - 1, 2 * w),
                                                          (2 * u, 2 * v, 2 * w - 1), (1 - 2 * w, 1 - 2 * u, 1 - 2 * v))])
-    weights = weights[child, torch.arange(len(query))]  # in `subdivided`'s corner order of each child
+    weights = weights[child, torch.arange(len(query), device=child.device)]  # in `subdivided`'s corner order
     return face + child * len(mesh.faces), weights.float(), torch.nn.functional.normalize(normal, dim=-1).float()
 
 
 def snap_to_points(mesh: Mesh, points: Tensor, normals: Tensor, held_out: Tensor, spacing: float | None = None
                    ) -> tuple[Mesh, dict[str, float]]:
     """`mesh` subdivided once and moved onto Float[Tensor, "n 3"] `points` (unit `normals`, the same frame): each
-    vertex by its `plane_offsets`, averaged with its neighbours' (`ring_mean`) some rounds, at most one point spacing (`spacing`, by
-    default `cloud_spacing(points)`); of `ROUNDS`, the one that brings Float[Tensor, "h 3"] `held_out` points (kept
-    out of `points`) closest, if closer than the mesh as it was; else `mesh` unchanged. Returns (mesh, what was
-    measured: the held-out points' mean distance before and after, and the rounds chosen, -1 for none)."""
+    vertex by its `plane_offsets` averaged over its ring (`ring_mean`) some rounds, by at most one point spacing
+    (`spacing`; default `cloud_spacing(points)`). The rounds are `ROUNDS` in order until one brings Float[Tensor,
+    "h 3"] `held_out` points (kept out of `points`) no closer than the one before, their distance being their mean
+    height over the mesh where they stand (`footprints`: a rough surface would pass closer to scattered points); the
+    best is kept if it brings them `GAIN` closer than `mesh`, else `mesh` is returned. Returns (mesh, what was
+    measured: the held-out points' mean height before and after, and the rounds chosen, -1 for none)."""
     spacing = cloud_spacing(points) if spacing is None else spacing
     fine = subdivided(Mesh(mesh.vertices.float(), mesh.faces, mesh.vertex_colors))
     offset, direction = plane_offsets(fine.vertices, points.float(), normals.float(), spacing)
@@ -138,11 +140,11 @@ def snap_to_cloud(mesh: Mesh, cloud: PointCloud, share: float, seed: int = 0) ->
     if not 0 < share < 0.5:
         raise ConfigError(f"onto_points is the share of the points held out to choose the move, in (0, 0.5); got "
                           f"{share!r} (0 or null: the mesh as extracted)")
-    if cloud.normals is None or mesh.is_empty or len(cloud) < 2 or not denser_than(cloud.points, mesh):
+    held, kept = held_out_split(len(cloud), share, seed)
+    if cloud.normals is None or mesh.is_empty or len(held) == 0 or not denser_than(cloud.points, mesh):
         log.info("mesh not moved onto the points: %s", "the cloud has no normals" if cloud.normals is None else
                  "the points lie no closer together than the mesh's vertices")
         return mesh
-    held, kept = held_out_split(len(cloud), share, seed)
     points = cloud.points.to(mesh.vertices.device).float()
     normals = torch.nn.functional.normalize(cloud.normals.to(points), dim=-1)
     snapped, measured = snap_to_points(mesh, points[kept], normals[kept], points[held])
