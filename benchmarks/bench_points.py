@@ -3,7 +3,7 @@ from the points, refined by a hash-grid MLP until held-out points stop improving
 and Open3D's screened Poisson on the same points and normals, timed in one run.
 
     python benchmarks/bench_points.py bunny    # the demo's 100k points against Poisson depth 10 and 9
-    python benchmarks/bench_points.py scans    # train.py data=file on the Stanford range scans merged ($NEURALSURF_DATA)
+    python benchmarks/bench_points.py scans    # train.py data=file on the Stanford scans merged ($NEURALSURF_DATA)
     python benchmarks/bench_points.py misregistered  # synthetic scans of the bunny out of register
     python benchmarks/bench_points.py curves [--sizes 10000 100000 1000000 5000000] [--resolutions 128 256 512 1024]
                                              [--plot docs/images/points_scaling.png]
@@ -12,11 +12,12 @@ and Open3D's screened Poisson on the same points and normals, timed in one run.
 Chamfer-L1 and normal consistency against the bunny mesh; for the scans the mean distance from the scan points to
 the mesh and from the mesh (100k surface samples) to the scan points, as fractions of the scan's bounding-box
 diagonal, and the metrics against Stanford's zippered reconstruction. `misregistered` fits scans whose true surface
-is known (`misregistered_scans`) with and without the move onto the points (`extract.onto_points`). `curves` runs every case in a child process
-(its peak resident memory is the case's own): the fast fit of 10k to 5M points sampled from the bunny with their
-normals (and the merged scans when present), and the extraction of the 100k fit at each resolution, against
-Poisson depth 9 on the same points; fits and Poisson are scored by exact Chamfer-L1 against the bunny (the scans:
-the zippered mesh). Threads: as the environment sets them (OMP_NUM_THREADS); Poisson runs on one.
+is known (`misregistered_scans`) with and without the move onto the points (`extract.onto_points`). `curves` runs
+every case in a child process (its peak resident memory is the case's own): the fast fit of 10k to 5M points
+sampled from the bunny with their normals (and the merged scans when present), and the extraction of the 100k fit
+at each resolution, against Poisson depth 9 on the same points; fits and Poisson are scored by exact Chamfer-L1
+against the bunny (the scans: the zippered mesh). Threads: as the environment sets them (OMP_NUM_THREADS); Poisson
+runs on one.
 """
 
 from __future__ import annotations

@@ -113,7 +113,7 @@ def build_stored_scene(scene: dict[str, Any]):
 def meshed_near_input(scene: dict[str, Any] | None, extract: dict[str, Any]) -> bool:
     """Whether the extraction depends on the scene's input: `near_distance`, `observed_voxel` or `onto_points` set
     in `extract`, or a `near_distance` of the scene's config (given, or its target's default)."""
-    if extract.get("near_distance") is not None or extract.get("observed_voxel") is not None or extract.get("onto_points"):
+    if extract.get("onto_points") or any(extract.get(key) is not None for key in ("near_distance", "observed_voxel")):
         return True
     if not scene or "_target_" not in scene:
         return False
