@@ -204,6 +204,19 @@ def test_an_observation_the_data_does_not_feed_is_a_config_error_naming_the_fix(
         check_feeds(*compose_with_choices(["experiment=bunny_depth_normals", "data=bunny_depth"]))
 
 
+def test_the_move_onto_the_points_follows_the_points_observation():
+    """train.py's point fit moves its mesh onto the points by the fit's held-out share; with the points observation
+    dropped (as the feeds error suggests) the config still resolves, without the move; evaluate.py's likewise."""
+    cfg, _ = compose_with_choices([])
+    assert cfg.extract.onto_points == cfg.observation.points.held_out == 0.05
+    cfg, _ = compose_with_choices(["data=rig_fusion", "observation=[depth_rays,normal_maps]", "~observation.points"])
+    assert OmegaConf.to_container(cfg.extract, resolve=True)["onto_points"] is None
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        suite = compose(config_name="evaluate", overrides=["methods=[neural_sdf_fast]",
+                                                           "~method.neural_sdf_fast.observations.points"])
+    assert OmegaConf.to_container(suite.method.neural_sdf_fast.extract, resolve=True)["onto_points"] is None
+
+
 def test_options_of_an_observation_that_is_not_selected_are_a_config_error():
     """observation= on the command line replaces the experiment's; the experiment's options of the one replaced are
     not dropped quietly."""
