@@ -33,6 +33,9 @@ GAIN = 0.01
 SCORED = 50_000
 """Held-out points read at most (the first ones): the scores' memory stays bounded."""
 
+CHUNK = 1 << 21
+"""Vertices whose planes are read at once (about 300 bytes each): the memory stays bounded on large meshes."""
+
 
 def subdivided(mesh: Mesh) -> Mesh:
     """`mesh` with each face split into four at its edges' midpoints (the same surface). Child j of face i is face
@@ -52,7 +55,11 @@ def plane_offsets(vertices: Tensor, points: Tensor, normals: Tensor, spacing: fl
     """(Float[Tensor, "v"] offsets, Float[Tensor, "v 3"] directions): each of Float[Tensor, "v 3"] `vertices` lies
     `offset` along `direction` from the points' implicit moving-least-squares surface (the tangent planes of its
     `NEIGHBOURS` nearest Float[Tensor, "n 3"] `points`, unit `normals`, weighted by a Gaussian one `spacing` wide;
-    the direction is their weighted normal). A vertex farther than two spacings from every point gets 0."""
+    the direction is their weighted normal). A vertex farther than two spacings from every point gets 0. Read
+    `CHUNK` vertices at a time."""
+    if len(vertices) > CHUNK:
+        parts = [plane_offsets(part, points, normals, spacing) for part in vertices.split(CHUNK)]
+        return torch.cat([offset for offset, _ in parts]), torch.cat([direction for _, direction in parts])
     distance, index = knn(vertices, points, min(NEIGHBOURS, len(points)))
     near, normal = points[index], normals[index]
     weight = torch.softmax(-(distance / spacing) ** 2, -1)

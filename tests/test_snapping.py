@@ -126,3 +126,11 @@ def test_a_footprint_s_height_is_the_distance_to_the_mesh(coarse):
     assert float(point_to_mesh_distance(surface, coarse).max()) < 1e-6 and float(weights.min()) >= 0
     height = ((query - surface) * normal).sum(-1).abs()
     assert torch.allclose(height, point_to_mesh_distance(query, coarse), atol=1e-5)
+
+
+def test_plane_offsets_read_in_chunks_are_the_same(coarse, monkeypatch):
+    cloud = SPHERE.sample_surface(5_000, seed=0)
+    whole = plane_offsets(coarse.vertices, cloud.points, cloud.normals, spacing=0.01)
+    monkeypatch.setattr("neuralsurf.snapping.CHUNK", 100)
+    chunked = plane_offsets(coarse.vertices, cloud.points, cloud.normals, spacing=0.01)
+    assert torch.equal(whole[0], chunked[0]) and torch.equal(whole[1], chunked[1])
