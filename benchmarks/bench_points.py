@@ -87,6 +87,16 @@ def line(name: str, wall: float, cpu: float, metrics: dict) -> None:
     print(f"{name:<34} {wall:7.1f} s wall {cpu:7.1f} s CPU   {figures}", flush=True)
 
 
+def scored_lines(runs: dict, truth) -> None:
+    """A line for each of `runs` (name -> (mesh, wall s, CPU s, further figures)): its exact Chamfer-L1 and normal
+    consistency against the `truth` mesh, whether it is watertight, its faces and the further figures."""
+    for name, (mesh, wall, cpu, extra) in runs.items():
+        metrics = ns.metrics.evaluate_mesh(mesh, truth)
+        line(name, wall, cpu, {"chamfer_l1_exact": metrics["chamfer_l1_exact"],
+                               "normal_consistency": metrics["normal_consistency"],
+                               "watertight": mesh.is_watertight, "faces": len(mesh.faces), **extra})
+
+
 def bunny(args) -> None:
     gt = ns.scenes.bunny()
     cloud = cloud_from_mesh(gt, n=100_000, noise=0.0, seed=0)
@@ -97,11 +107,7 @@ def bunny(args) -> None:
         runs[f"poisson depth {depth}"] = (mesh, wall, cpu, {})
     mesh, result, wall, cpu = ours(configured([]), scene)
     runs[OURS] = (mesh, wall, cpu, {"steps": result.steps})
-    for name, (mesh, wall, cpu, extra) in runs.items():
-        metrics = ns.metrics.evaluate_mesh(mesh, gt)
-        line(name, wall, cpu, {"chamfer_l1_exact": metrics["chamfer_l1_exact"],
-                               "normal_consistency": metrics["normal_consistency"],
-                               "watertight": mesh.is_watertight, **extra})
+    scored_lines(runs, gt)
     for depth in (10, 9):
         a, b = runs[OURS], runs[f"poisson depth {depth}"]
         print(f"time {OURS} / Poisson depth {depth}: {a[1] / b[1]:.2f}x wall, {a[2] / b[2]:.2f}x CPU")
@@ -165,10 +171,7 @@ def misregistered(args) -> None:
     for name, overrides in ((OURS, []), (f"{OURS}, not moved", ["extract.onto_points=null"])):
         mesh, result, wall, cpu = ours(configured(overrides), scene)
         runs[name] = (mesh, wall, cpu, {"steps": result.steps})
-    for name, (mesh, wall, cpu, extra) in runs.items():
-        metrics = ns.metrics.evaluate_mesh(mesh, scene.ground_truth)
-        line(name, wall, cpu, {"chamfer_l1_exact": metrics["chamfer_l1_exact"],
-                               "normal_consistency": metrics["normal_consistency"], "faces": len(mesh.faces), **extra})
+    scored_lines(runs, scene.ground_truth)
 
 
 def peak_rss_mib() -> float:

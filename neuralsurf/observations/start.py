@@ -155,7 +155,7 @@ def voxel_start(points: Tensor, normals: Tensor, box: float, resolution: int = 2
     if start is not None and (solved_error := held_out_error(model)) < REFINE_BELOW * voxel:
         solved = model.values.detach().clone()  # no value changes its sign: the zero level's topology is the solve's
         back = (start - solved).clamp_(-KEEP_START * voxel, KEEP_START * voxel)
-        model.values.add_(torch.where((start > 0) == (solved > 0), back, 0.0))
+        model.values.add_(back.masked_fill_((start > 0) != (solved > 0), 0.0))
         if not held_out_error(model) < solved_error:
             model.values.copy_(solved)
     return model
