@@ -16,8 +16,9 @@ is known (`misregistered_scans`) with and without the move onto the points (`ext
 every case in a child process (its peak resident memory is the case's own): the fast fit of 10k to 5M points
 sampled from the bunny with their normals (and the merged scans when present), and the extraction of the 100k fit
 at each resolution, against Poisson depth 9 on the same points; fits and Poisson are scored by exact Chamfer-L1
-against the bunny (the scans: the zippered mesh). Threads: as the environment sets them (OMP_NUM_THREADS); Poisson
-runs on one.
+against the bunny (the scans: the zippered mesh). Threads: as the environment sets them (OMP_NUM_THREADS; else one
+per core), the same for Poisson; `bunny`, `scans` and `misregistered` load the libraries before the clocks
+(`load_libraries`).
 """
 
 from __future__ import annotations
@@ -78,8 +79,15 @@ def ours(cfg, scene: Scene, extract: dict | None = None):
 
 
 def poisson(cloud, depth: int):
-    """(mesh, wall s, CPU s) of Open3D's screened Poisson at `depth` on one thread."""
-    return clock(ns.baselines.reconstruct_poisson, cloud, depth=depth, n_threads=1)
+    """(mesh, wall s, CPU s) of Open3D's screened Poisson at `depth` on as many threads as the fit."""
+    return clock(ns.baselines.reconstruct_poisson, cloud, depth=depth, n_threads=torch.get_num_threads())
+
+
+def load_libraries() -> None:
+    """Load what each side loads on its first call, before any clock starts: Open3D (Poisson, the move's nearest
+    faces; 0.65 s on the Xeon) and torch._dynamo (torch.optim's first optimiser; 1.0 s)."""
+    import open3d  # noqa: F401
+    import torch._dynamo  # noqa: F401
 
 
 def line(name: str, wall: float, cpu: float, metrics: dict) -> None:
@@ -281,6 +289,8 @@ def main() -> None:
     parser.add_argument("--resolutions", type=int, nargs="+", default=[128, 256, 512, 1024])
     parser.add_argument("--plot", type=Path, default=None)
     args = parser.parse_args()
+    if args.what != "curves":  # each of its cases runs in a process of its own, loading what it calls
+        load_libraries()
     {"bunny": bunny, "scans": scans, "misregistered": misregistered, "curves": curves}[args.what](args)
 
 

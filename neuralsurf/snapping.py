@@ -133,11 +133,11 @@ def snap_to_points(mesh: Mesh, points: Tensor, normals: Tensor, held_out: Tensor
             {"held_out_before": before, "held_out_after": best, "rounds": chosen})
 
 
-def denser_than(points: Tensor, mesh: Mesh) -> bool:
-    """Whether Float[Tensor, "n 3"] `points` lie closer together (`cloud_spacing`) than the edges of a non-empty
-    `mesh` (their median): then the points hold detail that the mesh's vertices do not."""
+def denser_than(spacing: float, mesh: Mesh) -> bool:
+    """Whether points `spacing` apart (`cloud_spacing`) lie closer together than the edges of a non-empty `mesh`
+    (their median): then the points hold detail that the mesh's vertices do not."""
     edges = (mesh.vertices[mesh.faces[:, [1, 2, 0]]] - mesh.vertices[mesh.faces]).norm(dim=-1)
-    return cloud_spacing(points) < float(edges.median())
+    return spacing < float(edges.median())
 
 
 def snap_to_cloud(mesh: Mesh, cloud: PointCloud, share: float, seed: int = 0) -> Mesh:
@@ -148,13 +148,14 @@ def snap_to_cloud(mesh: Mesh, cloud: PointCloud, share: float, seed: int = 0) ->
         raise ConfigError(f"onto_points is the share of the points held out to choose the move, in (0, 0.5); got "
                           f"{share!r} (0 or null: the mesh as extracted)")
     held, kept = held_out_split(len(cloud), share, seed)
-    if cloud.normals is None or mesh.is_empty or len(held) == 0 or not denser_than(cloud.points, mesh):
+    points = cloud.points.to(mesh.vertices.device).float()
+    spacing = cloud_spacing(points[kept]) if len(held) and len(kept) > 1 else None
+    if cloud.normals is None or mesh.is_empty or spacing is None or not denser_than(spacing, mesh):
         log.info("mesh not moved onto the points: %s", "the cloud has no normals" if cloud.normals is None else
                  "the points lie no closer together than the mesh's vertices")
         return mesh
-    points = cloud.points.to(mesh.vertices.device).float()
     normals = torch.nn.functional.normalize(cloud.normals.to(points), dim=-1)
-    snapped, measured = snap_to_points(mesh, points[kept], normals[kept], points[held])
+    snapped, measured = snap_to_points(mesh, points[kept], normals[kept], points[held], spacing)
     if measured["rounds"] < 0:
         log.info("mesh not moved onto the points: the held-out points (%.4g from it) would not come %g %% closer",
                  measured["held_out_before"], 100 * GAIN)
