@@ -321,6 +321,21 @@ def _mst_flips(coords: np.ndarray, normals: np.ndarray, k: int) -> np.ndarray:
     return sign[:n] < 0
 
 
+MULTINOMIAL_CATEGORIES = 1 << 24
+"""The most categories `torch.multinomial` draws from."""
+
+
+def area_weighted_faces(areas: Tensor, n: int, generator: torch.Generator | None = None) -> Tensor:
+    """Long[Tensor, "n"]: faces drawn with replacement in proportion to their Float64[Tensor, "f"] `areas`: by
+    `torch.multinomial`, or for more than `MULTINOMIAL_CATEGORIES` faces (a mesh extracted at 1,024^3 and subdivided)
+    by inverse transform of the areas' cumulative sum."""
+    if len(areas) <= MULTINOMIAL_CATEGORIES:
+        return torch.multinomial(areas, n, replacement=True, generator=generator)
+    cumulative = areas.cumsum(0)
+    draws = torch.rand(n, dtype=cumulative.dtype, generator=generator) * cumulative[-1]
+    return torch.searchsorted(cumulative, draws, right=True).clamp_max_(len(areas) - 1)
+
+
 def sample_mesh_surface(mesh: Mesh, n: int, generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
     """Uniform random points on a mesh's surface (area-weighted), with the face normals there.
 
@@ -332,7 +347,7 @@ def sample_mesh_surface(mesh: Mesh, n: int, generator: torch.Generator | None = 
     vertices = mesh.vertices.detach().cpu().double()
     faces = mesh.faces.cpu()
     areas = Mesh(vertices, faces).face_areas()
-    face = torch.multinomial(areas, n, replacement=True, generator=generator)
+    face = area_weighted_faces(areas, n, generator)
     u, v = torch.rand(2, n, 1, dtype=torch.float64, generator=generator)
     flip = (u + v) > 1  # fold the unit square onto the triangle
     u, v = torch.where(flip, 1 - u, u), torch.where(flip, 1 - v, v)

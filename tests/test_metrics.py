@@ -382,3 +382,20 @@ def test_box_overlap_is_one_for_nested_boxes_and_zero_for_boxes_apart():
     assert box_overlap(box, Box(half_extents=(0.1, 0.1, 0.1)).mesh()) == pytest.approx(1.0)
     assert box_overlap(box, moved(box, [0.3, 0.0, 0.0])) == pytest.approx(0.5)  # half of x shared
     assert box_overlap(box, moved(box, [2.0, 0.0, 0.0])) == 0.0
+
+
+def test_faces_beyond_multinomials_limit_are_drawn_in_proportion_to_their_area(monkeypatch):
+    """A mesh with more faces than torch.multinomial takes (a 1,024^3 extraction subdivided) is sampled by the
+    areas' cumulative sum: each face in proportion to its area, a face of no area never."""
+    from neuralsurf import geometry
+
+    areas = torch.tensor([1.0, 0.0, 3.0, 4.0], dtype=torch.float64)
+    monkeypatch.setattr(geometry, "MULTINOMIAL_CATEGORIES", 3)
+    faces = geometry.area_weighted_faces(areas, 80_000, torch.Generator().manual_seed(0))
+    share = faces.bincount(minlength=4).double() / len(faces)
+    assert torch.allclose(share, areas / areas.sum(), atol=0.01) and share[1] == 0
+    square = Mesh(torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]), torch.tensor([[0, 1, 2], [0, 2, 3]]))
+    monkeypatch.setattr(geometry, "MULTINOMIAL_CATEGORIES", 1)
+    points, normals = geometry.sample_mesh_surface(square, 20_000, torch.Generator().manual_seed(1))
+    assert points[:, 2].abs().max() == 0 and abs(float(points[:, 0].mean()) - 0.5) < 0.01
+    assert torch.allclose(normals, torch.tensor([0.0, 0, 1]).expand_as(normals))
