@@ -270,7 +270,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
                    if scene.ground_truth is not None else {})
         if scene.held_out is not None:
             metrics.update(depth_metrics(mesh, scene.held_out))
-        metrics = {**metrics, "watertight": mesh.is_watertight, "fit_seconds": fit_seconds,
+        watertight = bool(metrics["pred_watertight"]) if "pred_watertight" in metrics else mesh.is_watertight
+        metrics = {**metrics, "watertight": watertight, "fit_seconds": fit_seconds,
                    "extract_seconds": extract_seconds, "steps": steps}
         (run_dir / "metrics.json").write_text(json.dumps(json_ready(metrics), indent=2, default=float,
                                                          allow_nan=False))

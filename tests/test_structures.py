@@ -54,6 +54,27 @@ def test_mesh_validates_faces_and_reports_watertightness():
     assert box.face_areas().sum().item() == pytest.approx(Box().area)
 
 
+def test_watertightness_agrees_with_trimesh():
+    """trimesh's merge_vertices, is_watertight and is_winding_consistent as the oracle: a closed sphere, a face
+    missing, a face flipped, a face doubled, two copies of the surface sharing their vertices (four faces on an
+    edge), a triangle soup (merged) and the soup moved by 1e-5 (not merged)."""
+    sphere = Sphere().mesh()
+    vertices, faces = sphere.vertices.double(), sphere.faces
+    soup, order = vertices[faces].reshape(-1, 3), torch.arange(3 * len(faces)).reshape(-1, 3)
+    noise = torch.randn(soup.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    meshes = [sphere, Mesh(vertices, faces[1:]), Mesh(vertices, torch.cat([faces[:1].flip(1), faces[1:]])),
+              Mesh(vertices, torch.cat([faces, faces[:1]])), Mesh(vertices, torch.cat([faces, faces.flip(1)])),
+              Mesh(torch.cat([vertices, vertices]), torch.cat([faces, faces + len(vertices)])),
+              Mesh(soup, order), Mesh(soup + 1e-5 * noise, order)]
+    expected = []
+    for mesh in meshes:
+        merged = mesh.to_trimesh()
+        merged.merge_vertices()
+        expected.append(bool(merged.is_watertight and merged.is_winding_consistent))
+    assert [mesh.is_watertight for mesh in meshes] == expected
+    assert expected == [True, False, False, False, False, False, True, False]
+
+
 def test_normalization_round_trip_and_unit_box():
     points = torch.tensor([[1.0, 2.0, 3.0], [5.0, 3.0, 4.0], [2.0, 2.5, 3.5]], dtype=torch.float64)
     norm = Normalization.from_points(points)
