@@ -22,7 +22,7 @@ GPU_BRUTE_FORCE_PAIRS = 2**38
 
 def knn(query: Tensor, points: Tensor, k: int = 1) -> tuple[Tensor, Tensor]:
     """Exact k nearest neighbours of each query among `points`: brute force on a GPU (both tensors
-    there, up to GPU_BRUTE_FORCE_PAIRS pairs), else Open3D's k-d tree on all CPU cores.
+    there, up to GPU_BRUTE_FORCE_PAIRS pairs), else a k-d tree on all CPU cores.
 
     Args:
         query: Float[Tensor, "m 3"].
@@ -35,7 +35,7 @@ def knn(query: Tensor, points: Tensor, k: int = 1) -> tuple[Tensor, Tensor]:
         raise InputError(f"knn needs 1 <= k <= {len(points)} (number of points), got k={k}")
     if query.is_cuda and points.is_cuda and len(query) * len(points) <= GPU_BRUTE_FORCE_PAIRS:
         return _brute_knn(query, points, k)
-    return _tree_knn(_kd_tree(points, query), query, k)
+    return _tree_knn(_kd_tree(points), query, k)
 
 
 def _brute_knn(query: Tensor, points: Tensor, k: int, chunk_bytes: int = 2**30) -> tuple[Tensor, Tensor]:
@@ -54,29 +54,21 @@ def _brute_knn(query: Tensor, points: Tensor, k: int, chunk_bytes: int = 2**30) 
     return distance, index.gather(1, order)
 
 
-def _kd_tree(points: Tensor, *queries: Tensor):
-    """Open3D's k-d tree (nanoflann) over Float[Tensor, "n 3"] points, float32 where they and the `queries`
-    to come are, else float64 (15-30 % faster exact queries than scipy's sliding-midpoint tree, near the points
-    and far from them): (tree, its dtype)."""
-    import open3d as o3d
+def _kd_tree(points: Tensor):
+    """scipy k-d tree of Float[Tensor, "n 3"] with sliding-midpoint splits: 3x faster queries far from the
+    points (free space) than the balanced default."""
+    from scipy.spatial import cKDTree
 
-    dtype = torch.float32 if all(t.dtype == torch.float32 for t in (points, *queries)) else torch.float64
-    tree = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(points.detach().cpu().to(dtype).contiguous().numpy()))
-    tree.knn_index()
-    return tree, dtype
+    return cKDTree(points.detach().cpu().double().numpy(), balanced_tree=False, compact_nodes=False)
 
 
 def _tree_knn(tree, query: Tensor, k: int) -> tuple[Tensor, Tensor]:
     """`knn` of Float[Tensor, "m 3"] queries in a built `_kd_tree`."""
-    import open3d as o3d
-
-    search, dtype = tree
-    if len(query) == 0:
-        return query.new_zeros(0, k), torch.zeros(0, k, dtype=torch.long, device=query.device)
-    index, squared = search.knn_search(o3d.core.Tensor(query.detach().cpu().to(dtype).contiguous().numpy()), k)
+    dist, index = tree.query(query.detach().cpu().double().numpy(), k=k, workers=-1)
+    dist, index = np.asarray(dist).reshape(len(query), k), np.asarray(index).reshape(len(query), k)
     return (
-        torch.from_numpy(squared.numpy()).reshape(len(query), k).sqrt().to(query.dtype).to(query.device),
-        torch.from_numpy(index.numpy()).reshape(len(query), k).long().to(query.device),
+        torch.from_numpy(dist).to(query.dtype).to(query.device),
+        torch.from_numpy(index).long().to(query.device),
     )
 
 
