@@ -164,7 +164,7 @@ class Mesh:
         """Closed and consistently oriented: after merging coincident vertices (`merged_vertex_ids`; STL
         and per-face vertex arrays duplicate them), every edge is shared by exactly two faces with
         opposite directions (as trimesh's `merge_vertices`, `is_watertight` and
-        `is_winding_consistent`, in a quarter of their time)."""
+        `is_winding_consistent`, in about a third of their time)."""
         if self.is_empty:
             return False
         ends = merged_vertex_ids(self.vertices)[self.faces.cpu()][:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)

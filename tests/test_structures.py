@@ -56,8 +56,9 @@ def test_mesh_validates_faces_and_reports_watertightness():
 
 def test_watertightness_agrees_with_trimesh():
     """trimesh's merge_vertices, is_watertight and is_winding_consistent as the oracle: a closed sphere, a face
-    missing, a face flipped, a face doubled, two copies of the surface sharing their vertices (four faces on an
-    edge), a triangle soup (merged) and the soup moved by 1e-5 (not merged)."""
+    missing, a face flipped, a face doubled, the surface with its reversed copy, two copies of the surface on the
+    same points (four faces on an edge once merged), a triangle soup (merged) and the soup moved by 1e-5 (not
+    merged)."""
     sphere = Sphere().mesh()
     vertices, faces = sphere.vertices.double(), sphere.faces
     soup, order = vertices[faces].reshape(-1, 3), torch.arange(3 * len(faces)).reshape(-1, 3)
