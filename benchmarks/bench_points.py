@@ -102,7 +102,7 @@ def scored_lines(runs: dict, truth) -> None:
         metrics = ns.metrics.evaluate_mesh(mesh, truth)
         line(name, wall, cpu, {"chamfer_l1_exact": metrics["chamfer_l1_exact"],
                                "normal_consistency": metrics["normal_consistency"],
-                               "watertight": mesh.is_watertight, "faces": len(mesh.faces), **extra})
+                               "watertight": ns.metrics.watertight(mesh, metrics), "faces": len(mesh.faces), **extra})
 
 
 def bunny(args) -> None:

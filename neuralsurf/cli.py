@@ -44,7 +44,7 @@ from neuralsurf.evaluation.store import cached_scene, rebuild_report, settings_k
 from neuralsurf.io import read_mesh, write_mesh
 from neuralsurf.io.meshes import mesh_format
 from neuralsurf.io.trajectories import write_trajectory_log, write_tum_trajectory
-from neuralsurf.metrics import box_overlap, depth_metrics, evaluate_mesh, json_ready
+from neuralsurf.metrics import box_overlap, depth_metrics, evaluate_mesh, json_ready, watertight
 from neuralsurf.models import AutoDecoder
 from neuralsurf.priors import Collection, score_completions, train_prior
 from neuralsurf.rooms import RoomSettings, fit_room
@@ -270,8 +270,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
                    if scene.ground_truth is not None else {})
         if scene.held_out is not None:
             metrics.update(depth_metrics(mesh, scene.held_out))
-        watertight = bool(metrics["pred_watertight"]) if "pred_watertight" in metrics else mesh.is_watertight
-        metrics = {**metrics, "watertight": watertight, "fit_seconds": fit_seconds,
+        metrics = {**metrics, "watertight": watertight(mesh, metrics), "fit_seconds": fit_seconds,
                    "extract_seconds": extract_seconds, "steps": steps}
         (run_dir / "metrics.json").write_text(json.dumps(json_ready(metrics), indent=2, default=float,
                                                          allow_nan=False))

@@ -386,6 +386,12 @@ def evaluate_mesh(
     return metrics
 
 
+def watertight(mesh: Mesh, metrics: dict[str, float]) -> bool:
+    """Whether `mesh` is watertight: read from its `evaluate_mesh` `metrics` where they hold it
+    (`pred_watertight`), else `Mesh.is_watertight` (each takes about 0.5 s on a 1.5M-face mesh)."""
+    return bool(metrics["pred_watertight"]) if "pred_watertight" in metrics else mesh.is_watertight
+
+
 DEPTH_THRESHOLDS = (0.01, 0.02, 0.05)
 """Metres within which a rendered held-out depth agrees with the reading (precision, recall, F-score)."""
 

@@ -149,8 +149,8 @@ def snap_to_cloud(mesh: Mesh, cloud: PointCloud, share: float, seed: int = 0) ->
                           f"{share!r} (0 or null: the mesh as extracted)")
     held, kept = held_out_split(len(cloud), share, seed)
     points = cloud.points.to(mesh.vertices.device).float()
-    readable = cloud.normals is not None and not mesh.is_empty and len(held) > 0 and len(kept) > 1
-    if not readable or not denser_than(spacing := cloud_spacing(points[kept]), mesh):
+    movable = cloud.normals is not None and not mesh.is_empty and len(held) > 0 and len(kept) > 1
+    if not movable or not denser_than(spacing := cloud_spacing(points[kept]), mesh):
         log.info("mesh not moved onto the points: %s", "the cloud has no normals" if cloud.normals is None else
                  "the points lie no closer together than the mesh's vertices")
         return mesh

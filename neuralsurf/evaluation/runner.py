@@ -34,7 +34,7 @@ from neuralsurf.evaluation.store import reusable_row, row_stem, settings_key, st
 from neuralsurf.io import write_mesh
 from neuralsurf.io.meshes import mesh_format as mesh_format_extension
 from neuralsurf.locks import replaced
-from neuralsurf.metrics import depth_metrics, evaluate_mesh, held_out_errors
+from neuralsurf.metrics import depth_metrics, evaluate_mesh, held_out_errors, watertight
 from neuralsurf.priors import mean_metrics
 from neuralsurf.scenes import Scene, SceneUnavailable
 from neuralsurf.scenes.recipes import SceneSet
@@ -334,13 +334,14 @@ def _score_mesh(mesh: Mesh, own_metrics: dict[str, float], scene: Scene | SceneS
         metrics = evaluate_mesh(mesh, scene.ground_truth, n_samples=job.n_samples, seed=job.seed)
         if not math.isfinite(metrics["chamfer_l1"]):
             raise ValueError(f"the metrics are not finite (chamfer_l1 = {metrics['chamfer_l1']})")
+    closed = watertight(mesh, metrics)  # before a scene set's own metrics bring their shapes' mean
     metrics.update(own_metrics)
     if getattr(scene, "held_out", None) is not None:
         errors = held_out_errors(mesh, scene.held_out)
         metrics.update(depth_metrics(mesh, scene.held_out, errors=errors))
         save_held_out_error_map(job.run_dir, job.scene_name, job.method_name, errors)  # the report's common pixels
     row.update(metrics)
-    row.update(n_vertices=len(mesh.vertices), n_faces=len(mesh.faces), watertight=bool(mesh.is_watertight))
+    row.update(n_vertices=len(mesh.vertices), n_faces=len(mesh.faces), watertight=closed)
     _mesh_files(mesh, scene, row, job)
 
 
@@ -388,10 +389,10 @@ def run_scene_set(scenes: SceneSet, method: Callable[..., Mesh], seed: int, run_
         started = time.perf_counter()
         mesh = check_mesh(method(member, seed=seed, run_dir=run_dir))
         seconds = time.perf_counter() - started
-        metrics = evaluate_mesh(mesh, member.ground_truth, n_samples=n_samples, seed=seed)
-        metrics = {k: None if math.isnan(float(v)) else float(v) for k, v in metrics.items()}  # JSON: null
+        scored = evaluate_mesh(mesh, member.ground_truth, n_samples=n_samples, seed=seed)
+        metrics = {k: None if math.isnan(float(v)) else float(v) for k, v in scored.items()}  # JSON: null
         per_scene.append({"shape": member.name, **metrics, "seconds": seconds,
-                          "watertight": float(mesh.is_watertight)})
+                          "watertight": float(watertight(mesh, scored))})
         first = mesh if first is None else first
         by_class.setdefault(shape_class(member.name), (member, mesh))
     means = mean_metrics(per_scene)
