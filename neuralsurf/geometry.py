@@ -20,6 +20,12 @@ from neuralsurf.structures import Mesh, PointCloud
 GPU_BRUTE_FORCE_PAIRS = 2**38
 
 
+def take_rows(values: Tensor, index: Tensor) -> Tensor:
+    """`values[index]`: the rows of Tensor["n ..."] `values` at Long or Int[Tensor, "..."] `index` (any shape), by
+    `index_select`, which on the CPU gathers 2-3x faster than indexing."""
+    return values.index_select(0, index.reshape(-1)).view(*index.shape, *values.shape[1:])
+
+
 def knn(query: Tensor, points: Tensor, k: int = 1) -> tuple[Tensor, Tensor]:
     """Exact k nearest neighbours of each query among `points`: brute force on a GPU (both tensors
     there, up to GPU_BRUTE_FORCE_PAIRS pairs), else a k-d tree on all CPU cores.

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError
-from neuralsurf.geometry import closest_on_mesh, cloud_spacing, knn
+from neuralsurf.geometry import closest_on_mesh, cloud_spacing, knn, take_rows
 from neuralsurf.sampling import held_out_split
 from neuralsurf.structures import Mesh, PointCloud
 
@@ -61,7 +61,7 @@ def plane_offsets(vertices: Tensor, points: Tensor, normals: Tensor, spacing: fl
         parts = [plane_offsets(part, points, normals, spacing) for part in vertices.split(CHUNK)]
         return torch.cat([offset for offset, _ in parts]), torch.cat([direction for _, direction in parts])
     distance, index = knn(vertices, points, min(NEIGHBOURS, len(points)))
-    near, normal = points[index], normals[index]
+    near, normal = take_rows(points, index), take_rows(normals, index)
     weight = torch.softmax(-(distance / spacing) ** 2, -1)
     offset = (weight * ((vertices[:, None] - near) * normal).sum(-1)).sum(-1)
     direction = torch.nn.functional.normalize((weight[..., None] * normal).sum(1), dim=-1)

