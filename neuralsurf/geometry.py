@@ -542,4 +542,4 @@ def cloud_winding_number(query: Tensor, points: Tensor, normals: Tensor, areas: 
         r2 = torch.add(squared, (part**2).sum(-1, keepdim=True), out=r2_buffer[: len(part)])
         inverse = r2.addmm_(part, points.T, alpha=-2).clamp_min_(1e-12).rsqrt_()
         out.append(dot.mul_(inverse).mul_(inverse).mul_(inverse) @ areas)
-    return torch.cat(out) / (4 * math.pi)
+    return torch.cat(out) / (4 * math.pi) if out else query.new_zeros(0)
