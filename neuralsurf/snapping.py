@@ -61,11 +61,12 @@ def plane_offsets(vertices: Tensor, points: Tensor, normals: Tensor, spacing: fl
         parts = [plane_offsets(part, points, normals, spacing) for part in vertices.split(CHUNK)]
         return torch.cat([offset for offset, _ in parts]), torch.cat([direction for _, direction in parts])
     distance, index = knn(vertices, points, min(NEIGHBOURS, len(points)))
-    near, normal = take_rows(points, index), take_rows(normals, index)
     weight = torch.softmax(-(distance / spacing) ** 2, -1)
-    offset = (weight * ((vertices[:, None] - near) * normal).sum(-1)).sum(-1)
-    direction = torch.nn.functional.normalize((weight[..., None] * normal).sum(1), dim=-1)
-    return torch.where(distance[:, 0] < 2 * spacing, offset, 0.0), direction
+    centre = points.mean(0)  # n . (v - p) as n . (v - centre) - n . (p - centre): no [v, k, 3] point gather
+    heights = ((points - centre) * normals).sum(-1)
+    normal = (weight[..., None] * take_rows(normals, index)).sum(1)
+    offset = ((vertices - centre) * normal).sum(-1) - (weight * heights[index]).sum(-1)
+    return torch.where(distance[:, 0] < 2 * spacing, offset, 0.0), torch.nn.functional.normalize(normal, dim=-1)
 
 
 def ring_mean(values: Tensor, faces: Tensor, incident: Tensor) -> Tensor:
