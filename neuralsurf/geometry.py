@@ -26,7 +26,7 @@ def take_rows(values: Tensor, index: Tensor) -> Tensor:
     return values.index_select(0, index.reshape(-1)).view(*index.shape, *values.shape[1:])
 
 
-def knn(query: Tensor, points: Tensor, k: int = 1) -> tuple[Tensor, Tensor]:
+def knn(query: Tensor, points: Tensor, k: int = 1, within: float = math.inf) -> tuple[Tensor, Tensor]:
     """Exact k nearest neighbours of each query among `points`: brute force on a GPU (both tensors
     there, up to GPU_BRUTE_FORCE_PAIRS pairs), else a k-d tree on all CPU cores.
 
@@ -34,14 +34,18 @@ def knn(query: Tensor, points: Tensor, k: int = 1) -> tuple[Tensor, Tensor]:
         query: Float[Tensor, "m 3"].
         points: Float[Tensor, "n 3"].
         k: neighbours per query, 1 <= k <= n.
+        within: only neighbours this close are found (the tree searches no farther: faster for queries
+            with none near); the missing ones have distance inf and index n.
     Returns:
         distances Float[Tensor, "m k"] (query dtype) and indices Int[Tensor, "m k"] (int64).
     """
     if not 1 <= k <= len(points):
         raise InputError(f"knn needs 1 <= k <= {len(points)} (number of points), got k={k}")
     if query.is_cuda and points.is_cuda and len(query) * len(points) <= GPU_BRUTE_FORCE_PAIRS:
-        return _brute_knn(query, points, k)
-    return _tree_knn(_kd_tree(points), query, k)
+        distance, index = _brute_knn(query, points, k)
+        beyond = distance > within
+        return distance.masked_fill(beyond, math.inf), index.masked_fill(beyond, len(points))
+    return _tree_knn(_kd_tree(points), query, k, within)
 
 
 def _brute_knn(query: Tensor, points: Tensor, k: int, chunk_bytes: int = 2**30) -> tuple[Tensor, Tensor]:
@@ -68,9 +72,9 @@ def _kd_tree(points: Tensor):
     return cKDTree(points.detach().cpu().double().numpy(), balanced_tree=False, compact_nodes=False)
 
 
-def _tree_knn(tree, query: Tensor, k: int) -> tuple[Tensor, Tensor]:
+def _tree_knn(tree, query: Tensor, k: int, within: float = math.inf) -> tuple[Tensor, Tensor]:
     """`knn` of Float[Tensor, "m 3"] queries in a built `_kd_tree`."""
-    dist, index = tree.query(query.detach().cpu().double().numpy(), k=k, workers=-1)
+    dist, index = tree.query(query.detach().cpu().double().numpy(), k=k, distance_upper_bound=within, workers=-1)
     dist, index = np.asarray(dist).reshape(len(query), k), np.asarray(index).reshape(len(query), k)
     return (
         torch.from_numpy(dist).to(query.dtype).to(query.device),

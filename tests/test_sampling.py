@@ -3,7 +3,7 @@ import torch
 
 from neuralsurf.errors import InputError
 from neuralsurf.geometry import SPACING_QUERIES, cloud_spacing, cloud_winding_number, knn, point_areas
-from neuralsurf.sampling import approximate_sdf, draw_batch, make_sdf_samples
+from neuralsurf.sampling import approximate_sdf, draw_batch, make_sdf_samples, winding_signs
 from neuralsurf.scenes import Box, Sphere, Torus
 
 
@@ -106,6 +106,31 @@ def test_brute_force_knn_matches_the_kd_tree():
         reference, reference_index = _tree_knn(_kd_tree(points), query, k)
         assert torch.allclose(distance, reference, atol=1e-6)
         assert (index == reference_index).float().mean() > 0.999
+
+
+def test_knn_within_a_distance_finds_the_same_neighbours_up_to_it_and_none_beyond():
+    generator = torch.Generator().manual_seed(1)
+    points = torch.rand(2000, 3, generator=generator)
+    query = 1.6 * torch.rand(3000, 3, generator=generator) - 0.3  # some far outside the points
+    for k in (1, 4):
+        distance, index = knn(query, points, k)
+        bounded, bounded_index = knn(query, points, k, within=0.1)
+        found = distance <= 0.1
+        assert 0.1 < found.float().mean() < 0.9
+        assert torch.equal(bounded[found], distance[found]) and torch.equal(bounded_index[found], index[found])
+        assert bounded[~found].isinf().all() and (bounded_index[~found] == len(points)).all()
+
+
+def test_winding_signs_read_only_beyond_their_reach_are_the_same_signs():
+    cloud = Sphere(radius=0.3).sample_surface(4000, seed=0)
+    points, normals = cloud.points.float(), cloud.normals.float()
+    query = torch.rand(5000, 3, generator=torch.Generator().manual_seed(2)) - 0.5
+    distance = knn(query, points, 1)[0][:, 0]
+    every, reach = winding_signs(query, points, normals, 1000)
+    beyond, same_reach = winding_signs(query, points, normals, 1000, distance=distance)
+    read = distance > reach
+    assert same_reach == reach and 0.5 < read.float().mean() < 1
+    assert torch.equal(beyond[read], every[read]) and (beyond[~read] == 0).all()
 
 
 def test_a_large_cloud_s_spacing_is_read_from_a_subset_of_its_points():
