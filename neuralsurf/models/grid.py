@@ -274,8 +274,7 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
         refinements = 0
     for _ in range(refinements):  # the same system, for a correction from what the equations still miss
         missed = gather(targets - at_points(values))
-        refined = values + conjugate_gradients(normal, missed, torch.zeros_like(values), preconditioner,
-                                                refinement_iterations)
+        refined = values + conjugate_gradients(normal, missed, None, preconditioner, refinement_iterations)
         model.values[touched, 0] = refined
         if best is not None:
             scored = score(model)
@@ -287,11 +286,15 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
     return model
 
 
-def conjugate_gradients(product: Callable[[Tensor], Tensor], right: Tensor, values: Tensor, preconditioner: Tensor,
-                        iterations: int) -> Tensor:
+def conjugate_gradients(product: Callable[[Tensor], Tensor], right: Tensor, values: Tensor | None,
+                        preconditioner: Tensor, iterations: int) -> Tensor:
     """Float[Tensor, "k"]: `iterations` steps of preconditioned conjugate gradients on product(v) = right from
-    `values` (updated in place), `product` symmetric positive definite, `preconditioner` its inverse diagonal."""
-    residual = right - product(values)
+    `values` (updated in place; None: from zeros, which spares a product), `product` symmetric positive definite,
+    `preconditioner` its inverse diagonal."""
+    if values is None:
+        values, residual = torch.zeros_like(right), right.clone()
+    else:
+        residual = right - product(values)
     z = preconditioner * residual
     direction, rz = z.clone(), float(residual.dot(z))
     converged = 1e-12 * rz  # float32 round-off beyond this: further steps would divide noise by noise
