@@ -177,6 +177,32 @@ def test_the_smoothed_solve_is_the_least_squares_solution_with_the_membrane_term
         solve_values(sparse, points, targets, weights, smoothness=1.0)
 
 
+def test_a_smoothed_solve_away_from_the_grid_s_faces_is_the_same_least_squares_solution():
+    """Unknowns that all lie inside the grid (six grid neighbours each) against the dense system with the
+    other rows held at their start."""
+    generator = torch.Generator().manual_seed(2)
+    values = torch.randn(7, 7, 7, generator=generator) * 0.1
+    model = VoxelSDF.from_grid(values, torch.ones(values.shape, dtype=torch.bool), (0.0, 0.0, 0.0), 0.1)
+    points = 0.2 + 0.2 * torch.rand(100, 3, generator=generator)  # cells 2 and 3: corners 2 to 4 on each axis
+    targets, weights = torch.randn(100, generator=generator) * 0.05, torch.rand(100, generator=generator) + 0.5
+    rows, w = model.corners(points)
+    A = torch.zeros(100, len(model.values)).scatter_add_(1, rows, w).double()
+    start, W = model.values[:, 0].detach().double(), torch.diag(weights.double())
+    diagonal = (A * A * weights.double()[:, None]).sum(0)
+    lam, mu = 0.1 * diagonal[diagonal > 0].mean(), 1.0 * diagonal[diagonal > 0].mean()
+    system = A.T @ W @ A + lam * torch.eye(len(start), dtype=torch.float64) + mu * membrane_matrix(model)
+    right = A.T @ W @ targets.double() + lam * start
+    i, j, k = torch.meshgrid(*[torch.arange(1, 6)] * 3, indexing="ij")
+    inner = ((i * 7 + j) * 7 + k).reshape(-1)  # every point off the faces
+    free = torch.zeros(len(start), dtype=torch.bool)
+    free[inner] = True
+    solved = solve_values(model, points, targets, weights, prior_weight=0.1, iterations=300, smoothness=1.0,
+                          unknowns=inner).values[:, 0].detach().double()
+    expected = start.clone()
+    expected[free] = torch.linalg.solve(system[free][:, free], right[free] - system[free][:, ~free] @ start[~free])
+    assert torch.allclose(solved, expected, atol=1e-5)
+
+
 def test_the_grid_adjacency_links_exactly_the_axis_neighbours():
     generator = torch.Generator().manual_seed(3)
     linear = torch.randperm(6 * 5 * 7, generator=generator)[:120].sort().values  # distinct, in grid order

@@ -255,8 +255,12 @@ def solve_values(model: VoxelSDF, points: Tensor, targets: Tensor, weights: Tens
                               "VoxelSDF.from_grid with observed all true makes)")
         linear = touched.long()
         _, y, z = model.shape
-        coordinates = torch.stack([linear // (y * z), linear // z % y, linear % z], -1)
-        edges = ((coordinates > 0).sum(-1) + (coordinates < model.last).sum(-1)).to(start.dtype)
+        coordinates = torch.stack([touched // (y * z), touched // z % y, touched % z], -1)  # int32, as touched
+        last = model.last.to(coordinates)
+        if coordinates.min() > 0 and (coordinates.max(0).values < last).all():  # none on the grid's faces
+            edges = 6.0  # grid neighbours of each value: a scalar spares a pass per product
+        else:
+            edges = ((coordinates > 0).sum(-1) + (coordinates < last).sum(-1)).to(start.dtype)
         held = model.values[:, 0].index_fill(0, linear, 0.0)  # the values kept at their start
         right += mu * neighbour_sum(held.view(model.shape)).view(-1)[linear]
         adjacency = grid_adjacency(coordinates).to(start.dtype)
