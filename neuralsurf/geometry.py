@@ -28,7 +28,7 @@ def take_rows(values: Tensor, index: Tensor) -> Tensor:
 
 def knn(query: Tensor, points: Tensor, k: int = 1, within: float = math.inf) -> tuple[Tensor, Tensor]:
     """Exact k nearest neighbours of each query among `points`: brute force on a GPU (both tensors
-    there, up to GPU_BRUTE_FORCE_PAIRS pairs), else a k-d tree on all CPU cores.
+    there, up to GPU_BRUTE_FORCE_PAIRS pairs), else a k-d tree on torch's CPU threads.
 
     Args:
         query: Float[Tensor, "m 3"].
@@ -74,7 +74,8 @@ def _kd_tree(points: Tensor):
 
 def _tree_knn(tree, query: Tensor, k: int, within: float = math.inf) -> tuple[Tensor, Tensor]:
     """`knn` of Float[Tensor, "m 3"] queries in a built `_kd_tree`."""
-    dist, index = tree.query(query.detach().cpu().double().numpy(), k=k, distance_upper_bound=within, workers=-1)
+    dist, index = tree.query(query.detach().cpu().double().numpy(), k=k, distance_upper_bound=within,
+                             workers=torch.get_num_threads())
     dist, index = np.asarray(dist).reshape(len(query), k), np.asarray(index).reshape(len(query), k)
     return (
         torch.from_numpy(dist).to(query.dtype).to(query.device),
@@ -93,13 +94,13 @@ def _neighbour_pairs(coords: np.ndarray, k: int | None, radius: float | None) ->
     n = len(coords)
     tree = cKDTree(coords)
     if radius is None:
-        _, index = tree.query(coords, k=k, workers=-1)
+        _, index = tree.query(coords, k=k, workers=torch.get_num_threads())
         return np.repeat(np.arange(n), k), index.reshape(-1)
     if k is None:
-        lists = tree.query_ball_point(coords, r=radius, workers=-1, return_sorted=False)
+        lists = tree.query_ball_point(coords, r=radius, workers=torch.get_num_threads(), return_sorted=False)
         counts = np.fromiter(map(len, lists), dtype=np.int64, count=n)
         return np.repeat(np.arange(n), counts), np.concatenate(lists).astype(np.int64)
-    distance, index = tree.query(coords, k=k, distance_upper_bound=radius, workers=-1)
+    distance, index = tree.query(coords, k=k, distance_upper_bound=radius, workers=torch.get_num_threads())
     valid = np.isfinite(distance)
     return np.broadcast_to(np.arange(n)[:, None], index.shape)[valid], index[valid]
 
