@@ -153,11 +153,11 @@ class VoxelSDF(nn.Module):
 
 
 def grid_adjacency(coordinates: Tensor) -> Tensor:
-    """Float sparse CSR [k, k]: 1 where two of Long[Tensor, "k 3"] distinct grid points, in grid order, are axis
+    """Float sparse CSR [k, k]: 1 where two of Int[Tensor, "k 3"] distinct grid points, in grid order, are axis
     neighbours, with int32 indices: six entries a row, a missing neighbour's a 0 on the diagonal (no pass that drops
     them; products are the same). A product with it reads a fraction of the memory that a dense neighbour sum over
     the points' bounding box does: 5x faster on the bunny's start."""
-    low = (coordinates.min(0).values - 1).tolist()  # a box one point wider each side: a neighbour outside it reads "none"
+    low = (coordinates.min(0).values - 1).tolist()  # a box one point wider each side: outside it reads "none"
     size = [high - first + 2 for high, first in zip(coordinates.max(0).values.tolist(), low)]
     if size[0] * size[1] * size[2] >= 2**31:
         raise ConfigError(f"grid_adjacency's points span {size} grid points, beyond int32 indices")
