@@ -546,5 +546,5 @@ def cloud_winding_number(query: Tensor, points: Tensor, normals: Tensor, areas: 
         dot = torch.addmm(offset, part, normals.T, alpha=-1, out=dot_buffer[: len(part)])  # n_i . (p_i - q)
         r2 = torch.add(squared, (part**2).sum(-1, keepdim=True), out=r2_buffer[: len(part)])
         inverse = r2.addmm_(part, points.T, alpha=-2).clamp_min_(1e-12).rsqrt_()
-        out.append(dot.mul_(inverse).mul_(inverse).mul_(inverse) @ areas)
+        out.append(dot.mul_(inverse.pow_(3)) @ areas)  # pow_(3): one pass where three products took three
     return torch.cat(out) / (4 * math.pi) if out else query.new_zeros(0)
