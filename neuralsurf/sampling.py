@@ -148,8 +148,9 @@ def signed_distance(query: Tensor, points: Tensor, normals: Tensor, spacing: flo
     query lies beyond that sign's reach."""
     sdf = approximate_sdf(query, points, normals, spacing)
     if winding_points > 0:  # beyond 2 spacings |sdf| is the distance to the cloud
-        sign, reach = winding_signs(query, points, normals, winding_points, seed, sdf.abs())
-        sdf = torch.where(sdf.abs() > reach, sign * sdf.abs(), sdf)
+        distance = sdf.abs()
+        sign, reach = winding_signs(query, points, normals, winding_points, seed, distance)
+        sdf = torch.where(distance > reach, sign * distance, sdf)
     return sdf
 
 

@@ -65,7 +65,7 @@ def plane_offsets(vertices: Tensor, points: Tensor, normals: Tensor, spacing: fl
     centre = points.mean(0)  # n . (v - p) as n . (v - centre) - n . (p - centre): no [v, k, 3] point gather
     heights = ((points - centre) * normals).sum(-1)
     normal = (weight[..., None] * take_rows(normals, index)).sum(1)
-    offset = ((vertices - centre) * normal).sum(-1) - (weight * heights[index]).sum(-1)
+    offset = ((vertices - centre) * normal).sum(-1) - (weight * take_rows(heights, index)).sum(-1)
     return torch.where(distance[:, 0] < 2 * spacing, offset, 0.0), torch.nn.functional.normalize(normal, dim=-1)
 
 

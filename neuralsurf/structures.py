@@ -118,7 +118,7 @@ def merged_vertex_ids(vertices: Tensor) -> Tensor:
     `merge_vertices`), ids in lexicographic order of the rounded coordinates."""
     keys = (vertices.detach().cpu().double() * 1e8).round().long()
     order = torch.arange(len(keys))
-    for axis in (2, 1, 0):  # lexicographic: stable sorts from the last coordinate
+    for axis in (2, 1, 0):  # lexicographic: stable sorts from the last coordinate (torch.unique(dim=0): 12x slower)
         order = order[keys[order, axis].argsort(stable=True)]
     ordered = keys[order]
     new = torch.ones(len(keys), dtype=torch.bool)
