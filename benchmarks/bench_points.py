@@ -4,6 +4,7 @@ and Open3D's screened Poisson on the same points and normals, timed in one run.
 
     python benchmarks/bench_points.py bunny    # the demo's 100k points against Poisson depth 10 and 9
     python benchmarks/bench_points.py scans    # train.py data=file on the Stanford scans merged ($NEURALSURF_DATA)
+    python benchmarks/bench_points.py rounds   # the scans: the move's every count of rounds against Poisson
     python benchmarks/bench_points.py misregistered  # synthetic scans of the bunny out of register
     python benchmarks/bench_points.py curves [--sizes 10000 100000 1000000 5000000] [--resolutions 128 256 512 1024]
                                              [--plot docs/images/points_scaling.png]
@@ -12,7 +13,9 @@ and Open3D's screened Poisson on the same points and normals, timed in one run.
 Chamfer-L1 and normal consistency against the bunny mesh; for the scans the mean distance from the scan points to
 the mesh and from the mesh (100k surface samples) to the scan points, as fractions of the scan's bounding-box
 diagonal, and the metrics against Stanford's zippered reconstruction; then both again on the scans less `UNSEEN` of
-their points, the distance from the points given and from those not given to each mesh. `misregistered` fits scans whose true surface
+their points, the distance from the points given and from those not given to each mesh. `rounds` scores the same way
+the fit of those points moved with each count of the move's smoothing rounds (`snapping.ROUNDS`), not only the count
+its held-out points choose, and Poisson depth 9. `misregistered` fits scans whose true surface
 is known (`misregistered_scans`) with and without the move onto the points (`extract.onto_points`). `curves` runs
 every case in a child process (its peak resident memory is the case's own): the fast fit of 10k to 5M points
 sampled from the bunny with their normals (and the merged scans when present), and the extraction of the 100k fit
@@ -41,10 +44,17 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 import neuralsurf as ns
+from neuralsurf import snapping
 from neuralsurf.baselines.registration.estimation import axis_angle_to_matrix
 from neuralsurf.cameras import depth_to_cloud
 from neuralsurf.cli import build_observations, without_feeds
-from neuralsurf.geometry import cloud_from_mesh, knn, point_to_mesh_distance, sample_mesh_surface
+from neuralsurf.geometry import (
+    cloud_from_mesh,
+    cloud_spacing,
+    knn,
+    point_to_mesh_distance,
+    sample_mesh_surface,
+)
 from neuralsurf.sampling import held_out_split
 from neuralsurf.scenes import Scene
 from neuralsurf.scenes.recipes import extract_scene_mesh
@@ -173,6 +183,30 @@ def scans(args) -> None:
     for name, (mesh, wall, cpu, _) in file_runs(scene.cloud.select(given)).items():
         distance = point_to_mesh_distance(scene.cloud.points.float(), mesh).double() / box_diagonal(scene.cloud)
         line(name, wall, cpu, {"given": distance[given].mean().item(), "not_given": distance[unseen].mean().item()})
+
+
+def rounds(args) -> None:
+    from neuralsurf.scenes.recipes import stanford_scans
+
+    scene = stanford_scans(root=os.environ.get("NEURALSURF_DATA"))
+    unseen, given = held_out_split(len(scene.cloud), UNSEEN, seed=1)
+    cloud = scene.cloud.select(given)
+    cfg = configured(["data=file", "data.path=unused", "extract.onto_points=null"])
+    mesh, _, _, _ = ours(cfg, Scene("given", cloud, None))
+    _, kept = held_out_split(len(cloud), cfg.observation.points.held_out, cfg.seed)  # the fit's points, as the move's
+    points, normals = cloud.points.float(), torch.nn.functional.normalize(cloud.normals.float(), dim=-1)
+    spacing = cloud_spacing(points[kept])
+    fine = snapping.subdivided(ns.Mesh(mesh.vertices.float(), mesh.faces))
+    offset, direction = snapping.plane_offsets(fine.vertices, points[kept], normals[kept], spacing)
+    meshes = {f"moved, {count} rounds": ns.Mesh(vertices, fine.faces)
+              for count, vertices in snapping.smoothed_moves(fine, offset, direction, spacing)}
+    meshes["poisson depth 9"] = poisson(cloud, 9)[0]
+    print(f"{UNSEEN:.0%} of the scans' points kept from both: scan -> mesh on the points given and on those not given")
+    for name, moved in meshes.items():
+        distance = point_to_mesh_distance(scene.cloud.points.float(), moved).double() / box_diagonal(scene.cloud)
+        zippered = ns.metrics.evaluate_mesh(moved, scene.ground_truth)["chamfer_l1_exact"]
+        print(f"{name:<20} given {distance[given].mean():.4e}  not given {distance[unseen].mean():.4e}  "
+              f"Chamfer-L1 to the zippered mesh {zippered:.4e}", flush=True)
 
 
 def misregistered_scans(views: int = 10, noise: float = 2e-4, shift: float = 2e-4, degrees: float = 0.02,
@@ -306,14 +340,15 @@ def main() -> None:
         print(json.dumps(one_case(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]))))
         return
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["bunny", "scans", "misregistered", "curves"])
+    parser.add_argument("what", choices=["bunny", "scans", "rounds", "misregistered", "curves"])
     parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000, 5_000_000])
     parser.add_argument("--resolutions", type=int, nargs="+", default=[128, 256, 512, 1024])
     parser.add_argument("--plot", type=Path, default=None)
     args = parser.parse_args()
     if args.what != "curves":  # each of its cases runs in a process of its own, loading what it calls
         load_libraries()
-    {"bunny": bunny, "scans": scans, "misregistered": misregistered, "curves": curves}[args.what](args)
+    {"bunny": bunny, "scans": scans, "rounds": rounds, "misregistered": misregistered,
+     "curves": curves}[args.what](args)
 
 
 if __name__ == "__main__":

@@ -10,6 +10,7 @@ move, where they are noisy or out of register a smooth one, and none unless the 
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 
 import torch
 from torch import Tensor
@@ -96,10 +97,23 @@ def footprints(query: Tensor, mesh: Mesh) -> tuple[Tensor, Tensor, Tensor]:
     return face + child * len(mesh.faces), weights.float(), torch.nn.functional.normalize(normal, dim=-1).float()
 
 
+def smoothed_moves(fine: Mesh, offset: Tensor, direction: Tensor, spacing: float) -> Iterator[tuple[int, Tensor]]:
+    """(rounds, Float[Tensor, "v 3"] vertices) for each count of `ROUNDS` in turn: `fine`'s vertices moved by
+    Float[Tensor, "v"] `offset` along Float[Tensor, "v 3"] `direction` (`plane_offsets`), the offset averaged over
+    each vertex's ring (`ring_mean`: half its own, half the ring's mean) that many rounds, by at most `spacing`."""
+    incident = fine.faces.reshape(-1).bincount(minlength=len(fine.vertices)).clamp_min(1)
+    done = 0
+    for rounds in ROUNDS:
+        for _ in range(rounds - done):
+            offset = (offset + ring_mean(offset, fine.faces, incident)) / 2
+        done = rounds
+        yield rounds, fine.vertices - offset.clamp(-spacing, spacing)[:, None] * direction
+
+
 def snap_to_points(mesh: Mesh, points: Tensor, normals: Tensor, held_out: Tensor, spacing: float | None = None
                    ) -> tuple[Mesh, dict[str, float]]:
     """`mesh` subdivided once and moved onto Float[Tensor, "n 3"] `points` (unit `normals`, the same frame): each
-    vertex by its `plane_offsets` averaged over its ring (`ring_mean`) some rounds, by at most one point spacing
+    vertex by its `plane_offsets` averaged over its ring some rounds (`smoothed_moves`), by at most one point spacing
     (`spacing`; default `cloud_spacing(points)`). The rounds are `ROUNDS` in order until one brings Float[Tensor,
     "h 3"] `held_out` points (kept out of `points`) no closer than the one before, their distance being their mean
     height over the mesh where they stand (`footprints`: a rough surface would pass closer to scattered points); the
@@ -117,13 +131,8 @@ def snap_to_points(mesh: Mesh, points: Tensor, normals: Tensor, held_out: Tensor
         return float(((held_out - surface) * normal).sum(-1).abs().double().mean())
 
     before = best = score(fine.vertices)
-    chosen, vertices, done = -1, fine.vertices, 0
-    incident = fine.faces.reshape(-1).bincount(minlength=len(fine.vertices)).clamp_min(1)
-    for rounds in ROUNDS:
-        for _ in range(rounds - done):  # each round half a vertex's own move, half its ring's mean
-            offset = (offset + ring_mean(offset, fine.faces, incident)) / 2
-        done = rounds
-        moved = fine.vertices - offset.clamp(-spacing, spacing)[:, None] * direction
+    chosen, vertices = -1, fine.vertices
+    for rounds, moved in smoothed_moves(fine, offset, direction, spacing):
         if (now := score(moved)) >= best and chosen >= 0:
             break
         if now < best:
