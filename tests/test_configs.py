@@ -217,6 +217,21 @@ def test_the_move_onto_the_points_follows_the_points_observation():
     assert OmegaConf.to_container(suite.method.neural_sdf_fast.extract, resolve=True)["onto_points"] is None
 
 
+def test_evaluate_s_neural_sdf_fast_fits_as_train_py_s_default():
+    """One setting: evaluate.py's neural_sdf_fast is train.py's default point fit (experiment=bunny_sdf) in all that
+    decides the result (a suite may cap its steps); only the progress bar and the images differ."""
+    train, _ = compose_with_choices(["data=file", "data.path=x"])
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        method = compose(config_name="evaluate", overrides=["~suite", "scenes=[sphere]",
+                                                                      "methods=[poisson]"]).method.neural_sdf_fast
+    for group in ("model", "optimizer"):
+        assert train[group] == method[group], group
+    assert train.observation.points == method.observations.points
+    assert OmegaConf.to_container(train.extract, resolve=True) == OmegaConf.to_container(method.extract, resolve=True)
+    differ = {key for key in train.trainer if train.trainer[key] != method.trainer[key]}
+    assert differ == {"progress", "image_every"}, differ
+
+
 def test_options_of_an_observation_that_is_not_selected_are_a_config_error():
     """observation= on the command line replaces the experiment's; the experiment's options of the one replaced are
     not dropped quietly."""
