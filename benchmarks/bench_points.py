@@ -138,13 +138,16 @@ def box_diagonal(cloud) -> float:
     return float((cloud.points.max(0).values - cloud.points.min(0).values).double().norm())
 
 
+def to_mesh(cloud, mesh):
+    """Float64[Tensor, "n"]: each of `cloud`'s points' distance to `mesh`, a fraction of its bounding-box diagonal."""
+    return point_to_mesh_distance(cloud.points.float(), mesh).double() / box_diagonal(cloud)
+
+
 def scan_distances(mesh, cloud, n: int = 100_000) -> dict[str, float]:
     """Mean scan -> mesh and mesh -> scan distances, fractions of the scan's bounding-box diagonal."""
-    points, diagonal = cloud.points.double(), box_diagonal(cloud)
-    to_mesh = point_to_mesh_distance(points.float(), mesh).double().mean()
     samples, _ = sample_mesh_surface(mesh, n, torch.Generator().manual_seed(0))
-    to_scan = knn(samples.double(), points, 1)[0][:, 0].mean()
-    return {"scan_to_mesh": float(to_mesh) / diagonal, "mesh_to_scan": float(to_scan) / diagonal}
+    to_scan = knn(samples.double(), cloud.points.double(), 1)[0][:, 0].mean()
+    return {"scan_to_mesh": float(to_mesh(cloud, mesh).mean()), "mesh_to_scan": float(to_scan) / box_diagonal(cloud)}
 
 
 UNSEEN = 0.05
@@ -181,7 +184,7 @@ def scans(args) -> None:
     unseen, given = held_out_split(len(scene.cloud), UNSEEN, seed=1)
     print(f"{UNSEEN:.0%} of the points kept from both: scan -> mesh on the points given and on those not given")
     for name, (mesh, wall, cpu, _) in file_runs(scene.cloud.select(given)).items():
-        distance = point_to_mesh_distance(scene.cloud.points.float(), mesh).double() / box_diagonal(scene.cloud)
+        distance = to_mesh(scene.cloud, mesh)
         line(name, wall, cpu, {"given": distance[given].mean().item(), "not_given": distance[unseen].mean().item()})
 
 
@@ -203,7 +206,7 @@ def rounds(args) -> None:
     meshes["poisson depth 9"] = poisson(cloud, 9)[0]
     print(f"{UNSEEN:.0%} of the scans' points kept from both: scan -> mesh on the points given and on those not given")
     for name, moved in meshes.items():
-        distance = point_to_mesh_distance(scene.cloud.points.float(), moved).double() / box_diagonal(scene.cloud)
+        distance = to_mesh(scene.cloud, moved)
         zippered = ns.metrics.evaluate_mesh(moved, scene.ground_truth)["chamfer_l1_exact"]
         print(f"{name:<20} given {distance[given].mean():.4e}  not given {distance[unseen].mean():.4e}  "
               f"Chamfer-L1 to the zippered mesh {zippered:.4e}", flush=True)
