@@ -7,6 +7,7 @@ and Open3D's screened Poisson on the same points and normals, timed in one run.
     python benchmarks/bench_points.py rounds   # the scans: the move's every count of rounds against Poisson
     python benchmarks/bench_points.py misregistered  # synthetic scans of the bunny out of register
     python benchmarks/bench_points.py curves [--sizes 10000 100000 1000000 5000000] [--resolutions 128 256 512 1024]
+                                             [--tables 15 17 19 21] [--widths 32 64 128]
                                              [--plot docs/images/points_scaling.png]
 
 `bunny` and `scans` print wall and CPU seconds of fit + extraction and of Poisson, and their accuracy: exact
@@ -19,8 +20,9 @@ its held-out points choose, and Poisson depth 9. `misregistered` fits scans whos
 is known (`misregistered_scans`) with and without the move onto the points (`extract.onto_points`). `curves` runs
 every case in a child process (its peak resident memory is the case's own): the fast fit of 10k to 5M points
 sampled from the bunny with their normals (and the merged scans when present), and the extraction of the 100k fit
-at each resolution, against Poisson depth 9 on the same points; fits and Poisson are scored by exact Chamfer-L1
-against the bunny (the scans: the zippered mesh). Threads: as the environment sets them (OMP_NUM_THREADS; else one
+at each resolution, against Poisson depth 9 on the same points, and the fit of `MODEL_POINTS` with each hash-table
+size (log2 rows a level) and each MLP width; fits and Poisson are scored by exact Chamfer-L1 against the bunny (the
+scans: the zippered mesh). Threads: as the environment sets them (OMP_NUM_THREADS; else one
 per core), the same for Poisson; `bunny`, `scans` and `misregistered` load the libraries before the clocks
 (`load_libraries`).
 """
@@ -258,9 +260,14 @@ def sampled_cloud(n: int):
     return ns.PointCloud(points.float(), normals.float()), bunny
 
 
-def one_case(kind: str, n: int, resolution: int) -> dict:
-    """A child's case: the fit (and default extraction) of n points, Poisson depth 9 on them (both scored after
-    the timing and the peak memory are read), or the extraction of the n-point fit at `resolution` (timed alone)."""
+MODEL_POINTS = 10_000
+"""`curves` fits its model sizes to this many points, where the MLP refines the start longest."""
+
+
+def one_case(kind: str, n: int, resolution: int, overrides: list[str] | None = None) -> dict:
+    """A child's case: the fit (and default extraction) of n points (`model`: with train.py `overrides` of the model),
+    Poisson depth 9 on them (both scored after the timing and the peak memory are read), or the extraction of the
+    n-point fit at `resolution` (timed alone)."""
     cloud, truth = sampled_cloud(n)
     before = peak_rss_mib()
 
@@ -271,13 +278,14 @@ def one_case(kind: str, n: int, resolution: int) -> dict:
         mesh, wall, cpu = poisson(cloud, 9)
         peak = peak_rss_mib()
         return {"wall": wall, "cpu": cpu, "peak_mib": peak, "input_mib": before, "chamfer": exact_chamfer(mesh)}
-    cfg = configured(["data=file", "data.path=unused"])
+    cfg = configured(["data=file", "data.path=unused", *(overrides or [])])
     scene = Scene("cloud", cloud, None)
-    if kind == "fit":
+    if kind in ("fit", "model"):
         mesh, result, wall, cpu = ours(cfg, scene)
         peak = peak_rss_mib()
+        trained = sum(p.numel() for p in result.field.parameters() if p.requires_grad)
         return {"wall": wall, "cpu": cpu, "peak_mib": peak, "input_mib": before, "steps": result.steps,
-                "faces": len(mesh.faces), "chamfer": exact_chamfer(mesh)}
+                "parameters": trained, "faces": len(mesh.faces), "chamfer": exact_chamfer(mesh)}
     _, result, _, _ = ours(cfg, scene)
     Path("/proc/self/clear_refs").write_text("5")  # the extraction's own peak from here (Linux)
     mesh, wall, cpu = clock(ns.extract_mesh, result.field, resolution=resolution, sparse=True, progress=False,
@@ -288,19 +296,21 @@ def one_case(kind: str, n: int, resolution: int) -> dict:
 
 
 def curves(args) -> None:
-    cases = [("fit", n, 0) for n in args.sizes] + [("poisson", n, 0) for n in args.sizes]
+    cases = [("fit", n, 0, []) for n in args.sizes] + [("poisson", n, 0, []) for n in args.sizes]
     if os.environ.get("NEURALSURF_DATA"):
-        cases += [("fit", 0, 0), ("poisson", 0, 0)]
-    cases += [("extract", 100_000, r) for r in args.resolutions]
+        cases += [("fit", 0, 0, []), ("poisson", 0, 0, [])]
+    cases += [("extract", 100_000, r, []) for r in args.resolutions]
+    cases += [("model", MODEL_POINTS, 0, [f"model.encoding.log2_table_size={t}"]) for t in args.tables]
+    cases += [("model", MODEL_POINTS, 0, [f"model.width={w}"]) for w in args.widths]
     measured = []
     print("case, points (0: the scans merged), resolution, wall s, CPU s, peak RSS MiB, details", flush=True)
-    for kind, n, resolution in cases:
-        child = subprocess.run([sys.executable, __file__, "one", kind, str(n), str(resolution)], capture_output=True,
-                               text=True, check=False)
+    for kind, n, resolution, overrides in cases:
+        child = subprocess.run([sys.executable, __file__, "one", kind, str(n), str(resolution), *overrides],
+                               capture_output=True, text=True, check=False)
         if child.returncode:
-            print(f"{kind} {n} {resolution}: failed\n{child.stderr[-2000:]}", flush=True)
+            print(f"{kind} {n} {resolution} {overrides}: failed\n{child.stderr[-2000:]}", flush=True)
             continue
-        result = json.loads(child.stdout.strip().splitlines()[-1])
+        result = {**json.loads(child.stdout.strip().splitlines()[-1]), **({"model": overrides[0]} if overrides else {})}
         measured.append((kind, n, resolution, result))
         print(f"{kind:8} {n:8d} {resolution:5d} {result['wall']:8.1f} {result['cpu']:8.1f} {result['peak_mib']:8.0f}  "
               f"{json.dumps({k: v for k, v in result.items() if k not in ('wall', 'cpu', 'peak_mib')})}", flush=True)
@@ -309,8 +319,9 @@ def curves(args) -> None:
 
 
 def plot(measured: list, path: Path) -> None:
-    """Wall time, peak memory and accuracy against points (fit, Poisson) and time and memory against resolution
-    (extraction), log-log."""
+    """Wall time, peak memory and accuracy against points (fit, Poisson), time and memory against resolution
+    (extraction), and time, memory and accuracy against the model's trained parameters (hash table, MLP width),
+    log-log, four panels a row."""
     from PIL import Image
 
     from neuralsurf.evaluation.render import scatter_plot
@@ -323,29 +334,44 @@ def plot(measured: list, path: Path) -> None:
 
     extraction = [(res, result[key], name, f"{res}") for kind, _, res, result in measured if kind == "extract"
                   for key, name in (("wall", "wall s"), ("peak_mib", "peak RSS MiB"))]
+
+    def against_parameters(key: str) -> list:  # the hash table's size or the MLP's width changed
+        return [(result["parameters"], result[key], *(("hash table", "2^" + value) if "table" in setting else
+                                                     ("MLP width", value)))
+                for kind, _, _, result in measured if kind == "model"
+                for setting, value in [result["model"].split("=")]]
+
     panels = [scatter_plot("time against points", "points", "wall s", against_points("wall")),
               scatter_plot("peak memory against points", "points", "peak RSS MiB", against_points("peak_mib")),
               scatter_plot("accuracy against points", "points", "exact Chamfer-L1 to the bunny",
                            against_points("chamfer")),
-              scatter_plot("extraction of the 100k fit (sparse)", "cells per side", "wall s | MiB", extraction)]
-    canvas = Image.new("RGB", (sum(p.width for p in panels), max(p.height for p in panels)), (255, 255, 255))
-    x = 0
-    for panel in panels:
-        canvas.paste(panel, (x, 0))
-        x += panel.width
+              scatter_plot("extraction of the 100k fit (sparse)", "cells per side", "wall s | MiB", extraction),
+              scatter_plot(f"time against model size ({MODEL_POINTS // 1000}k points)", "trained parameters",
+                           "wall s", against_parameters("wall")),
+              scatter_plot(f"peak memory against model size ({MODEL_POINTS // 1000}k points)", "trained parameters",
+                           "peak RSS MiB", against_parameters("peak_mib")),
+              scatter_plot(f"accuracy against model size ({MODEL_POINTS // 1000}k points)", "trained parameters",
+                           "exact Chamfer-L1 to the bunny", against_parameters("chamfer"))]
+    columns = 4
+    width, height = max(p.width for p in panels), max(p.height for p in panels)
+    canvas = Image.new("RGB", (columns * width, -(-len(panels) // columns) * height), (255, 255, 255))
+    for i, panel in enumerate(panels):
+        canvas.paste(panel, (i % columns * width, i // columns * height))
     path.parent.mkdir(parents=True, exist_ok=True)
     canvas.save(path)
     print(f"plot: {path}")
 
 
 def main() -> None:
-    if len(sys.argv) == 5 and sys.argv[1] == "one":
-        print(json.dumps(one_case(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]))))
+    if len(sys.argv) >= 5 and sys.argv[1] == "one":
+        print(json.dumps(one_case(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5:])))
         return
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("what", choices=["bunny", "scans", "rounds", "misregistered", "curves"])
     parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000, 5_000_000])
     parser.add_argument("--resolutions", type=int, nargs="+", default=[128, 256, 512, 1024])
+    parser.add_argument("--tables", type=int, nargs="+", default=[15, 17, 19, 21], help="log2 hash-table sizes")
+    parser.add_argument("--widths", type=int, nargs="+", default=[32, 64, 128], help="MLP widths")
     parser.add_argument("--plot", type=Path, default=None)
     args = parser.parse_args()
     if args.what != "curves":  # each of its cases runs in a process of its own, loading what it calls
