@@ -153,8 +153,20 @@ def scan_distances(mesh, cloud, n: int = 100_000) -> dict[str, float]:
 
 
 UNSEEN = 0.05
-"""`scans`' share of the points kept from both methods to score them on points they were not given (seed 1; the
-fit holds out its own share of the rest, seed 0)."""
+"""The share of the scans' points kept from both methods, to score them on points they were not given."""
+
+
+def stanford_scene() -> Scene:
+    """The Stanford range scans merged, with the zippered reconstruction ($NEURALSURF_DATA, else the fetch cache)."""
+    from neuralsurf.scenes.recipes import stanford_scans
+
+    return stanford_scans(root=os.environ.get("NEURALSURF_DATA"))
+
+
+def unseen_split(cloud) -> tuple[torch.Tensor, torch.Tensor]:
+    """(not given, given) Long[Tensor] indices: `UNSEEN` of `cloud`'s points (seed 1; the fit then holds out its own
+    share of the rest, seed 0)."""
+    return held_out_split(len(cloud), UNSEEN, seed=1)
 
 
 def file_runs(cloud) -> dict:
@@ -172,9 +184,7 @@ def file_runs(cloud) -> dict:
 
 
 def scans(args) -> None:
-    from neuralsurf.scenes.recipes import stanford_scans
-
-    scene = stanford_scans(root=os.environ.get("NEURALSURF_DATA"))
+    scene = stanford_scene()
     print(f"{len(scene.cloud)} points, normals {scene.cloud.has_normals}")
     runs = file_runs(scene.cloud)
     for name, (mesh, wall, cpu, extra) in runs.items():
@@ -183,7 +193,7 @@ def scans(args) -> None:
                                against["chamfer_l1_exact"], "nc_zippered": against["normal_consistency"], **extra})
     a, b = runs[OURS], runs["poisson depth 9"]
     print(f"time {OURS} / Poisson depth 9: {a[1] / b[1]:.2f}x wall, {a[2] / b[2]:.2f}x CPU")
-    unseen, given = held_out_split(len(scene.cloud), UNSEEN, seed=1)
+    unseen, given = unseen_split(scene.cloud)
     print(f"{UNSEEN:.0%} of the points kept from both: scan -> mesh on the points given and on those not given")
     for name, (mesh, wall, cpu, _) in file_runs(scene.cloud.select(given)).items():
         distance = to_mesh(scene.cloud, mesh)
@@ -191,10 +201,8 @@ def scans(args) -> None:
 
 
 def rounds(args) -> None:
-    from neuralsurf.scenes.recipes import stanford_scans
-
-    scene = stanford_scans(root=os.environ.get("NEURALSURF_DATA"))
-    unseen, given = held_out_split(len(scene.cloud), UNSEEN, seed=1)
+    scene = stanford_scene()
+    unseen, given = unseen_split(scene.cloud)
     cloud = scene.cloud.select(given)
     cfg = configured(["data=file", "data.path=unused", "extract.onto_points=null"])
     mesh, _, _, _ = ours(cfg, Scene("given", cloud, None))
@@ -251,9 +259,7 @@ def sampled_cloud(n: int):
     """(n points of the bunny's surface with their normals, the bunny); for n = 0 (the scans merged, Stanford's
     zippered reconstruction)."""
     if n == 0:
-        from neuralsurf.scenes.recipes import stanford_scans
-
-        scene = stanford_scans(root=os.environ.get("NEURALSURF_DATA"))
+        scene = stanford_scene()
         return scene.cloud, scene.ground_truth
     bunny = ns.scenes.bunny()
     points, normals = sample_mesh_surface(bunny, n, torch.Generator().manual_seed(0))

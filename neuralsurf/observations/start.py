@@ -69,7 +69,7 @@ def plane_distance(query: Tensor, points: Tensor, normals: Tensor, reach: float,
     passes on the wrong side: the median of several planes keeps the side."""
     distance, index = knn(query, points, 1, within=reach)  # no farther: 1.8x faster on the bunny's band
     nearest = index[:, 0].clamp_max(len(points) - 1)
-    plane = ((query - points[nearest]) * normals[nearest]).sum(-1)
+    plane = ((query - take_rows(points, nearest)) * take_rows(normals, nearest)).sum(-1)
     far = distance[:, 0].isinf().nonzero()[:, 0]
     if len(far):
         _, index = knn(query[far], points, min(k, len(points)))
