@@ -408,7 +408,7 @@ def extract_mesh(
     coarse_to_fine: bool = True,
     device: torch.device | str | None = None,
     *,
-    margin: float = 2.0,
+    margin: float = 1.0,
     coarse_resolution: int = 64,
     progress: bool = True,
     sparse: bool = False,
@@ -423,7 +423,8 @@ def extract_mesh(
         grid. Both give the same mesh for fields with |grad f| <= 2 * margin.
     device: where to evaluate a plain function (an nn.Module is evaluated where its parameters are).
     margin: coarse-to-fine refines a cell of diagonal d when its corner values come within
-        margin * d of `level`; the default 2.0 allows gradients four times those of an exact SDF.
+        margin * d of `level`; the default 1.0 allows gradients twice those of an exact SDF (a fitted
+        SDF's mesh is the same as with 2.0, from a third fewer evaluations).
     coarse_resolution: cells along the longest side of the first coarse-to-fine level (the fine
         grid is a power-of-two refinement of it).
     progress: a progress bar over the field's chunks when the evaluation lasts more than a few
