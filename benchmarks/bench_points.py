@@ -4,7 +4,7 @@ and Open3D's screened Poisson on the same points and normals, timed in one run.
 
     python benchmarks/bench_points.py bunny    # the demo's 100k points against Poisson depth 10 and 9
     python benchmarks/bench_points.py scans    # train.py data=file on the Stanford scans merged ($NEURALSURF_DATA)
-    python benchmarks/bench_points.py rounds   # the scans: the move's every count of rounds against Poisson
+    python benchmarks/bench_points.py rounds [--misregistered]  # the move's every count of rounds against Poisson
     python benchmarks/bench_points.py misregistered  # synthetic scans of the bunny out of register
     python benchmarks/bench_points.py curves [--sizes 10000 100000 1000000 5000000] [--resolutions 128 256 512 1024]
                                              [--tables 15 17 19 21] [--widths 32 64 128]
@@ -16,8 +16,10 @@ the mesh and from the mesh (100k surface samples) to the scan points, as fractio
 diagonal, and the metrics against Stanford's zippered reconstruction; then both again on the scans less `UNSEEN` of
 their points, the distance from the points given and from those not given to each mesh. `rounds` scores the same way
 the fit of those points moved with each count of the move's smoothing rounds (`snapping.ROUNDS`), not only the count
-its held-out points choose, and Poisson depth 9. `misregistered` fits scans whose true surface
-is known (`misregistered_scans`) with and without the move onto the points (`extract.onto_points`). `curves` runs
+its held-out points choose, and Poisson depth 9 (`--misregistered`: on the synthetic scans below, the true surface
+scored too). `misregistered` fits scans whose true surface is known (`misregistered_scans`) with and without the move
+onto the points (`extract.onto_points`), and scores them, Poisson and the true surface against the truth and by their
+distances to the scan. `curves` runs
 every case in a child process (its peak resident memory is the case's own): the fast fit of 10k to 5M points
 sampled from the bunny with their normals (and the merged scans when present), and the extraction of the 100k fit
 at each resolution, against Poisson depth 9 on the same points, and the fit of `MODEL_POINTS` with each hash-table
@@ -201,7 +203,7 @@ def scans(args) -> None:
 
 
 def rounds(args) -> None:
-    scene = stanford_scene()
+    scene = misregistered_scans() if args.misregistered else stanford_scene()
     unseen, given = unseen_split(scene.cloud)
     cloud = scene.cloud.select(given)
     cfg = configured(["data=file", "data.path=unused", "extract.onto_points=null"])
@@ -214,12 +216,17 @@ def rounds(args) -> None:
     meshes = {f"moved, {count} rounds": ns.Mesh(vertices, fine.faces)
               for count, vertices in snapping.smoothed_moves(fine, offset, direction, spacing)}
     meshes["poisson depth 9"] = poisson(cloud, 9)[0]
-    print(f"{UNSEEN:.0%} of the scans' points kept from both: scan -> mesh on the points given and on those not given")
+    if args.misregistered:
+        meshes["the true surface"] = scene.ground_truth
+    reference = "the true surface" if args.misregistered else "the zippered mesh"
+    print(f"{UNSEEN:.0%} of the scans' points kept from both: scan -> mesh on the points given and on those not "
+          f"given, mesh -> the points given; Chamfer-L1 to {reference}")
     for name, moved in meshes.items():
         distance = to_mesh(scene.cloud, moved)
-        zippered = ns.metrics.evaluate_mesh(moved, scene.ground_truth)["chamfer_l1_exact"]
-        print(f"{name:<20} given {distance[given].mean():.4e}  not given {distance[unseen].mean():.4e}  "
-              f"Chamfer-L1 to the zippered mesh {zippered:.4e}", flush=True)
+        to_given = scan_distances(moved, cloud)["mesh_to_scan"]
+        chamfer = ns.metrics.evaluate_mesh(moved, scene.ground_truth)["chamfer_l1_exact"]
+        print(f"{name:20} given {distance[given].mean():.4e}  not given {distance[unseen].mean():.4e}  "
+              f"mesh -> given {to_given:.4e}  Chamfer-L1 {chamfer:.4e}", flush=True)
 
 
 def misregistered_scans(views: int = 10, noise: float = 2e-4, shift: float = 2e-4, degrees: float = 0.02,
@@ -248,6 +255,9 @@ def misregistered(args) -> None:
     for name, overrides in ((OURS, []), (f"{OURS}, not moved", ["extract.onto_points=null"])):
         mesh, result, wall, cpu = ours(configured(overrides), scene)
         runs[name] = (mesh, wall, cpu, {"steps": result.steps})
+    runs = {name: (mesh, wall, cpu, {**scan_distances(mesh, scene.cloud), **extra})
+            for name, (mesh, wall, cpu, extra) in runs.items()}
+    runs["the true surface"] = (scene.ground_truth, 0.0, 0.0, scan_distances(scene.ground_truth, scene.cloud))
     scored_lines(runs, scene.ground_truth)
 
 
@@ -379,6 +389,7 @@ def main() -> None:
     parser.add_argument("--tables", type=int, nargs="+", default=[15, 17, 19, 21], help="log2 hash-table sizes")
     parser.add_argument("--widths", type=int, nargs="+", default=[32, 64, 128], help="MLP widths")
     parser.add_argument("--plot", type=Path, default=None)
+    parser.add_argument("--misregistered", action="store_true", help="rounds: on the synthetic scans (the truth known)")
     args = parser.parse_args()
     if args.what != "curves":  # each of its cases runs in a process of its own, loading what it calls
         load_libraries()
