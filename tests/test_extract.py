@@ -232,12 +232,14 @@ def test_coarse_to_fine_equals_dense_on_odd_grids_and_levels():
 
 
 def test_margin_bound_is_tight_enough_for_lipschitz_fields():
-    # margin m is safe for |grad f| <= 2 m: a 3-Lipschitz field with m = 1.5, an SDF with m = 0.5
-    def steep(x):
-        return 3.0 * FIELDS["torus"](x)
+    # margin m is safe for |grad f| <= 2 m: a 3-Lipschitz field with m = 1.5, a 2-Lipschitz one with the default
+    # (1.0), an SDF with m = 0.5
+    for slope, margin in ((3.0, {"margin": 1.5}), (2.0, {})):
+        def steep(x, slope=slope):
+            return slope * FIELDS["torus"](x)
 
-    dense = extract_mesh(steep, 96, UNIT_BOX, coarse_to_fine=False)
-    assert_identical(dense, extract_mesh(steep, 96, UNIT_BOX, margin=1.5, coarse_resolution=12))
+        dense = extract_mesh(steep, 96, UNIT_BOX, coarse_to_fine=False)
+        assert_identical(dense, extract_mesh(steep, 96, UNIT_BOX, coarse_resolution=12, **margin))
     dense = extract_mesh(FIELDS["two_spheres"], 96, UNIT_BOX, coarse_to_fine=False)
     fine = extract_mesh(FIELDS["two_spheres"], 96, UNIT_BOX, margin=0.5, coarse_resolution=12)
     assert_identical(dense, fine)
