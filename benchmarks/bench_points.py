@@ -262,7 +262,7 @@ def misregistered(args) -> None:
         runs[name] = (mesh, wall, cpu, {"steps": result.steps})
     runs = {name: (mesh, wall, cpu, {**scan_distances(mesh, scene.cloud), **extra})
             for name, (mesh, wall, cpu, extra) in runs.items()}
-    runs["the true surface"] = (scene.ground_truth, 0.0, 0.0, scan_distances(scene.ground_truth, scene.cloud))
+    runs["the true surface"] = (scene.ground_truth, math.nan, math.nan, scan_distances(scene.ground_truth, scene.cloud))
     scored_lines(runs, scene.ground_truth)
 
 
