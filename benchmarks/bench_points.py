@@ -217,9 +217,8 @@ def rounds(args) -> None:
     points, normals = cloud.points.float(), torch.nn.functional.normalize(cloud.normals.float(), dim=-1)
     spacing = cloud_spacing(points[kept])
     fine = snapping.subdivided(ns.Mesh(mesh.vertices.float(), mesh.faces))
-    offset, direction = snapping.plane_offsets(fine.vertices, points[kept], normals[kept], spacing)
     meshes = {f"moved, {count} rounds": ns.Mesh(vertices, fine.faces)
-              for count, vertices in snapping.smoothed_moves(fine, offset, direction, spacing)}
+              for count, vertices in snapping.smoothed_moves(fine, points[kept], normals[kept], spacing)}
     meshes["poisson depth 9"] = poisson(cloud, 9)[0]
     if args.misregistered:
         meshes["the true surface"] = scene.ground_truth
@@ -260,10 +259,9 @@ def misregistered(args) -> None:
     for name, overrides in ((OURS, []), (f"{OURS}, not moved", ["extract.onto_points=null"])):
         mesh, result, wall, cpu = ours(configured(overrides), scene)
         runs[name] = (mesh, wall, cpu, {"steps": result.steps})
-    runs = {name: (mesh, wall, cpu, {**scan_distances(mesh, scene.cloud), **extra})
-            for name, (mesh, wall, cpu, extra) in runs.items()}
-    runs["the true surface"] = (scene.ground_truth, math.nan, math.nan, scan_distances(scene.ground_truth, scene.cloud))
-    scored_lines(runs, scene.ground_truth)
+    runs["the true surface"] = (scene.ground_truth, math.nan, math.nan, {})
+    scored_lines({name: (mesh, wall, cpu, {**scan_distances(mesh, scene.cloud), **extra})
+                  for name, (mesh, wall, cpu, extra) in runs.items()}, scene.ground_truth)
 
 
 def peak_rss_mib() -> float:

@@ -97,10 +97,11 @@ def footprints(query: Tensor, mesh: Mesh) -> tuple[Tensor, Tensor, Tensor]:
     return face + child * len(mesh.faces), weights.float(), torch.nn.functional.normalize(normal, dim=-1).float()
 
 
-def smoothed_moves(fine: Mesh, offset: Tensor, direction: Tensor, spacing: float) -> Iterator[tuple[int, Tensor]]:
-    """(rounds, Float[Tensor, "v 3"] vertices) for each count of `ROUNDS` in turn: `fine`'s vertices moved by
-    Float[Tensor, "v"] `offset` along Float[Tensor, "v 3"] `direction` (`plane_offsets`), the offset averaged over
-    each vertex's ring (`ring_mean`: half its own, half the ring's mean) that many rounds, by at most `spacing`."""
+def smoothed_moves(fine: Mesh, points: Tensor, normals: Tensor, spacing: float) -> Iterator[tuple[int, Tensor]]:
+    """(rounds, Float[Tensor, "v 3"] vertices) for each count of `ROUNDS` in turn: `fine`'s vertices moved by their
+    `plane_offsets` onto Float[Tensor, "n 3"] `points` (unit `normals`), the offset averaged over each vertex's ring
+    (`ring_mean`: half its own, half the ring's mean) that many rounds, by at most `spacing`."""
+    offset, direction = plane_offsets(fine.vertices, points.float(), normals.float(), spacing)
     incident = fine.faces.reshape(-1).bincount(minlength=len(fine.vertices)).clamp_min(1)
     done = 0
     for rounds in ROUNDS:
@@ -121,7 +122,6 @@ def snap_to_points(mesh: Mesh, points: Tensor, normals: Tensor, held_out: Tensor
     measured: the held-out points' mean height before and after, and the rounds chosen, -1 for none)."""
     spacing = cloud_spacing(points) if spacing is None else spacing
     fine = subdivided(Mesh(mesh.vertices.float(), mesh.faces, mesh.vertex_colors))
-    offset, direction = plane_offsets(fine.vertices, points.float(), normals.float(), spacing)
     held_out = held_out[:SCORED].float()
     under, weights, normal = footprints(held_out, mesh)
     corners = fine.faces[under]
@@ -132,7 +132,7 @@ def snap_to_points(mesh: Mesh, points: Tensor, normals: Tensor, held_out: Tensor
 
     before = best = score(fine.vertices)
     chosen, vertices = -1, fine.vertices
-    for rounds, moved in smoothed_moves(fine, offset, direction, spacing):
+    for rounds, moved in smoothed_moves(fine, points, normals, spacing):
         if (now := score(moved)) >= best and chosen >= 0:
             break
         if now < best:
