@@ -1,8 +1,9 @@
 """Field -> Mesh: marching cubes on a grid of cubic voxels, evaluated in chunks, densely or
 coarse-to-fine; slices of fields for TensorBoard.
 
-A field is any callable mapping world points x[..., 3] (float32 tensor) to values f[...], negative
-inside. Meshes come back in the world frame with faces oriented outward (towards positive f).
+A field is any callable mapping world points x[..., 3] (float32 tensor; float64 where float32 cannot
+hold the grid's points, far from the origin for its cells) to values f[...], negative inside. Meshes
+come back in the world frame with faces oriented outward (towards positive f).
 Coarse-to-fine evaluates a coarse grid, then refines, level by level, only the cells that may hold
 the surface; every other grid point gets the trilinear interpolation of its coarse cell, whose
 sign is right wherever the field is Lipschitz (below), so one marching-cubes call over the whole
@@ -22,7 +23,7 @@ import torch
 from torch import Tensor, nn
 
 from neuralsurf.errors import ConfigError, ExtractionError, InputError
-from neuralsurf.geometry import take_rows
+from neuralsurf.geometry import float32_holds, take_rows
 from neuralsurf.io.npz import write_npz
 from neuralsurf.marching import cube_triangles, marching_cubes_torch, merge_edge_vertices
 from neuralsurf.progress import progress_bar
@@ -47,13 +48,21 @@ class Grid:
         """Number of grid points along x, y and z."""
         return tuple(c + 1 for c in self.cells)
 
+    @property
+    def dtype(self) -> type:
+        """The type of its world coordinates: np.float32, or np.float64 where float32 would round them by more than
+        `geometry.ROUNDING` of a cell (a grid far from the origin for its cells: georeferenced data)."""
+        far = float(np.abs(self.origin).max()) + max(self.cells) * self.spacing
+        return np.float32 if float32_holds(far, self.spacing) else np.float64
+
     def world(self, index: np.ndarray) -> np.ndarray:
-        """Int[ndarray, "n 3"] grid indices -> Float[ndarray, "n 3"] float32 world points.
+        """Float[ndarray, "n 3"] grid indices (whole for grid points, fractional for vertices) -> Float[ndarray,
+        "n 3"] world points of `dtype`.
 
         The one place grid points become coordinates, so a point gets bit-identical input (and, for
         a deterministic field, value) whichever code path or chunk evaluates it.
         """
-        return (self.origin + index * self.spacing).astype(np.float32)
+        return (self.origin + index.astype(np.float64) * self.spacing).astype(self.dtype)
 
 
 def make_grid(bounds, resolution: int) -> Grid:
@@ -395,8 +404,7 @@ def marching_cubes(values: np.ndarray, grid: Grid, level: float = 0.0, valid: np
                 f"pass bounds that contain the surface, or a level between those values{constant}"
             )
         raise ExtractionError("marching cubes found no faces in the valid part of the grid")
-    world = grid.origin + vertices.astype(np.float64) * grid.spacing
-    return Mesh(torch.from_numpy(world.astype(np.float32)), torch.from_numpy(faces))
+    return Mesh(torch.from_numpy(grid.world(vertices)), torch.from_numpy(faces))
 
 
 def extract_mesh(
@@ -415,7 +423,7 @@ def extract_mesh(
 ) -> Mesh:
     """Marching cubes of the `level` set of `field` inside `bounds`, in the world frame.
 
-    field: callable x[..., 3] float32 (world) -> f[...], negative inside (an nn.Module or a function).
+    field: callable x[..., 3] (world, of `Grid.dtype`) -> f[...], negative inside (an nn.Module or a function).
     resolution: cells along the longest side of the box; voxels are cubes (see `make_grid`).
     bounds: (2, 3) min/max world corners; None uses `field.bounds`.
     chunk_size: points per field call (memory vs. speed; does not change the result).
@@ -434,7 +442,8 @@ def extract_mesh(
         cells marched apart and joined by grid edge); the mesh has the vertices of the dense one, its
         ambiguous cells may be triangulated differently. For fine grids (1024^3 holds 4 GB of values).
 
-    Returns a Mesh (float32 vertices, outward faces), watertight unless the surface leaves the box,
+    Returns a Mesh (vertices of the grid's `Grid.dtype`: float32 unless the box lies far from the origin for its
+    cells; outward faces), watertight unless the surface leaves the box,
     in which case a warning says so. Raises ExtractionError when the field has no sign change in the
     box or returns NaN.
     """
@@ -458,8 +467,7 @@ def extract_mesh(
         if not len(faces):
             raise ExtractionError(f"the field has no {level:g}-level set in the box {box.tolist()}: no cell of the "
                                   f"grid has corners on both sides; pass bounds that contain the surface")
-        world = torch.from_numpy(grid.origin) + vertices * grid.spacing
-        mesh = Mesh(world.float(), faces)
+        mesh = Mesh(torch.from_numpy(grid.world(vertices.numpy())), faces)
     elif depth:
         values, _ = _coarse_to_fine_values(
             field, grid, float(level), float(margin), depth, chunk_size, device, progress
@@ -516,7 +524,7 @@ def sample_grid(
     by less than a cell). Values are float32, one field call per `chunk_size` points.
 
     Args:
-        field: callable x[..., 3] float32 (world) -> f[...] (an nn.Module is evaluated where its
+        field: callable x[..., 3] (world, of `Grid.dtype`) -> f[...] (an nn.Module is evaluated where its
             parameters are, a plain function on `device`).
         resolution: cells along the longest side (>= 2); the grid has resolution + 1 points there.
         bounds: (2, 3) world box; None uses `field.bounds`.
@@ -582,7 +590,8 @@ def field_slice(
     points[..., normal] = box[0, normal] + float(position) * extent[normal]
     points[..., u] = us[None, :]
     points[..., v] = vs[:, None]
-    x = torch.from_numpy(points.reshape(-1, 3).astype(np.float32)).to(field_device(field, device))
+    precision = np.float32 if float32_holds(float(np.abs(box).max()), pixel) else np.float64
+    x = torch.from_numpy(points.reshape(-1, 3).astype(precision)).to(field_device(field, device))
     with torch.no_grad():
         values = torch.cat([field(chunk).reshape(-1).to("cpu", torch.float32) for chunk in x.split(262_144)])
     return values.reshape(height, width)

@@ -506,6 +506,17 @@ SPACING_QUERIES = 100_000
 points the whole cloud's queries took 17 s and 100k of them 3 s, their median 0.3 % off."""
 
 
+ROUNDING = 1e-3
+"""The most by which float32 may round a coordinate, as a share of the finest length that matters there."""
+
+
+def float32_holds(far: float, length: float) -> bool:
+    """Whether float32 holds coordinates up to `far` from the origin to within `ROUNDING` of `length` (a grid's
+    cell, a mesh's edge). False for data far from the origin for its detail, such as georeferenced scans: they need
+    float64, or an origin nearer to them."""
+    return far * float(torch.finfo(torch.float32).eps) <= ROUNDING * length
+
+
 def cloud_spacing(points: Tensor) -> float:
     """Median distance from a point to its nearest other point, over all Float[Tensor, "n 3"] `points` or a
     fixed random `SPACING_QUERIES` of them."""

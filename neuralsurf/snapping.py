@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError
-from neuralsurf.geometry import closest_on_mesh, cloud_spacing, knn, take_rows
+from neuralsurf.geometry import closest_on_mesh, cloud_spacing, float32_holds, knn, take_rows
 from neuralsurf.sampling import held_out_split
 from neuralsurf.structures import Mesh, PointCloud
 
@@ -143,33 +143,39 @@ def snap_to_points(mesh: Mesh, points: Tensor, normals: Tensor, held_out: Tensor
             {"held_out_before": before, "held_out_after": best, "rounds": chosen})
 
 
-def denser_than(spacing: float, mesh: Mesh) -> bool:
-    """Whether points `spacing` apart (`cloud_spacing`) lie closer together than the edges of a non-empty `mesh`
-    (their median): then the points hold detail that the mesh's vertices do not."""
+def median_edge(mesh: Mesh) -> float:
+    """The median length of a non-empty `mesh`'s edges (each face's three)."""
     edges = (mesh.vertices[mesh.faces[:, [1, 2, 0]]] - mesh.vertices[mesh.faces]).norm(dim=-1)
-    return spacing < float(edges.median())
+    return float(edges.median())
 
 
 def snap_to_cloud(mesh: Mesh, cloud: PointCloud, share: float, seed: int = 0) -> Mesh:
     """`snap_to_points` of `mesh` onto a world-frame `cloud` with normals, `share` of its points held out
     (`sampling.held_out_split` with `seed`: a point fit's own held-out points when its share and seed are these),
-    where the points lie closer together than the mesh's edges (`denser_than`); else `mesh`, saying why."""
+    where the points lie closer together than the mesh's edges (`median_edge`); else `mesh`, saying why.
+    Computed in float32 about the cloud's mean where float32 cannot hold its world coordinates (`float32_holds`)."""
     if not 0 < share < 0.5:
         raise ConfigError(f"onto_points is the share of the points held out to choose the move, in (0, 0.5); got "
                           f"{share!r} (0 or null: the mesh as extracted)")
     held, kept = held_out_split(len(cloud), share, seed)
-    points = cloud.points.to(mesh.vertices.device).float()
     movable = cloud.normals is not None and not mesh.is_empty and len(held) > 0 and len(kept) > 1
-    if not movable or not denser_than(spacing := cloud_spacing(points[kept]), mesh):
+    edge = median_edge(mesh) if movable else 0.0
+    # float32 from here, about the cloud's mean where it cannot hold the world coordinates to the mesh's detail
+    near = not movable or float32_holds(float(cloud.points.abs().max()), edge)
+    origin = torch.zeros(3, dtype=torch.float64) if near else cloud.points.double().mean(0)
+    points = (cloud.points if near else cloud.points.double() - origin).to(mesh.vertices.device).float()
+    if not movable or not (spacing := cloud_spacing(points[kept])) < edge:
         log.info("mesh not moved onto the points: %s", "the cloud has no normals" if cloud.normals is None else
                  "the points lie no closer together than the mesh's vertices")
         return mesh
     normals = torch.nn.functional.normalize(cloud.normals.to(points), dim=-1)
-    snapped, measured = snap_to_points(mesh, points[kept], normals[kept], points[held], spacing)
+    origin = origin.to(mesh.vertices.device)
+    local = Mesh((mesh.vertices.double() - origin).float(), mesh.faces, mesh.vertex_colors)
+    snapped, measured = snap_to_points(local, points[kept], normals[kept], points[held], spacing)
     if measured["rounds"] < 0:
         log.info("mesh not moved onto the points: the held-out points (%.4g from it) would not come %g %% closer",
                  measured["held_out_before"], 100 * GAIN)
-    else:
-        log.info("mesh moved onto the points: held-out points %.4g -> %.4g from it (%d smoothing rounds)",
-                 measured["held_out_before"], measured["held_out_after"], measured["rounds"])
-    return snapped
+        return mesh
+    log.info("mesh moved onto the points: held-out points %.4g -> %.4g from it (%d smoothing rounds)",
+             measured["held_out_before"], measured["held_out_after"], measured["rounds"])
+    return Mesh((snapped.vertices.double() + origin).to(mesh.vertices.dtype), snapped.faces, snapped.vertex_colors)

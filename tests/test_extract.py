@@ -137,6 +137,29 @@ def test_output_in_world_frame():
     assert mesh.is_watertight and signed_volume(mesh) > 0
 
 
+FAR = torch.tensor([412_345.0, 5_012_345.0, 100.0], dtype=torch.float64)
+"""A georeferenced origin (metres, UTM): float32 rounds coordinates there by up to 0.25."""
+
+
+@pytest.mark.parametrize("mode", [{"coarse_to_fine": False}, {}, {"sparse": True}])
+def test_a_surface_far_from_the_origin_is_extracted_in_float64_as_at_the_origin(mode):
+    near = Sphere(center=(0.013, -0.021, 0.017), radius=0.3)
+    far = Sphere(center=tuple((FAR + torch.tensor(near.center, dtype=torch.float64)).tolist()), radius=0.3)
+    seen = []
+
+    def far_sdf(x):
+        seen.append(x.dtype)
+        return far.sdf(x)
+
+    expected = extract_mesh(near.sdf, 64, UNIT_BOX, progress=False, **mode)
+    mesh = extract_mesh(far_sdf, 64, UNIT_BOX + FAR, progress=False, **mode)
+    assert set(seen) == {torch.float64} and mesh.vertices.dtype == torch.float64 and expected.vertices.dtype == torch.float32
+    assert mesh.is_watertight and torch.equal(mesh.faces, expected.faces)
+    assert torch.allclose(mesh.vertices - FAR, expected.vertices.double(), atol=1e-5)  # float32 rounding near 0
+    radii = (mesh.vertices - torch.tensor(far.center, dtype=torch.float64)).norm(dim=1)
+    assert (radii - far.radius).abs().max() < 0.02 * make_grid(UNIT_BOX, 64).spacing
+
+
 def test_level_selects_an_offset_surface(sphere):
     mesh = extract_mesh(sphere.sdf, 96, UNIT_BOX, level=0.05)
     radii = mesh.vertices.double().norm(dim=1)

@@ -34,6 +34,17 @@ def test_sphere_in_world_frame():
     assert torch.allclose(mesh.vertices.mean(0), CENTER, atol=0.01)  # lies on its input, not in a unit cube
 
 
+def test_a_cloud_far_from_the_origin_is_solved_as_at_the_origin():
+    """Open3D's solver rounds to float32, which at a georeferenced origin (0.25 there) would miss a 2 m sphere."""
+    far = torch.tensor([412_345.0, 5_012_345.0, 100.0], dtype=torch.float64)
+    cloud = sphere_cloud()
+    expected = reconstruct_poisson(cloud, depth=7, n_threads=1)
+    mesh = reconstruct_poisson(PointCloud(cloud.points + far, cloud.normals), depth=7, n_threads=1)
+    assert len(mesh.faces) == pytest.approx(len(expected.faces), rel=0.01)
+    error = ((mesh.vertices - far - CENTER).norm(dim=1) - RADIUS).abs()
+    assert error.mean() < 0.005 * RADIUS and error.max() < 0.02 * RADIUS
+
+
 def test_density_trim_removes_the_hallucinated_cap():
     """An open hemisphere: Poisson closes it with a low-density cap far from the data; trimming
     the lowest densities removes vertices there first."""

@@ -110,6 +110,17 @@ def test_snap_to_cloud_leaves_a_mesh_where_the_points_hold_nothing_more(coarse, 
             snap_to_cloud(coarse, dense, share)
 
 
+def test_a_cloud_far_from_the_origin_moves_its_mesh_as_at_the_origin(coarse):
+    """Georeferenced coordinates (float32 rounds them by up to 0.25) move the mesh as the same cloud at the origin."""
+    far = torch.tensor([412_345.0, 5_012_345.0, 100.0], dtype=torch.float64)
+    dense = SPHERE.sample_surface(40_000, seed=0)
+    expected = snap_to_cloud(coarse, dense, 0.05)
+    moved = snap_to_cloud(Mesh(coarse.vertices.double() + far, coarse.faces), PointCloud(dense.points + far,
+                                                                                           dense.normals), 0.05)
+    assert moved.vertices.dtype == torch.float64 and torch.equal(moved.faces, expected.faces)
+    assert torch.allclose(moved.vertices - far, expected.vertices.double(), atol=1e-5)
+
+
 def test_the_held_out_split_is_fixed_by_its_seed_and_disjoint():
     held, kept = held_out_split(1000, 0.05, seed=3)
     assert len(held) == 50 and len(kept) == 950

@@ -206,6 +206,18 @@ def test_a_point_fit_refines_the_start_and_stops_on_held_out_points():
         ns.fit(small_refined(), observation, steps=5, patience=-1, device="cpu", progress=False)
 
 
+def test_a_cloud_far_from_the_origin_is_fitted_and_meshed_on_top_of_itself():
+    """Georeferenced coordinates (float32 rounds them by up to 0.25): the fit reads them about their own box, and
+    its mesh comes back in float64 on the sphere."""
+    far = torch.tensor([412_345.0, 5_012_345.0, 100.0], dtype=torch.float64)
+    sphere = Sphere(center=tuple(far.tolist()), radius=0.3)
+    observation = PointSamples(sphere.sample_surface(5000, seed=0), n_near=20_000, n_free=5000, batch_size=512)
+    result = ns.fit(small_refined(), observation, steps=20, device="cpu", progress=False, image_every=0)
+    mesh = ns.extract_mesh(result.field, 64, sparse=True, progress=False)
+    assert mesh.vertices.dtype == torch.float64 and mesh.is_watertight
+    assert sphere.sdf(mesh.vertices).abs().mean() < 0.5 * 0.6 * 1.1 / 32  # half a start voxel of its 0.6 box
+
+
 def test_a_fit_stopped_on_held_out_points_stays_stopped_when_started_again(tmp_path):
     sphere = Sphere(radius=0.3)
     observation = PointSamples(sphere.sample_surface(2000, seed=0), n_near=4000, n_free=1000, batch_size=256,

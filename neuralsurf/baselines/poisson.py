@@ -5,6 +5,7 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+import torch
 
 from neuralsurf import geometry
 from neuralsurf.errors import ConfigError, ExtractionError, InputError
@@ -117,9 +118,14 @@ def reconstruct_poisson(
             stacklevel=2,
         )
         cloud = geometry.estimate_normals(cloud, k=normal_k, orient="mst")
+    # Open3D's solver rounds to float32: a cloud far from the origin for its finest cells is solved about its mean
+    points = cloud.points.detach().cpu().double()
+    far, cell = float(points.abs().max()), float((points.max(0).values - points.min(0).values).max()) / 2**depth
+    origin = torch.zeros(3, dtype=torch.float64) if geometry.float32_holds(far, cell) else points.mean(0)
+    local = PointCloud(points - origin, cloud.normals, cloud.colors)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         result, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-            cloud.to_open3d(), depth=depth, width=0, scale=scale, linear_fit=linear_fit, n_threads=n_threads
+            local.to_open3d(), depth=depth, width=0, scale=scale, linear_fit=linear_fit, n_threads=n_threads
         )
     if len(result.triangles) == 0:
         raise ExtractionError(
@@ -127,6 +133,7 @@ def reconstruct_poisson(
             f"point outward consistently and that the cloud samples a surface"
         )
     mesh = Mesh.from_open3d(result)
+    mesh = Mesh(mesh.vertices + origin, mesh.faces, mesh.vertex_colors)
     if density_trim is not None:
         mesh = trim_low_density(mesh, np.asarray(densities), density_trim)
     return mesh
