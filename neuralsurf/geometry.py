@@ -517,15 +517,26 @@ def float32_holds(far: float, length: float) -> bool:
     return far * float(torch.finfo(torch.float32).eps) <= ROUNDING * length
 
 
+SPACING_NEIGHBOURS = 8
+"""`cloud_spacing` reads this many neighbours of a point, so that repeats of it (a cloud saved twice) are skipped."""
+
+
 def cloud_spacing(points: Tensor) -> float:
-    """Median distance from a point to its nearest other point, over all Float[Tensor, "n 3"] `points` or a
-    fixed random `SPACING_QUERIES` of them."""
+    """Median distance from a point to its nearest point elsewhere (its exact repeats skipped), over all
+    Float[Tensor, "n 3"] `points` or a fixed random `SPACING_QUERIES` of them. Raises InputError when every point
+    read has `SPACING_NEIGHBOURS` - 1 repeats or more."""
     query = points
     if len(points) > SPACING_QUERIES:
         chosen = torch.randperm(len(points), generator=torch.Generator().manual_seed(0))[:SPACING_QUERIES]
         query = points[chosen.to(points.device)]
-    distance, _ = knn(query, points, 2)
-    return float(distance[:, 1].median())
+    distance, _ = knn(query, points, min(SPACING_NEIGHBOURS, max(len(points), 2)))
+    others = distance[:, 1:]  # the first is the point itself
+    nearest = torch.where(others > 0, others, math.inf).min(1).values
+    nearest = nearest[nearest.isfinite()]
+    if not len(nearest):
+        raise InputError(f"the {len(points)} points have no spacing: each repeats {SPACING_NEIGHBOURS - 1} others or "
+                         f"more at exactly its position; merge the repeated points")
+    return float(nearest.median())
 
 
 def point_areas(points: Tensor, k: int = 8) -> Tensor:

@@ -143,3 +143,12 @@ def test_a_large_cloud_s_spacing_is_read_from_a_subset_of_its_points():
     points = Torus(major=0.3, minor=0.1).sample_surface(150_000, seed=0).points.float()
     whole = float(knn(points, points, 2)[0][:, 1].median())
     assert cloud_spacing(points) == pytest.approx(whole, rel=5e-3)
+
+
+def test_a_cloud_saved_twice_has_the_spacing_of_one_copy_and_coincident_points_are_refused():
+    points = Torus(major=0.3, minor=0.1).sample_surface(5000, seed=0).points.float()
+    once = cloud_spacing(points)
+    assert cloud_spacing(torch.cat([points, points])) == once
+    assert cloud_spacing(torch.cat([points] * 3)[torch.randperm(15_000)]) == once
+    with pytest.raises(InputError, match="no spacing: each repeats 7 others or more"):
+        cloud_spacing(torch.cat([points[:10]] * 8))

@@ -140,6 +140,17 @@ def test_point_equations_ask_zero_on_the_points_and_the_offset_along_the_normals
     assert targets.tolist() == pytest.approx([0, 0, 0.1, 0.1, -0.1, -0.1]) and torch.equal(weights, torch.ones(6))
 
 
+def test_a_cloud_saved_twice_starts_as_one_copy():
+    cloud = Sphere(radius=0.3).sample_surface(5000, seed=0)
+    points, normals = cloud.points.float(), cloud.normals.float()
+    once = voxel_start(points, normals, BOX, resolution=64, spacings_per_cell=1.0)
+    twice = voxel_start(torch.cat([points, points]), torch.cat([normals, normals]), BOX, resolution=64,
+                        spacings_per_cell=1.0)
+    assert twice.shape == once.shape
+    x = Sphere(radius=0.3).sample_surface(1000, seed=1).points.float()
+    assert twice(x).abs().mean() < 0.1 * once.voxel
+
+
 def test_the_start_needs_normals_and_a_resolution_its_coarse_grid_divides():
     cloud = Sphere(radius=0.3).sample_surface(100, seed=0)
     with pytest.raises(InputError, match="one normal each"):
