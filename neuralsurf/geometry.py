@@ -293,6 +293,18 @@ def orient_normals(
     return torch.from_numpy(nrm).to(normals)
 
 
+def opposed_share(points: Tensor, normals: Tensor, k: int = 8, most: int = 20_000) -> float:
+    """The share of Float[Tensor, "n 3"] `points` whose unit `normals` point against most of their `k` nearest
+    neighbours' (a fixed random `most` of them, among themselves, for larger clouds): about 0 for oriented normals
+    (under 0.1 % on the Stanford scans merged), about 0.4 for unoriented ones (random signs)."""
+    if len(points) > most:
+        chosen = torch.randperm(len(points), generator=torch.Generator().manual_seed(0))[:most].to(points.device)
+        points, normals = points[chosen], normals[chosen]
+    _, index = knn(points, points, min(k + 1, len(points)))
+    agreement = (normals[index[:, 1:]] * normals[:, None]).sum(-1).sign().sum(1)
+    return float((agreement < 0).double().mean())
+
+
 def _mst_flips(coords: np.ndarray, normals: np.ndarray, k: int) -> np.ndarray:
     """Bool (n,): which normals to flip for consistent signs along the MST (see `orient_normals`).
 

@@ -1,6 +1,7 @@
 """Depth rays and the observation contract against closed-form oracles: ray-sphere hits, exact sphere SDFs."""
 
 import math
+import warnings
 
 import pytest
 import torch
@@ -234,6 +235,28 @@ def test_an_unoriented_noisy_cloud_is_projected_onto_its_local_quadrics_and_an_o
     kept = prepare_cloud(PointCloud(noisy, normals=direction), "estimate", 30, denoise=True)
     assert torch.equal(kept.points, noisy)
     assert PointSamples(PointCloud(noisy)).denoise  # the default for unoriented input
+
+
+@pytest.mark.parametrize("flipped", [0.5, 0.2])
+def test_unoriented_normals_are_made_consistent_with_a_warning_and_oriented_ones_are_kept(flipped):
+    """Oracle: the sphere's outward normals. A share of them flipped at random (normals estimated and saved without
+    orientation) come back outward; normals='given' keeps them as they are."""
+    from neuralsurf.geometry import opposed_share
+    from neuralsurf.observations.points import UNORIENTED, prepare_cloud
+    from neuralsurf.structures import PointCloud
+
+    cloud = Sphere(center=(0.1, -0.2, 0.05), radius=0.4).sample_surface(20_000, seed=0)
+    signs = torch.where(torch.rand(20_000, 1, generator=torch.Generator().manual_seed(1)) < flipped, -1.0, 1.0)
+    unoriented = cloud.with_normals(signs.double() * cloud.normals)
+    assert opposed_share(cloud.points, cloud.normals) == 0 < UNORIENTED < opposed_share(unoriented.points,
+                                                                                         unoriented.normals)
+    with pytest.warns(UserWarning, match="point against most of their neighbours'"):
+        repaired = prepare_cloud(unoriented, "estimate", 30)
+    assert torch.allclose(repaired.normals, cloud.normals)
+    assert torch.allclose(prepare_cloud(unoriented, "given", 30).normals, unoriented.normals)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert torch.allclose(prepare_cloud(cloud, "estimate", 30).normals, cloud.normals)
 
 
 class ScaledSDF(torch.nn.Module):

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor, nn
 
 from neuralsurf.errors import ConfigError, InputError
-from neuralsurf.geometry import estimate_normals, orient_normals, project_to_quadrics
+from neuralsurf.geometry import estimate_normals, opposed_share, orient_normals, project_to_quadrics
 from neuralsurf.losses import clamped_l1, eikonal_loss, normal_loss, off_surface_loss, surface_loss
 from neuralsurf.models.grid import VoxelSDF
 from neuralsurf.observations.base import Observation, Sampler, check_weights
@@ -59,13 +59,14 @@ def given_normals(cloud: PointCloud, normal_k: int, denoise: bool) -> PointCloud
 @register("normal source", "estimate")
 def estimated_normals(cloud: PointCloud, normal_k: int, denoise: bool) -> PointCloud:
     """The cloud's own normals where it has them (zero-length ones replaced by estimates oriented like
-    their neighbours), else PCA estimates over `normal_k` neighbours oriented by an MST; with
+    their neighbours; their signs made consistent where they are not: `consistent_normals`), else PCA estimates over `normal_k` neighbours oriented by an MST; with
     `denoise`, a cloud without normals is first projected onto its local quadrics
     (`geometry.project_to_quadrics`, the same k): unoriented scans are the noisy ones."""
     if cloud.normals is not None:
         zero = _zero_normals(cloud)
         if not zero.any():
-            return cloud.with_normals(torch.nn.functional.normalize(cloud.normals, dim=-1))
+            return cloud.with_normals(consistent_normals(cloud.points, torch.nn.functional.normalize(cloud.normals,
+                                                                                                    dim=-1), normal_k))
         warnings.warn(f"{int(zero.sum())} of {len(cloud)} normals have zero length: replaced by estimated "
                       f"normals oriented like their neighbours", stacklevel=4)
         given = torch.nn.functional.normalize(cloud.normals, dim=-1)
@@ -79,6 +80,27 @@ def estimated_normals(cloud: PointCloud, normal_k: int, denoise: bool) -> PointC
         cloud = PointCloud(project_to_quadrics(cloud.points, estimated, k), colors=cloud.colors)
         estimated = estimate_normals(cloud.points, normal_k)
     return cloud.with_normals(orient_normals(cloud.points, estimated, normal_k))
+
+
+UNORIENTED = 0.02
+"""Given normals count as unoriented where this share of the points or more point against most of their neighbours'
+(`geometry.opposed_share`)."""
+
+
+def consistent_normals(points: Tensor, normals: Tensor, k: int) -> Tensor:
+    """Float[Tensor, "n 3"] unit `normals` of Float[Tensor, "n 3"] `points`, their signs made consistent along a
+    spanning tree of `k` neighbours (`geometry.orient_normals`: outward for one closed surface; the other way where
+    clearly most of the given signs say so) if they are unoriented (`UNORIENTED`), with a warning; else as given."""
+    share = opposed_share(points, normals)
+    if share < UNORIENTED:
+        return normals
+    oriented = orient_normals(points, normals, k).to(normals)
+    if ((oriented * normals).sum(-1) > 0).double().mean() < 0.4:
+        oriented = -oriented
+    warnings.warn(f"{share:.0%} of the points' normals point against most of their neighbours': the normals look "
+                  f"unoriented, so their signs were made consistent (normals='given' fits them as they are)",
+                  stacklevel=5)
+    return oriented
 
 
 @register("normal source", "ignore")
