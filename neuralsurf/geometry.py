@@ -551,6 +551,15 @@ def cloud_spacing(points: Tensor) -> float:
     return float(nearest.median())
 
 
+def colors_from_points(vertices: Tensor, cloud: PointCloud, k: int = 4) -> Tensor:
+    """Float[Tensor, "v 3"]: the colour of each of Float[Tensor, "v 3"] `vertices`, the inverse-distance mean of its
+    `k` nearest points' in a coloured `cloud` (the same frame)."""
+    distance, index = knn(vertices, cloud.points, min(k, len(cloud)))
+    weight = 1 / distance.double().clamp_min(1e-12)
+    colors = cloud.colors.to(vertices.device).double()
+    return ((weight[..., None] * colors[index]).sum(1) / weight.sum(1, keepdim=True)).to(vertices.dtype)
+
+
 def point_areas(points: Tensor, k: int = 8) -> Tensor:
     """Surface area each point stands for, pi r_k^2 / k with r_k the distance to its k-th nearest
     neighbour (k points per disc of that radius). points: Float[Tensor, "n 3"] -> Float[Tensor, "n"]."""

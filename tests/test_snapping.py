@@ -145,3 +145,20 @@ def test_plane_offsets_read_in_chunks_are_the_same(coarse, monkeypatch):
     monkeypatch.setattr("neuralsurf.snapping.CHUNK", 100)
     chunked = plane_offsets(coarse.vertices, cloud.points, cloud.normals, spacing=0.01)
     assert torch.equal(whole[0], chunked[0]) and torch.equal(whole[1], chunked[1])
+
+
+def test_a_coloured_cloud_colours_its_mesh_and_a_plain_one_leaves_it_plain():
+    """Oracle: colours that are a linear function of position; the mesh's vertices take them from the points."""
+    from neuralsurf.scenes import Scene
+    from neuralsurf.scenes.recipes import extract_scene_mesh
+
+    cloud = SPHERE.sample_surface(40_000, seed=0)
+    colour_at = lambda x: (x.double() - torch.tensor(SPHERE.center)) / (2 * SPHERE.radius) + 0.5
+    coloured = PointCloud(cloud.points, cloud.normals, colour_at(cloud.points))
+    mesh = extract_scene_mesh(SPHERE.sdf, Scene("ball", coloured, None), {"resolution": 48, "bounds": BOX,
+                                                                        "progress": False})
+    assert mesh.vertex_colors is not None
+    assert (mesh.vertex_colors.double() - colour_at(mesh.vertices)).abs().max() < 0.02
+    plain = extract_scene_mesh(SPHERE.sdf, Scene("ball", cloud, None), {"resolution": 48, "bounds": BOX,
+                                                                       "progress": False})
+    assert plain.vertex_colors is None and torch.equal(plain.vertices, mesh.vertices)

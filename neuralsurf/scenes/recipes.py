@@ -22,7 +22,7 @@ from neuralsurf.cameras import depth_to_cloud
 from neuralsurf.data import DATASETS, cache_dir, find_folder
 from neuralsurf.errors import ConfigError, MissingDependencyError, NeuralsurfError
 from neuralsurf.extract import NearPointsField, extract_mesh
-from neuralsurf.geometry import cloud_from_mesh
+from neuralsurf.geometry import cloud_from_mesh, colors_from_points
 from neuralsurf.io import (
     read_mesh,
     read_photometric,
@@ -89,7 +89,8 @@ def extract_scene_mesh(field: torch.nn.Module, scene: Scene, extract: dict[str, 
     `near_distance`, or a `near_distance` option) is meshed only that close to its input points, or with an
     `observed_voxel` option only where its frames observed a surface (`extract_observed`, voxels of that size).
     An `onto_points` option (a share) moves the mesh onto the scene's cloud where held out points say it comes
-    closer (`snapping.snap_to_cloud`, that share held out with `seed`: a point fit's own held-out points)."""
+    closer (`snapping.snap_to_cloud`, that share held out with `seed`: a point fit's own held-out points). A mesh of a
+    coloured cloud takes its colours from the nearest points (`geometry.colors_from_points`)."""
     options = dict(extract or {})
     options.pop("format", None)  # the file format of train.py's mesh, not an extract_mesh argument
     voxel = options.pop("observed_voxel", None)
@@ -100,7 +101,10 @@ def extract_scene_mesh(field: torch.nn.Module, scene: Scene, extract: dict[str, 
         mesh = extract_observed(field, ObservedSurface.from_frames(scene.frames, voxel), **kept)
     else:
         mesh = extract_mesh(field if near is None else NearPointsField(field, scene.cloud.points, near), **options)
-    return snap_to_cloud(mesh, scene.cloud, share, seed) if share else mesh
+    mesh = snap_to_cloud(mesh, scene.cloud, share, seed) if share else mesh
+    if mesh.vertex_colors is None and scene.cloud is not None and scene.cloud.colors is not None:
+        mesh = Mesh(mesh.vertices, mesh.faces, colors_from_points(mesh.vertices, scene.cloud))
+    return mesh
 
 
 def data_root(root: str | Path | None = None) -> Path:
