@@ -551,6 +551,16 @@ def cloud_spacing(points: Tensor) -> float:
     return float(nearest.median())
 
 
+def isolated_points(points: Tensor, k: int = 8, factor: float = 10.0) -> Tensor:
+    """Bool[Tensor, "n"]: which of Float[Tensor, "n 3"] `points` have their `k`-th nearest other point more than
+    `factor` times the cloud's median such distance away (statistical outlier removal's test): stray points
+    that no surface at the cloud's spacing passes through. None where that median is 0 (most points repeated)."""
+    distance, _ = knn(points, points, min(k + 1, len(points)))
+    kth = distance[:, -1]
+    typical = float(kth.median())
+    return kth > factor * typical if typical > 0 else torch.zeros(len(points), dtype=torch.bool, device=points.device)
+
+
 def colors_from_points(vertices: Tensor, cloud: PointCloud, k: int = 4) -> Tensor:
     """Float[Tensor, "v 3"]: the colour of each of Float[Tensor, "v 3"] `vertices`, the inverse-distance mean of its
     `k` nearest points' in a coloured `cloud` (the same frame)."""

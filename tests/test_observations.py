@@ -243,7 +243,6 @@ def test_unoriented_normals_are_made_consistent_with_a_warning_and_oriented_ones
     orientation) come back outward; normals='given' keeps them as they are."""
     from neuralsurf.geometry import opposed_share
     from neuralsurf.observations.points import UNORIENTED, prepare_cloud
-    from neuralsurf.structures import PointCloud
 
     cloud = Sphere(center=(0.1, -0.2, 0.05), radius=0.4).sample_surface(20_000, seed=0)
     signs = torch.where(torch.rand(20_000, 1, generator=torch.Generator().manual_seed(1)) < flipped, -1.0, 1.0)

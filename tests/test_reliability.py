@@ -64,6 +64,27 @@ def test_sphere_experiment_on_a_file_of_ones_own(tmp_path):
     assert train(cfg)["steps"] == 2
 
 
+def test_stray_points_of_a_file_are_dropped_with_a_warning_unless_asked_to_keep_them(tmp_path):
+    """Oracle: a sphere's 5,000 points and 4 points placed far from it (and from each other); a cloud whose density
+    falls tenfold across it keeps every point."""
+    from neuralsurf.geometry import isolated_points
+    from neuralsurf.scenes.recipes import file_scene
+
+    sphere = Sphere(radius=0.3).sample_surface(5000, seed=0)
+    stray = torch.tensor([[2.0, 0, 0], [0, -2.5, 0], [1.5, 1.5, 1.5], [0.9, 0.0, 0.0]], dtype=torch.float64)
+    cloud = PointCloud(torch.cat([sphere.points, stray]), torch.cat([sphere.normals, torch.eye(3, 3).repeat(2, 1)[:4]
+                                                                    .double()]))
+    assert isolated_points(cloud.points).nonzero().flatten().tolist() == [5000, 5001, 5002, 5003]
+    write_point_cloud(tmp_path / "scan.ply", cloud)
+    with pytest.warns(UserWarning, match=r"4 of 5004 points lie far .* \(data.drop_isolated=false keeps them\)"):
+        assert torch.equal(file_scene(tmp_path / "scan.ply").cloud.points, sphere.points)
+    assert len(file_scene(tmp_path / "scan.ply", drop_isolated=False).cloud) == 5004
+    g = torch.Generator().manual_seed(0)
+    x = 10 ** torch.rand(20_000, generator=g, dtype=torch.float64)  # spacing grows tenfold along x
+    plane = torch.stack([x, (torch.rand(20_000, generator=g, dtype=torch.float64) - 0.5) * x, torch.zeros_like(x)], 1)
+    assert not isolated_points(plane).any()
+
+
 @pytest.mark.parametrize("name", ["../escape", "a/b", ".hidden"])
 def test_scene_names_cannot_write_outside_the_run_directory(tmp_path, name):
     from neuralsurf.evaluation import run_benchmark

@@ -22,7 +22,7 @@ from neuralsurf.cameras import depth_to_cloud
 from neuralsurf.data import DATASETS, cache_dir, find_folder
 from neuralsurf.errors import ConfigError, MissingDependencyError, NeuralsurfError
 from neuralsurf.extract import NearPointsField, extract_mesh
-from neuralsurf.geometry import cloud_from_mesh, colors_from_points
+from neuralsurf.geometry import cloud_from_mesh, colors_from_points, isolated_points
 from neuralsurf.io import (
     read_mesh,
     read_photometric,
@@ -160,10 +160,19 @@ def analytic_scene(shape: str = "sphere", n_points: int = 20_000, noise_fraction
     return mesh_scene(analytic_shape(shape).mesh(), n_points, noise_fraction, normals, seed, name=name or shape)
 
 
-def file_scene(path: str | Path, ground_truth: str | Path | None = None, name: str | None = None) -> Scene:
-    """A point cloud read from `path`, with an optional ground-truth mesh file."""
+def file_scene(path: str | Path, ground_truth: str | Path | None = None, name: str | None = None,
+               drop_isolated: bool = True) -> Scene:
+    """A point cloud read from `path`, with an optional ground-truth mesh file; with `drop_isolated`, its stray
+    points (`geometry.isolated_points`) dropped with a warning: they would stretch the fit's box around nothing."""
     mesh = read_mesh(ground_truth) if ground_truth is not None else None
-    return Scene(name or Path(path).stem, read_point_cloud(path), mesh, description=f"point cloud {path}")
+    cloud = read_point_cloud(path)
+    isolated = isolated_points(cloud.points) if drop_isolated and len(cloud) > 1 else None
+    if isolated is not None and isolated.any():
+        warnings.warn(f"{path}: {int(isolated.sum())} of {len(cloud)} points lie far from all others (their 8th "
+                      f"nearest point over 10 times the cloud's median such distance away): dropped as outliers "
+                      f"(data.drop_isolated=false keeps them)", stacklevel=2)
+        cloud = cloud.select(~isolated)
+    return Scene(name or Path(path).stem, cloud, mesh, description=f"point cloud {path}")
 
 
 def depth_scene(name: str, frames: DepthFrames, ground_truth: Mesh | None = None, hold_out_every: int = 0,
