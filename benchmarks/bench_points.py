@@ -6,6 +6,7 @@ and Open3D's screened Poisson on the same points and normals, timed in one run.
     python benchmarks/bench_points.py scans    # train.py data=file on the Stanford scans merged ($NEURALSURF_DATA)
     python benchmarks/bench_points.py rounds [--misregistered]  # the move's every count of rounds against Poisson
     python benchmarks/bench_points.py misregistered  # synthetic scans of the bunny out of register
+    python benchmarks/bench_points.py faults   # the demo's points as files come: far away, unoriented, strays, twice
     python benchmarks/bench_points.py curves [--sizes 10000 100000 1000000 5000000] [--resolutions 128 256 512 1024]
                                              [--tables 15 17 19 21] [--widths 32 64 128]
                                              [--plot docs/images/points_scaling.png]
@@ -19,7 +20,8 @@ the fit of those points moved with each count of the move's smoothing rounds (`s
 its held-out points choose, and Poisson depth 9 (`--misregistered`: on the synthetic scans below, the true surface
 scored too). `misregistered` fits scans whose true surface is known (`misregistered_scans`) with and without the move
 onto the points (`extract.onto_points`), and scores them, Poisson and the true surface against the truth and by their
-distances to the scan. `curves` runs
+distances to the scan. `faults` fits (`train.py data=file`) and Poisson depth 9 the demo's 100k points written to a
+file as it is and as real files come (`faulty_clouds`), scored against the bunny where it lies. `curves` runs
 every case in a child process (its peak resident memory is the case's own): the fast fit of 10k to 5M points
 sampled from the bunny with their normals (and the merged scans when present), and the extraction of the 100k fit
 at each resolution, against Poisson depth 9 on the same points, and the fit of `MODEL_POINTS` with each hash-table
@@ -264,6 +266,36 @@ def misregistered(args) -> None:
                   for name, (mesh, wall, cpu, extra) in runs.items()}, scene.ground_truth)
 
 
+FAR = torch.tensor([412_345.0, 5_012_345.0, 100.0], dtype=torch.float64)
+"""A georeferenced origin (UTM metres), where float32 rounds coordinates by up to 0.25."""
+
+
+def faulty_clouds(cloud) -> dict:
+    """Name -> (cloud, offset of its truth): the bunny's `cloud` as files come from the field: as it is, far from the
+    origin (`FAR`), with half its normals flipped (saved unoriented), with 30 stray points in a box three times its
+    size, and saved twice."""
+    g = torch.Generator().manual_seed(3)
+    points, normals = cloud.points.double(), cloud.normals.double()
+    flips = torch.where(torch.rand(len(points), 1, generator=g) < 0.5, -1.0, 1.0).double()
+    low, high = points.min(0).values, points.max(0).values
+    stray = (low + high) / 2 + (torch.rand(30, 3, generator=g, dtype=torch.float64) - 0.5) * 3 * (high - low).max()
+    stray_normals = torch.nn.functional.normalize(torch.randn(30, 3, generator=g, dtype=torch.float64), dim=1)
+    origin = torch.zeros(3, dtype=torch.float64)
+    return {"as it is": (ns.PointCloud(points, normals), origin),
+            "far from the origin": (ns.PointCloud(points + FAR, normals), FAR),
+            "normals unoriented": (ns.PointCloud(points, flips * normals), origin),
+            "30 stray points": (ns.PointCloud(torch.cat([points, stray]), torch.cat([normals, stray_normals])), origin),
+            "saved twice": (ns.PointCloud(points.repeat(2, 1), normals.repeat(2, 1)), origin)}
+
+
+def faults(args) -> None:
+    bunny = ns.scenes.bunny()
+    for case, (cloud, offset) in faulty_clouds(cloud_from_mesh(bunny, n=100_000, noise=0.0, seed=0)).items():
+        truth = ns.Mesh(bunny.vertices.double() + offset, bunny.faces)
+        print(f"{case}: {len(cloud)} points", flush=True)
+        scored_lines(file_runs(cloud), truth)
+
+
 def peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
@@ -386,7 +418,7 @@ def main() -> None:
         print(json.dumps(one_case(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5:])))
         return
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["bunny", "scans", "rounds", "misregistered", "curves"])
+    parser.add_argument("what", choices=["bunny", "scans", "rounds", "misregistered", "faults", "curves"])
     parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000, 5_000_000])
     parser.add_argument("--resolutions", type=int, nargs="+", default=[128, 256, 512, 1024])
     parser.add_argument("--tables", type=int, nargs="+", default=[15, 17, 19, 21], help="log2 hash-table sizes")
@@ -396,7 +428,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.what != "curves":  # each of its cases runs in a process of its own, loading what it calls
         load_libraries()
-    {"bunny": bunny, "scans": scans, "rounds": rounds, "misregistered": misregistered,
+    {"bunny": bunny, "scans": scans, "rounds": rounds, "misregistered": misregistered, "faults": faults,
      "curves": curves}[args.what](args)
 
 
