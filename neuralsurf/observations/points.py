@@ -59,9 +59,9 @@ def given_normals(cloud: PointCloud, normal_k: int, denoise: bool) -> PointCloud
 @register("normal source", "estimate")
 def estimated_normals(cloud: PointCloud, normal_k: int, denoise: bool) -> PointCloud:
     """The cloud's own normals where it has them (zero-length ones replaced by estimates oriented like
-    their neighbours; their signs made consistent where they are not: `consistent_normals`), else PCA estimates over `normal_k` neighbours oriented by an MST; with
-    `denoise`, a cloud without normals is first projected onto its local quadrics
-    (`geometry.project_to_quadrics`, the same k): unoriented scans are the noisy ones."""
+    their neighbours; unoriented ones given consistent signs: `consistent_normals`), else PCA estimates over
+    `normal_k` neighbours oriented by an MST; with `denoise`, a cloud without normals is first projected onto its
+    local quadrics (`geometry.project_to_quadrics`, the same k): unoriented scans are the noisy ones."""
     if cloud.normals is not None:
         zero = _zero_normals(cloud)
         if not zero.any():
