@@ -529,6 +529,15 @@ def float32_holds(far: float, length: float) -> bool:
     return far * float(torch.finfo(torch.float32).eps) <= ROUNDING * length
 
 
+def local_origin(points: Tensor, length: float) -> Tensor:
+    """Float64[Tensor, "3"]: where to put the origin before working on Float[Tensor, "n 3"] `points` in float32: the
+    origin itself where float32 holds them to `length` (`float32_holds`; subtracting it changes nothing), else
+    their mean."""
+    if float32_holds(float(points.detach().abs().max()), length):
+        return torch.zeros(3, dtype=torch.float64, device=points.device)
+    return points.detach().double().mean(0)
+
+
 SPACING_NEIGHBOURS = 8
 """`cloud_spacing` reads this many neighbours of a point, so that repeats of it (a cloud saved twice) are skipped."""
 

@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from neuralsurf.errors import ConfigError
-from neuralsurf.geometry import closest_on_mesh, cloud_spacing, float32_holds, knn, take_rows
+from neuralsurf.geometry import closest_on_mesh, cloud_spacing, knn, local_origin, take_rows
 from neuralsurf.sampling import held_out_split
 from neuralsurf.structures import Mesh, PointCloud
 
@@ -153,18 +153,18 @@ def snap_to_cloud(mesh: Mesh, cloud: PointCloud, share: float, seed: int = 0) ->
     """`snap_to_points` of `mesh` onto a world-frame `cloud` with normals, `share` of its points held out
     (`sampling.held_out_split` with `seed`: a point fit's own held-out points when its share and seed are these),
     where the points lie closer together than the mesh's edges (`median_edge`); else `mesh`, saying why.
-    Computed in float32 about the cloud's mean where float32 cannot hold its world coordinates (`float32_holds`)."""
+    Computed in float32 about the cloud's `local_origin`."""
     if not 0 < share < 0.5:
         raise ConfigError(f"onto_points is the share of the points held out to choose the move, in (0, 0.5); got "
                           f"{share!r} (0 or null: the mesh as extracted)")
     held, kept = held_out_split(len(cloud), share, seed)
     movable = cloud.normals is not None and not mesh.is_empty and len(held) > 0 and len(kept) > 1
-    edge = median_edge(mesh) if movable else 0.0
-    # float32 from here, about the cloud's mean where it cannot hold the world coordinates to the mesh's detail
-    near = not movable or float32_holds(float(cloud.points.abs().max()), edge)
-    origin = torch.zeros(3, dtype=torch.float64) if near else cloud.points.double().mean(0)
-    points = (cloud.points if near else cloud.points.double() - origin).to(mesh.vertices.device).float()
-    if not movable or not (spacing := cloud_spacing(points[kept])) < edge:
+    if movable:
+        edge = median_edge(mesh)
+        origin = local_origin(cloud.points, edge)  # float32 from here, about it
+        points = (cloud.points.double() - origin if origin.any() else cloud.points).to(mesh.vertices.device).float()
+        movable = (spacing := cloud_spacing(points[kept])) < edge
+    if not movable:
         log.info("mesh not moved onto the points: %s", "the cloud has no normals" if cloud.normals is None else
                  "the points lie no closer together than the mesh's vertices")
         return mesh

@@ -5,7 +5,6 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
-import torch
 
 from neuralsurf import geometry
 from neuralsurf.errors import ConfigError, ExtractionError, InputError
@@ -120,8 +119,7 @@ def reconstruct_poisson(
         cloud = geometry.estimate_normals(cloud, k=normal_k, orient="mst")
     # Open3D's solver rounds to float32: a cloud far from the origin for its finest cells is solved about its mean
     points = cloud.points.detach().cpu().double()
-    far, cell = float(points.abs().max()), float((points.max(0).values - points.min(0).values).max()) / 2**depth
-    origin = torch.zeros(3, dtype=torch.float64) if geometry.float32_holds(far, cell) else points.mean(0)
+    origin = geometry.local_origin(points, float((points.max(0).values - points.min(0).values).max()) / 2**depth)
     local = PointCloud(points - origin, cloud.normals, cloud.colors)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         result, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(

@@ -166,8 +166,7 @@ def file_scene(path: str | Path, ground_truth: str | Path | None = None, name: s
     points (`geometry.isolated_points`) dropped with a warning: they would stretch the fit's box around nothing."""
     mesh = read_mesh(ground_truth) if ground_truth is not None else None
     cloud = read_point_cloud(path)
-    isolated = isolated_points(cloud.points) if drop_isolated and len(cloud) > 1 else None
-    if isolated is not None and isolated.any():
+    if drop_isolated and len(cloud) > 1 and (isolated := isolated_points(cloud.points)).any():
         warnings.warn(f"{path}: {int(isolated.sum())} of {len(cloud)} points lie far from all others (their 8th "
                       f"nearest point over 10 times the cloud's median such distance away): dropped as outliers "
                       f"(data.drop_isolated=false keeps them)", stacklevel=2)
